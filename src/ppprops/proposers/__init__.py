@@ -1,0 +1,7 @@
+"""Proposers speak ask/tell; ``ppprops.loop`` evaluates, records and reports for all of them."""
+
+from .base import Proposal, Proposer
+from .llm import LLMProposer
+from .uniform import UniformSampler
+
+__all__ = ["LLMProposer", "Proposal", "Proposer", "UniformSampler"]

@@ -1,0 +1,54 @@
+"""Value types that are safe to show the provider: already-encoded numbers and public prose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class EncodedEntry:
+    """One history entry as the LLM may see it.
+
+    ``params`` are theta~ = A theta (or theta itself when the preset does not encode parameters);
+    ``ret`` and ``components`` are c * r (or r when rewards are not scaled); ``diagnostics`` are
+    non-reward quantities and are shown as they are. ``index`` orders ties stably and is never shown.
+    """
+
+    index: int
+    params: tuple[float, ...]
+    ret: float
+    components: tuple[tuple[str, float], ...] = ()
+    diagnostics: tuple[tuple[str, float | str], ...] = ()
+
+
+@dataclass(frozen=True)
+class PromptContext:
+    """Public facts about the task and the preset, fixed for a run. Built once by the client."""
+
+    summary: str
+    observations: tuple[tuple[str, str], ...]  # (name, meaning) per state variable, in layout order
+    actions: tuple[str, ...]
+    discrete: bool
+    reward_text: str
+    hints: str
+    encoded_params: bool
+    scaled_rewards: bool
+    detailed_feedback: bool
+    param_range: tuple[float, float] | None  # shown only for unencoded parameters
+    optimum: float | None  # already on the prompt's reward scale; None when withheld
+    component_notes: tuple[tuple[str, str], ...] = ()
+    diagnostic_notes: tuple[tuple[str, str], ...] = ()
+    decimals: int = 2
+    history_limit: int = 0  # K, 0 for unbounded; only shapes the wording
+
+    @property
+    def n_s(self) -> int:
+        return len(self.observations)
+
+    @property
+    def n_a(self) -> int:
+        return len(self.actions)
+
+    @property
+    def D(self) -> int:
+        return (self.n_s + 1) * self.n_a

@@ -1,0 +1,91 @@
+"""Pure functions from (public context, encoded history) to prompt text. Templates live in files."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import cache
+from importlib import resources
+from string import Template
+
+from . import layout
+from .encoded import EncodedEntry, PromptContext
+from .numbers import fmt, fmt_value, fmt_vector
+
+
+@cache
+def template(name: str) -> Template:
+    text = resources.files("ppprops.wire.templates").joinpath(f"{name}.txt").read_text(encoding="utf-8")
+    return Template(text.rstrip("\n"))
+
+
+def _render(name: str, **values: object) -> str:
+    return template(name).substitute(**values)
+
+
+def task_section(ctx: PromptContext) -> str:
+    obs = "\n".join(f"- s[{i}] {name}: {meaning}" for i, (name, meaning) in enumerate(ctx.observations))
+    acts = "\n".join(f"- u[{j}]: {meaning}" for j, meaning in enumerate(ctx.actions))
+    return _render(
+        "task",
+        summary=ctx.summary,
+        n_s=ctx.n_s,
+        n_a=ctx.n_a,
+        observations=obs,
+        actions=acts,
+        action_rule=_render("action_discrete" if ctx.discrete else "action_continuous"),
+        reward_text=ctx.reward_text,
+        hints=ctx.hints,
+    ).rstrip()
+
+
+def parameters_section(ctx: PromptContext) -> str:
+    desc = layout.describe(ctx.n_s, ctx.n_a)
+    if ctx.encoded_params:
+        return _render("parameters_encoded", layout=desc)
+    if ctx.param_range is None:
+        raise ValueError("unencoded parameters need a public range")
+    low, high = ctx.param_range
+    return _render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+
+
+def feedback_section(ctx: PromptContext) -> str:
+    scale = _render("scale_note") if ctx.scaled_rewards else ""
+    optimum = _render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
+    if not ctx.detailed_feedback:
+        return _render("feedback_scalar", scale_note=scale, optimum_note=optimum)
+    notes = [f"- component {k}: {v}" for k, v in ctx.component_notes]
+    notes += [f"- diagnostic {k}: {v}" for k, v in ctx.diagnostic_notes]
+    return _render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
+
+
+def interaction_section(ctx: PromptContext) -> str:
+    size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
+    return _render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
+
+
+def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
+    if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
+        raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
+    d = ctx.decimals
+    comps = diags = ""
+    if ctx.detailed_feedback and e.components:
+        comps = "\ncomponents: " + ", ".join(f"{k}={fmt(v, d)}" for k, v in e.components)
+    if ctx.detailed_feedback and e.diagnostics:
+        diags = "\ndiagnostics: " + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
+    return _render("history_entry", params=fmt_vector(e.params, d), ret=fmt(e.ret, d), components=comps, diagnostics=diags)
+
+
+def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
+    hist = "\n\n".join(history_entry(ctx, e) for e in history) if history else "(empty)"
+    return _render(
+        "prompt",
+        task=task_section(ctx),
+        parameters=parameters_section(ctx),
+        feedback=feedback_section(ctx),
+        interaction=interaction_section(ctx),
+        history=hist,
+    )
+
+
+def build_correction(reason: str, D: int) -> str:
+    return _render("correction", reason=reason, D=D)
