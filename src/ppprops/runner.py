@@ -46,8 +46,11 @@ def new_run_id(config: RunConfig) -> str:
     return f"{config.task}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}"
 
 
-def create_run(config: RunConfig, run_dir: Path) -> tuple[RunStore, Secrets]:
-    """Make the directory, key file and store. Refuses a directory that already holds something."""
+def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None) -> tuple[RunStore, Secrets]:
+    """Make the directory, key file and store. Refuses a directory that already holds something.
+
+    ``secrets`` is for tests and controlled experiments; normally they are drawn fresh here.
+    """
     config.validate()
     task = get_task(config.task)
     run_dir = Path(run_dir)
@@ -58,8 +61,11 @@ def create_run(config: RunConfig, run_dir: Path) -> tuple[RunStore, Secrets]:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"cannot create output directory {run_dir}: {e.strerror}") from None
-    run_id = new_run_id(config)
-    secrets = Secrets.generate(run_id, task.D)
+    run_id = new_run_id(config) if secrets is None else secrets.run_id
+    if secrets is None:
+        secrets = Secrets.generate(run_id, task.D)
+    elif len(secrets.a) != task.D:
+        raise ConfigError(f"given secrets have D={len(secrets.a)}, task {task.name} needs {task.D}")
     secrets.save(run_dir / KEY_NAME)
     store = open_store(run_dir, create=True)
     store.init_run(run_id, config.to_json(), secrets.fingerprint())
@@ -176,8 +182,10 @@ class LazyChat:
         self._stack.close()
 
 
-def start(config: RunConfig, run_dir: Path, events: RunEvents = RunEvents()) -> FinalEval | None:
-    store, secrets = create_run(config, run_dir)
+def start(
+    config: RunConfig, run_dir: Path, events: RunEvents = RunEvents(), *, secrets: Secrets | None = None
+) -> FinalEval | None:
+    store, secrets = create_run(config, run_dir, secrets)
     try:
         return execute(run_dir, store, config, secrets, events)
     finally:
