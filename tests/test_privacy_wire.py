@@ -1,0 +1,109 @@
+"""For pp, the bytes sent over HTTP hold no raw parameter, raw return or optimal return.
+
+A recording proxy sits between ppprops and the embedded llama.cpp server and keeps every byte
+sent. The check reads those bytes the way the prompt writes values (the history's params
+arrays, return lines and reward components, at the prompt's precision and as integers) and
+compares them with the raw values recorded on the client. Secrets are fixed here so the check
+is deterministic; the same check must flag a vanilla run, which sends raw values by design.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppprops.client.secrets import Secrets
+from ppprops.config import LLMConfig
+from ppprops.llm.embedded import MODEL_ALIAS
+from ppprops.runner import start
+from ppprops.store import open_store
+from ppprops.tasks import get_task
+from support import make_config, recording_proxy
+
+pytestmark = pytest.mark.llm
+
+ENTRY = re.compile(r"params: \[([^\]]*)\]\nreturn: (\S+)(?:\ncomponents: ([^\n]*))?")
+
+
+def _renderings(x: float, decimals: int) -> set[str]:
+    """The ways a prompt could write x: at 0..decimals+2 decimals, and as an integer."""
+    out = {f"{x:.{d}f}" for d in range(decimals + 3)}
+    if float(x).is_integer():
+        out.add(str(int(x)))
+    return {s[1:] if s.startswith("-") and float(s) == 0 else s for s in out}
+
+
+def leaks(requests: list[bytes], run_dir: Path, optimum: float | None) -> list[str]:
+    store = open_store(run_dir)
+    cands = store.candidates()
+    decimals = int(store.config()["decimals"])
+    store.close()
+    found: list[str] = []
+    for raw in requests:
+        body = raw.split(b"\r\n\r\n", 1)[1]
+        if not body:
+            continue
+        text = "\n".join(m["content"] for m in json.loads(body)["messages"])
+        for m in ENTRY.finditer(text):
+            shown = [float(v) for v in m.group(1).split(",")]
+            for c in cands:
+                # zero maps to zero under any diagonal scaling (the scheme keeps signs and zeros
+                # by design), so only nonzero coordinates can reveal a magnitude
+                nonzero = [(p, s) for p, s in zip(c.params, shown) if float(f"{p:.{decimals}f}") != 0.0]
+                same = sum(f"{p:.{decimals}f}" == f"{s:.{decimals}f}" for p, s in nonzero)
+                if nonzero and same > len(nonzero) // 2:
+                    found.append(f"raw params of candidate {c.index}")
+                if any(m.group(2) == r for r in _renderings(c.ret, decimals)) and _same_entry(c, shown, decimals):
+                    found.append(f"raw return of candidate {c.index}")
+            if m.group(3):
+                for c in cands:
+                    if _same_entry(c, shown, decimals):
+                        for k, v in c.feedback.components.items():
+                            if re.search(rf"\b{re.escape(k)}=({'|'.join(map(re.escape, _renderings(v, decimals)))})\b", m.group(3)):
+                                found.append(f"raw component {k} of candidate {c.index}")
+        if optimum is not None:
+            for r in _renderings(optimum, decimals):
+                # the episode_length diagnostic is the one known channel that can print this number
+                hits = [h for h in re.finditer(rf"(?<![\w.]){re.escape(r)}(?![\w.])", text)
+                        if not text[: h.start()].endswith("episode_length=")]
+                if hits:
+                    found.append(f"optimal return {r}")
+            if "optimal return" in text:
+                found.append("optimal return stated")
+    return found
+
+
+def _same_entry(c, shown: list[float], decimals: int) -> bool:  # type: ignore[no-untyped-def]
+    return all(f"{p:.{decimals}f}" == f"{s:.{decimals}f}" for p, s in zip(c.params_enc, shown))
+
+
+def _proxied_run(tmp_path: Path, embedded_server, method: str, task: str) -> tuple[list[bytes], Path]:  # type: ignore[no-untyped-def]
+    t = get_task(task)
+    rng = np.random.default_rng(11)
+    secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193)
+    with recording_proxy(embedded_server.base_url.removesuffix("/v1")) as (url, captured):
+        llm = LLMConfig(base_url=url + "/v1", model=MODEL_ALIAS, structured="grammar")
+        cfg = make_config(task, method, warmup=6, iterations=5, final_episodes=0, llm=llm)
+        start(cfg, tmp_path / method, secrets=secrets)
+    return list(captured), tmp_path / method
+
+
+@pytest.mark.parametrize("task", ["CartPole", "Acrobot"])
+def test_pp_sends_no_raw_value(tmp_path: Path, embedded_server, task: str) -> None:  # type: ignore[no-untyped-def]
+    requests, run_dir = _proxied_run(tmp_path, embedded_server, "pp", task)
+    posts = [r for r in requests if r.startswith(b"POST")]
+    assert len(posts) >= 5
+    assert sum(b"params: [" in r for r in posts) == len(posts)  # the check did read history entries
+    assert leaks(posts, run_dir, get_task(task).optimal_return) == []
+
+
+def test_the_check_flags_vanilla(tmp_path: Path, embedded_server) -> None:  # type: ignore[no-untyped-def]
+    requests, run_dir = _proxied_run(tmp_path, embedded_server, "vanilla", "CartPole")
+    found = leaks([r for r in requests if r.startswith(b"POST")], run_dir, 500.0)
+    assert any(f.startswith("raw params") for f in found)
+    assert any(f.startswith("raw return") for f in found)
+    assert "optimal return stated" in found
