@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -52,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--episodes", type=int, default=1, help="episodes per candidate (default 1)")
     r.add_argument("--final-episodes", type=int, default=20, help="fresh episodes for the best policy (default 20)")
     r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>)")
+    r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>__<time>)")
     r.add_argument("--box", type=_box, default=(-6.0, 6.0), metavar="LOW,HIGH", help="feasible range of every parameter")
     r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
     r.add_argument("--parse-retries", type=int, default=2, help="corrections asked for before a fallback (default 2)")
@@ -139,7 +140,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
     config = _run_config(a)
     config.validate()
-    out = a.out or Path("runs") / f"{config.task}__{config.method}__{config.seed}"
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = a.out or Path("runs") / f"{config.task}__{config.method}__{config.seed}__{stamp}"
     with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
         start(config, out, events.hooks())
     print(format_summary(run_summary(out)))
