@@ -13,7 +13,8 @@ from typing import Any
 from . import __version__
 from .config import LLMConfig, RunConfig
 from .errors import PPPropsError
-from .methods import PRESETS, resolve
+from .methods import PRESETS, Mechanisms, resolve
+from .strategies import BLACK_BOX
 
 EXIT_INPUT = 2
 
@@ -46,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("run", help="start a search")
     r.add_argument("--env", required=True, help="task name (see `ppprops envs`) or its Gymnasium id")
-    r.add_argument("--method", choices=sorted(PRESETS), default="pp", help="preset of the paper (default pp)")
+    r.add_argument("--method", choices=[*PRESETS, *BLACK_BOX], default="pp",
+                   help="a preset of the paper (default pp), or a black-box baseline at the same budget")
     r.add_argument("--warmup", type=int, default=10, help="random warm-up policies (default 10)")
     r.add_argument("--iterations", type=int, default=50, help="LLM iterations (default 50)")
     r.add_argument("--top-k", type=int, default=10, help="history entries in the prompt; 0 = all (default 10)")
@@ -95,14 +97,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run_config(a: argparse.Namespace) -> RunConfig:
-    mech = resolve(
-        a.method,
-        encode_params=a.encode_params,
-        scale_rewards=a.scale_rewards,
-        detailed_feedback=a.detailed_feedback,
-        disclose_optimum=a.disclose_optimum,
-        disclose_reward_structure=a.disclose_reward_structure,
-    )
+    if a.method in BLACK_BOX:
+        # no prompt: only whether the optimizer works in the encoded space matters
+        mech = Mechanisms(bool(a.encode_params), bool(a.encode_params), False, False, False)
+    else:
+        mech = resolve(
+            a.method,
+            encode_params=a.encode_params,
+            scale_rewards=a.scale_rewards,
+            detailed_feedback=a.detailed_feedback,
+            disclose_optimum=a.disclose_optimum,
+            disclose_reward_structure=a.disclose_reward_structure,
+        )
     from .tasks import get_task
 
     task = get_task(a.env)

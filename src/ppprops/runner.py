@@ -26,6 +26,7 @@ from .llm.client import ChatClient, Exchange
 from .loop import Phase, best_candidate, run_loop
 from .policy_file import policy_document, write_json_atomic
 from .proposers import LLMProposer, UniformSampler
+from .strategies import BLACK_BOX, black_box_phase
 from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
 from .tasks import Task, get_task
 
@@ -121,7 +122,9 @@ def execute(run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets,
             warmup = UniformSampler(task.D, config.box, config.seed)
             phases = [Phase("warmup", warmup, config.warmup)]
             proposer: LLMProposer | None = None
-            if config.iterations > 0:
+            if config.iterations > 0 and config.method in BLACK_BOX:
+                phases.append(black_box_phase(task, config, codec))
+            elif config.iterations > 0:
                 chat = stack.enter_context(closing(LazyChat(config)))
                 proposer = LLMProposer(
                     chat=chat,

@@ -1,0 +1,87 @@
+"""CMA-ES (pycma) as a proposer: an equal-budget black-box baseline for the LLM.
+
+It starts after the same uniform warm-up as PP-ProPS: the mean is the best warm-up policy.
+Two spaces:
+- ``raw``: CMA-ES searches theta inside the public box (pycma's bound transform keeps every
+  sample feasible), sigma0 = 0.3 x box width;
+- ``encoded``: CMA-ES sees only what a provider would see, theta~ = A theta and c r, with no box
+  (the per-coordinate range would reveal A). It takes per-coordinate step sizes from the spread
+  of the encoded warm-up samples; the client decodes and clips its proposals.
+
+Populations are generated deterministically from the run seed, so a resumed run regenerates
+exactly the population it was in the middle of.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from ..client.codec import Codec
+from ..errors import MissingExtraError
+from ..store import Candidate
+from .base import Proposal, clip_to_box
+
+Space = Literal["raw", "encoded"]
+
+
+class CMAESProposer:
+    def __init__(self, *, D: int, box: tuple[float, float], seed: int, codec: Codec, space: Space = "raw",
+                 popsize: int | None = None, source: str = "cmaes") -> None:
+        try:
+            import cma  # noqa: F401
+        except ImportError as e:
+            raise MissingExtraError("baselines", "--method cmaes") from e
+        self.D, self.box, self.seed, self.codec, self.space = D, box, seed, codec, space
+        self.popsize = popsize
+        self.source = source
+        self._warmup: list[Candidate] = []
+        self._es = None
+        self._pop: list[np.ndarray] | None = None
+        self._fit: list[float] = []
+
+    def _start(self) -> None:
+        import cma
+
+        if not self._warmup:
+            raise RuntimeError("CMA-ES starts from the warm-up; none was told")
+        best = max(self._warmup, key=lambda c: c.ret)
+        lo, hi = self.box
+        opts: dict[str, object] = {"seed": int(self.seed % (2**31 - 1)) + 1, "verbose": -9}
+        if self.popsize:
+            opts["popsize"] = self.popsize
+        if self.space == "raw":
+            opts["bounds"] = [lo, hi]
+            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), 0.3 * (hi - lo), opts)
+        else:
+            spread = np.std([c.params_enc for c in self._warmup], axis=0)
+            spread = np.where(spread > 0, spread, 1.0)
+            opts["CMA_stds"] = spread.tolist()
+            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params_enc), 1.0, opts)
+
+    def _population(self) -> list[np.ndarray]:
+        if self._es is None:
+            self._start()
+        if self._pop is None:
+            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]  # type: ignore[union-attr]
+            self._fit = []
+        return self._pop
+
+    def ask(self, iteration: int) -> Proposal:
+        x = self._population()[len(self._fit)]
+        theta = x if self.space == "raw" else self.codec.decode(x)
+        theta, clipped = clip_to_box(theta, self.box)
+        return Proposal(theta=theta, source=self.source, clipped=clipped)
+
+    def tell(self, candidate: Candidate) -> None:
+        if candidate.source != self.source:
+            self._warmup.append(candidate)
+            return
+        pop = self._population()
+        # pycma minimises; in the encoded space it only ever sees the scaled return
+        ret = candidate.feedback.ret if self.space == "raw" else candidate.feedback_enc.ret
+        self._fit.append(-ret if np.isfinite(ret) else np.inf)
+        if len(self._fit) == len(pop):
+            self._es.tell(pop, self._fit)  # type: ignore[union-attr]
+            self._pop = None
