@@ -21,6 +21,15 @@ Evaluate = Callable[[np.ndarray, int], tuple[Feedback, Sequence[int]]]
 OnCandidate = Callable[[Candidate], None]
 
 
+class StopSearch(Exception):
+    """Raised by a proposer that cannot go on (e.g. its prompt no longer fits the context
+    window). The run stops there and reports the best policy found before it."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 @dataclass(frozen=True)
 class Phase:
     name: str

@@ -1,0 +1,119 @@
+"""R2PO (reflective prompted policy optimization) as a two-stage proposer.
+
+Each two-stage iteration asks twice: a Search-LLM proposes a candidate from the history (the
+ordinary ProPS prompt); after it is evaluated, a Critic-LLM revises it from trajectory evidence
+(return and episode-length statistics, success and failure rates, the median rollout as a
+state -> action sequence) and is told to keep what works. Both are evaluated and recorded; only
+the better of the two enters the history the Search-LLM sees. So ``--iterations 50`` means 25
+two-stage iterations and 50 LLM calls, as in the paper.
+
+Before each call the prompt's size is checked against the model's context window; a prompt
+that would not fit stops the run (``StopSearch``), which then reports the best policy found.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..client.codec import Codec
+from ..llm.client import Chat
+from ..loop import StopSearch
+from ..store import Candidate
+from ..wire import PromptContext
+from ..wire.r2po import Evidence, build_critic_prompt
+from .base import Proposal
+from .llm import ExchangeHook, LLMProposer
+
+Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
+CountTokens = Callable[[str], int]
+
+SEARCH, CRITIC = "r2po-search", "r2po-critic"
+
+
+class _Critic(LLMProposer):
+    """The LLM proposer machinery (retries, parsing, decoding, fallback) with the critic's prompt."""
+
+    evidence: Evidence | None = None
+
+    def prompt(self) -> str:
+        assert self.evidence is not None
+        return build_critic_prompt(self.ctx, self.evidence)
+
+
+class R2POProposer:
+    def __init__(
+        self,
+        *,
+        chat: Chat,
+        codec: Codec,
+        context: PromptContext,
+        top_k: int,
+        box: tuple[float, float],
+        seed: int,
+        rollout: Rollout,
+        count_tokens: CountTokens,
+        context_window: int,
+        max_tokens: int,
+        parse_retries: int = 2,
+        on_exchange: ExchangeHook | None = None,
+    ) -> None:
+        common = dict(chat=chat, codec=codec, context=context, box=box, seed=seed, parse_retries=parse_retries, on_exchange=on_exchange)
+        self.search = LLMProposer(top_k=top_k, **common)  # type: ignore[arg-type]
+        self.critic = _Critic(top_k=top_k, **common)  # type: ignore[arg-type]
+        self.rollout = rollout
+        self.count_tokens = count_tokens
+        self.context_window = context_window
+        self.max_tokens = max_tokens
+        self.pending: Candidate | None = None
+
+    @property
+    def last_latency(self) -> float | None:
+        return self.critic.last_latency or self.search.last_latency
+
+    def _check_fits(self, prompt: str, iteration: int) -> None:
+        need = self.count_tokens(prompt) + self.max_tokens
+        if need > self.context_window:
+            raise StopSearch(
+                f"context overflow at LLM call {iteration}: the prompt needs about {need} tokens"
+                f" (with the answer), the context window holds {self.context_window}"
+            )
+
+    def evidence(self, c: Candidate) -> Evidence:
+        fb = c.feedback_enc
+        rets = np.asarray(fb.episode_returns, dtype=float)
+        order = np.argsort(rets, kind="stable")
+        median_idx = int(order[(len(order) - 1) // 2])
+        _, steps = self.rollout(c.params, c.seeds[median_idx])
+        return Evidence(
+            params=tuple(float(v) for v in c.params_enc),
+            returns=(float(rets.mean()), float(rets.std()), float(rets.min()), float(rets.max())),
+            episodes=len(rets),
+            diagnostics=tuple(fb.diagnostics.items()),
+            median_return=float(rets[median_idx]),
+            median_rollout=tuple(steps),
+        )
+
+    def ask(self, iteration: int) -> Proposal:
+        if iteration % 2 == 0:
+            self._check_fits(self.search.prompt(), iteration)
+            p = self.search.ask(iteration)
+            return Proposal(p.theta, SEARCH if p.source == "llm" else p.source, p.clipped, p.note)
+        if self.pending is None:
+            raise RuntimeError("R2PO critic stage without an evaluated search candidate")
+        self.critic.evidence = self.evidence(self.pending)
+        self.critic.best = self.pending  # a failed revision falls back to a perturbation of the proposal
+        self._check_fits(self.critic.prompt(), iteration)
+        p = self.critic.ask(iteration)
+        return Proposal(p.theta, CRITIC if p.source == "llm" else p.source, p.clipped, p.note)
+
+    def tell(self, candidate: Candidate) -> None:
+        if candidate.source == "warmup":
+            self.search.tell(candidate)
+        elif self.pending is None:  # the search stage's candidate (or its fallback)
+            self.pending = candidate
+        else:  # the critic stage's: keep the better of proposal and revision
+            better = candidate if candidate.ret > self.pending.ret else self.pending
+            self.search.tell(better)
+            self.pending = None
