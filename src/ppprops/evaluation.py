@@ -6,14 +6,17 @@ by ``ppprops.wire``.
 
 from __future__ import annotations
 
+import multiprocessing
 from collections import Counter
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .errors import ConfigError
 from .policy import LinearPolicy
 from .tasks.base import Diagnostic, Task
 
@@ -109,12 +112,44 @@ def aggregate(episodes: Sequence[Episode]) -> Feedback:
     return Feedback(ret=ret, components=components, diagnostics=diagnostics, episode_returns=tuple(e.ret for e in episodes))
 
 
-class Evaluator:
-    """Keeps one environment per task alive across candidates (making envs can be slow)."""
+# Worker-process state: one task and one env per worker, made once and reused across episodes.
+_worker: dict[str, Any] = {}
 
-    def __init__(self, task: Task) -> None:
+
+def _init_worker(ref: Any) -> None:
+    from .tasks import resolve_task
+
+    task = resolve_task(ref)
+    _worker["task"] = task
+    _worker["env"] = task.make_env()
+
+
+def _worker_episode(theta: NDArray[np.floating], seed: int) -> Episode:
+    task, env = _worker["task"], _worker["env"]
+    return run_episode(task, env, make_policy(task, theta, env), seed)
+
+
+def _start_method() -> str:
+    # Never fork: the parent may run threads (the embedded LLM server), and a forked child can
+    # inherit their locks held. forkserver forks from a clean single-threaded server instead.
+    return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
+class Evaluator:
+    """Runs candidates' episodes, serially in one kept-alive env or in a pool of worker processes.
+
+    With ``workers=N > 1`` every episode is a separate job for a pool of N processes, each holding
+    its own env. An episode depends only on (task, theta, seed), since ``env.reset(seed=...)``
+    reseeds the env, so the results are bit-identical to a serial run, in the same order.
+    """
+
+    def __init__(self, task: Task, workers: int = 1) -> None:
+        if workers < 1:
+            raise ConfigError(f"workers must be at least 1, got {workers}")
         self.task = task
+        self.workers = workers
         self._env: Any = None
+        self._pool: ProcessPoolExecutor | None = None
 
     @property
     def env(self) -> Any:
@@ -122,11 +157,56 @@ class Evaluator:
             self._env = self.task.make_env()
         return self._env
 
+    def _episodes_serial(
+        self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]
+    ) -> list[list[Episode]]:
+        out = []
+        for theta, seeds in zip(thetas, seeds_list, strict=True):
+            policy = make_policy(self.task, theta, self.env)
+            out.append([run_episode(self.task, self.env, policy, s) for s in seeds])
+        return out
+
+    def _pool_for(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            from .tasks import task_ref
+
+            if self.task.setup is not None:
+                self.task.setup()  # a missing extra fails here, with its own message, not in a worker
+            ctx = multiprocessing.get_context(_start_method())
+            self._pool = ProcessPoolExecutor(
+                self.workers, mp_context=ctx, initializer=_init_worker, initargs=(task_ref(self.task),)
+            )
+        return self._pool
+
+    def _episodes_parallel(
+        self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]
+    ) -> list[list[Episode]]:
+        pool = self._pool_for()
+        jobs = [
+            (np.asarray(theta, dtype=np.float64), int(s)) for theta, seeds in zip(thetas, seeds_list, strict=True) for s in seeds
+        ]
+        chunk = max(1, len(jobs) // (4 * self.workers))  # fewer round trips for many short episodes
+        flat = list(pool.map(_worker_episode, [j[0] for j in jobs], [j[1] for j in jobs], chunksize=chunk))
+        out, start = [], 0
+        for seeds in seeds_list:
+            out.append(flat[start : start + len(seeds)])
+            start += len(seeds)
+        return out
+
     def evaluate(self, theta: NDArray[np.floating], seeds: Sequence[int]) -> Feedback:
-        policy = make_policy(self.task, theta, self.env)
-        return aggregate([run_episode(self.task, self.env, policy, s) for s in seeds])
+        return self.evaluate_many([theta], [seeds])[0]
+
+    def evaluate_many(self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]) -> list[Feedback]:
+        """One Feedback per theta, theta i run on the seeds ``seeds_list[i]``; a batch fills the pool better."""
+        if len(thetas) != len(seeds_list):
+            raise ConfigError(f"{len(thetas)} parameter vectors but {len(seeds_list)} seed lists")
+        run = self._episodes_serial if self.workers == 1 else self._episodes_parallel
+        return [aggregate(eps) for eps in run(thetas, seeds_list)]
 
     def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
         if self._env is not None:
             self._env.close()
             self._env = None
