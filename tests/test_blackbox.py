@@ -14,6 +14,7 @@ from ppprops.methods import Mechanisms
 from ppprops.proposers.cmaes import CMAESProposer
 from ppprops.runner import resume, start
 from ppprops.store import open_store
+
 from support import make_config
 
 

@@ -17,6 +17,7 @@ from ppprops.loop import StopSearch
 from ppprops.proposers.r2po import R2POProposer
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task
+
 from support import make_config
 
 

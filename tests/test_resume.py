@@ -19,6 +19,7 @@ from ppprops.errors import LLMError
 from ppprops.llm.client import ChatClient
 from ppprops.runner import resume, start
 from ppprops.store import open_store
+
 from support import make_config
 
 pytestmark = pytest.mark.llm
