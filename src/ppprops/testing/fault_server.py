@@ -1,0 +1,439 @@
+"""A fault-injecting OpenAI-compatible chat-completions server, for tests and the soak benchmark.
+
+It listens on 127.0.0.1 only. Each request either passes (to an upstream server, or answered
+with a valid random vector of the requested length) or, with probability ``fault_rate``, gets
+one fault drawn uniformly from ``kinds``:
+
+transport faults
+    ``delay`` (a slow but valid answer), ``timeout`` (stalls, then drops the connection),
+    ``http_429`` (with Retry-After), ``http_500``, ``http_503``, ``drop`` (headers and half the
+    body, then the connection closes), ``reset`` (the connection closes with no answer),
+    ``bad_json`` (a 200 whose body is not JSON)
+bad answers (HTTP 200, well-formed envelope)
+    ``empty``, ``truncated``, ``wrong_length``, ``nan``, ``inf``, ``huge``, ``prose``,
+    ``several_vectors``, ``reasoning_only`` (empty content, the vector in ``reasoning_content``),
+    ``refusal``
+
+The vector length D is read from the request: the JSON schema's ``minItems``, the llama.cpp
+grammar's repetition count, or the prompt's "with D numbers" / "exactly D ... numbers".
+Decisions come from one seeded generator in arrival order, so a serial client sees the same
+fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
+``max_seconds`` seconds. ``GET /stats`` returns the counts.
+
+Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
+
+    python -m ppprops.testing.fault_server --port 0 --fault-rate 0.3 --synthetic
+    python -m ppprops.testing.fault_server --upstream http://127.0.0.1:8080/v1 --kinds http_429,drop
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.server
+import json
+import random
+import re
+import signal
+import socket
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+TRANSPORT_KINDS = ("delay", "timeout", "http_429", "http_500", "http_503", "drop", "reset", "bad_json")
+ANSWER_KINDS = (
+    "empty", "truncated", "wrong_length", "nan", "inf", "huge", "prose", "several_vectors", "reasoning_only", "refusal",
+)
+ALL_KINDS = TRANSPORT_KINDS + ANSWER_KINDS
+
+
+@dataclass
+class FaultConfig:
+    """What to inject and how. Times are in seconds."""
+
+    fault_rate: float = 0.3
+    kinds: tuple[str, ...] = ALL_KINDS
+    seed: int = 0
+    upstream: str | None = None  # None: answer with valid random vectors (synthetic)
+    delay_max_s: float = 0.3  # a "delay" fault waits uniform(0, delay_max_s)
+    timeout_s: float = 2.0  # a "timeout" fault stalls this long, then drops the connection
+    retry_after_s: float = 1.0  # the Retry-After header of a 429
+    max_requests: int | None = None
+    max_seconds: float = 600.0
+    value_range: float = 3.0  # synthetic answers draw uniform(-value_range, value_range)
+    default_dim: int | None = None  # D when the request does not tell
+
+    def validate(self) -> None:
+        if not (0.0 <= self.fault_rate <= 1.0):
+            raise ValueError(f"fault rate must be in [0, 1], got {self.fault_rate}")
+        unknown = [k for k in self.kinds if k not in ALL_KINDS]
+        if unknown or not self.kinds:
+            raise ValueError(f"unknown fault kinds {unknown}; choose from {', '.join(ALL_KINDS)}")
+        if self.upstream is not None and not self.upstream.startswith("http://"):
+            raise ValueError(f"upstream must be an http:// URL, got {self.upstream!r}")
+        if self.max_requests is not None and self.max_requests < 1:
+            raise ValueError(f"max requests must be >= 1, got {self.max_requests}")
+        if not (self.max_seconds > 0):
+            raise ValueError(f"max seconds must be > 0, got {self.max_seconds}")
+
+
+@dataclass
+class _State:
+    config: FaultConfig
+    rng: random.Random
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    stop: threading.Event = field(default_factory=threading.Event)
+    requests: int = 0
+    injected: Counter[str] = field(default_factory=Counter)
+    passed: int = 0
+    started: float = field(default_factory=time.monotonic)
+
+    def draw(self) -> tuple[int, str | None, random.Random]:
+        """Request number, fault kind (None = pass), and a generator for this request's values."""
+        with self.lock:
+            self.requests += 1
+            n = self.requests
+            kind = self.rng.choice(self.config.kinds) if self.rng.random() < self.config.fault_rate else None
+            if kind is None:
+                self.passed += 1
+            else:
+                self.injected[kind] += 1
+            sub = random.Random(self.rng.getrandbits(64))
+        return n, kind, sub
+
+    def stats(self) -> dict[str, Any]:
+        with self.lock:
+            return {
+                "requests": self.requests,
+                "passed": self.passed,
+                "injected": dict(sorted(self.injected.items())),
+                "injected_total": sum(self.injected.values()),
+                "elapsed_s": round(time.monotonic() - self.started, 3),
+            }
+
+
+_SCHEMA_DIM = re.compile(r"\{(\d+)\}")
+_PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?numbers")
+
+
+def requested_dim(body: dict[str, Any], default: int | None = None) -> int | None:
+    """D from the JSON schema, the grammar, or the prompt text (in that order)."""
+    try:
+        schema = body["response_format"]["json_schema"]["schema"]
+        return int(schema["properties"]["params"]["minItems"])
+    except (KeyError, TypeError, ValueError):
+        pass
+    grammar = body.get("grammar")
+    if isinstance(grammar, str):
+        m = _SCHEMA_DIM.search(grammar)
+        return int(m.group(1)) + 1 if m else 1
+    for msg in reversed(body.get("messages") or []):
+        content = msg.get("content") if isinstance(msg, dict) else None
+        if isinstance(content, str):
+            m = _PROMPT_DIM.search(content)
+            if m:
+                return int(m.group(1))
+    return default
+
+
+def _vector(rng: random.Random, D: int, span: float) -> list[float]:
+    return [round(rng.uniform(-span, span), 2) for _ in range(D)]
+
+
+def _params_json(values: list[Any]) -> str:
+    return '{"params": [' + ", ".join(str(v) for v in values) + "]}"
+
+
+def garble(kind: str, D: int, rng: random.Random, span: float) -> tuple[str | None, str | None]:
+    """(content, reasoning_content) of a bad answer of the given kind."""
+    good = _params_json(_vector(rng, D, span))
+    if kind == "empty":
+        return "", None
+    if kind == "truncated":
+        return good[: max(12, len(good) // 2)], None
+    if kind == "wrong_length":
+        n = D + rng.choice([-1, 1, 3]) if D > 1 else 2
+        return _params_json(_vector(rng, max(1, n), span)), None
+    if kind == "nan":
+        vals: list[Any] = _vector(rng, D, span)
+        vals[rng.randrange(D)] = "NaN"
+        return _params_json(vals), None
+    if kind == "inf":
+        vals = _vector(rng, D, span)
+        vals[rng.randrange(D)] = "-Infinity" if rng.random() < 0.5 else "Infinity"
+        return _params_json(vals), None
+    if kind == "huge":
+        vals = _vector(rng, D, span)
+        vals[rng.randrange(D)] = rng.choice(["1e308", "-9.9e307", "123456789012345678901234567890"])
+        return _params_json(vals), None
+    if kind == "prose":
+        return "I would increase the weights on the pole angle and its velocity to react faster.", None
+    if kind == "several_vectors":
+        return "Option A: " + _params_json(_vector(rng, D, span)) + "\nOption B: " + _params_json(_vector(rng, D, span)), None
+    if kind == "reasoning_only":
+        return "", "Let me think about the history. The best policy is last. I propose: " + good
+    if kind == "refusal":
+        return "I'm sorry, but I can't help with choosing these parameters.", None
+    raise ValueError(f"not an answer fault: {kind}")
+
+
+def _completion(content: str | None, reasoning: str | None, model: str, n: int) -> dict[str, Any]:
+    message: dict[str, Any] = {"role": "assistant", "content": content}
+    if reasoning is not None:
+        message["reasoning_content"] = reasoning
+    completion_tokens = len((content or "") + (reasoning or "")) // 4 + 1
+    return {
+        "id": f"chatcmpl-fault-{n}",
+        "object": "chat.completion",
+        "created": int(time.time()),
+        "model": model,
+        "choices": [{"index": 0, "message": message, "finish_reason": "stop"}],
+        "usage": {"prompt_tokens": 0, "completion_tokens": completion_tokens, "total_tokens": completion_tokens},
+    }
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    protocol_version = "HTTP/1.1"
+    state: _State  # set on the subclass made per server
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+    def finish(self) -> None:
+        try:
+            super().finish()
+        except OSError:
+            pass  # the socket was hung up on purpose
+
+    # -- responses ------------------------------------------------------------------------
+    def _send(self, status: int, data: bytes, headers: dict[str, str] | None = None, *, partial: bool = False) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        if partial:
+            self.end_headers()
+            self.wfile.write(data[: len(data) // 2])
+            self.wfile.flush()
+            self._hang_up()
+            return
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _send_json(self, status: int, obj: dict[str, Any], headers: dict[str, str] | None = None) -> None:
+        self._send(status, json.dumps(obj).encode(), headers)
+
+    def _error(self, status: int, message: str, headers: dict[str, str] | None = None) -> None:
+        self._send_json(status, {"error": {"message": message, "type": "fault_injection", "code": status}}, headers)
+
+    def _hang_up(self) -> None:
+        """Close the socket at once, so the client sees a dropped connection."""
+        self.close_connection = True
+        try:
+            self.connection.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+    # -- routes ---------------------------------------------------------------------------
+    def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+        if self.path.rstrip("/").endswith("/stats"):
+            self._send_json(200, self.state.stats())
+        elif self.path.rstrip("/").endswith("/models"):
+            self._send_json(200, {"object": "list", "data": [{"id": "fault-synthetic", "object": "model"}]})
+        else:
+            self._error(404, f"no route {self.path}")
+
+    def do_POST(self) -> None:  # noqa: N802
+        length = int(self.headers.get("Content-Length") or 0)
+        raw = self.rfile.read(length) if length else b""
+        if self.path.split("?")[0].rstrip("/") not in ("/v1/chat/completions", "/chat/completions"):
+            self._error(404, f"no route {self.path}")
+            return
+        st = self.state
+        cfg = st.config
+        n, kind, rng = st.draw()
+        if cfg.max_requests is not None and n > cfg.max_requests:
+            self._error(503, "the fault server's request budget is spent")
+            st.stop.set()
+            return
+        try:
+            body = json.loads(raw or b"{}")
+            if not isinstance(body, dict):
+                raise ValueError("not an object")
+        except ValueError:
+            self._error(400, "request body is not a JSON object")
+            return
+        model = str(body.get("model") or "fault-synthetic")
+        try:
+            self._answer(body, raw, model, n, kind, rng)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the client gave up first (it timed out): nothing to do
+
+    def _answer(self, body: dict[str, Any], raw: bytes, model: str, n: int, kind: str | None, rng: random.Random) -> None:
+        st, cfg = self.state, self.state.config
+        if kind == "timeout":
+            st.stop.wait(cfg.timeout_s)
+            self._hang_up()
+            return
+        if kind == "reset":
+            self._hang_up()
+            return
+        if kind == "http_429":
+            self._error(429, "rate limited (injected)", {"Retry-After": f"{cfg.retry_after_s:g}"})
+            return
+        if kind in ("http_500", "http_503"):
+            self._error(int(kind[-3:]), "server error (injected)")
+            return
+        if kind == "bad_json":
+            self._send(200, b'{"id": "chatcmpl-garbled", "choices": [{"message": <<not json>>')
+            return
+        if kind == "delay":
+            st.stop.wait(rng.uniform(0.0, cfg.delay_max_s))
+        D = requested_dim(body, cfg.default_dim)
+        if kind in ANSWER_KINDS:
+            if D is None:
+                self._error(400, "cannot tell the vector length D from the request")
+                return
+            content, reasoning = garble(kind, D, rng, cfg.value_range)
+            self._send_json(200, _completion(content, reasoning, model, n))
+            return
+        # pass (or "drop": a valid answer cut off mid-body): the upstream's answer, or a random vector
+        drop = kind == "drop"
+        if cfg.upstream is not None:
+            status, data = self._forward(raw)
+            self._send(status, data, partial=drop)
+            return
+        if D is None:
+            self._error(400, "cannot tell the vector length D from the request")
+            return
+        data = json.dumps(_completion(_params_json(_vector(rng, D, cfg.value_range)), None, model, n)).encode()
+        self._send(200, data, partial=drop)
+
+    def _forward(self, raw: bytes) -> tuple[int, bytes]:
+        assert self.state.config.upstream is not None
+        url = self.state.config.upstream.rstrip("/") + "/chat/completions"
+        req = urllib.request.Request(url, data=raw, method="POST", headers={"Content-Type": "application/json"})
+        auth = self.headers.get("Authorization")
+        if auth:
+            req.add_header("Authorization", auth)
+        try:
+            with urllib.request.urlopen(req, timeout=600) as resp:
+                return resp.status, resp.read()
+        except urllib.error.HTTPError as e:
+            return e.code, e.read()
+        except (urllib.error.URLError, OSError) as e:
+            return 502, json.dumps({"error": {"message": f"upstream unreachable: {e}", "code": 502}}).encode()
+
+
+class _QuietServer(http.server.ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        pass  # hung-up sockets are the point of this server, not errors worth a traceback
+
+
+class FaultServer:
+    """The server in a background thread. A context manager; ``base_url`` ends in ``/v1``."""
+
+    def __init__(self, config: FaultConfig | None = None, *, port: int = 0) -> None:
+        self.config = config or FaultConfig()
+        self.config.validate()
+        self._state = _State(self.config, random.Random(self.config.seed))
+        handler = type("FaultHandler", (_Handler,), {"state": self._state})
+        self._server = _QuietServer(("127.0.0.1", port), handler)
+        self._threads: list[threading.Thread] = []
+        self.port = int(self._server.server_address[1])
+        self.base_url = f"http://127.0.0.1:{self.port}/v1"
+
+    def start(self) -> FaultServer:
+        serve = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        watch = threading.Thread(target=self._watchdog, daemon=True)
+        self._threads = [serve, watch]
+        for t in self._threads:
+            t.start()
+        return self
+
+    def _watchdog(self) -> None:
+        """Stop when the time or request budget is spent (a stalled test never hangs on us)."""
+        self._state.stop.wait(self.config.max_seconds)
+        self._state.stop.set()
+        self._server.shutdown()
+
+    def wait(self) -> None:
+        """Block until the server stops by itself (or ``stop`` is called)."""
+        while not self._state.stop.wait(0.2):
+            pass
+        for t in self._threads:
+            t.join(timeout=5)
+
+    def stop(self) -> None:
+        self._state.stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self._server.server_close()
+
+    def stats(self) -> dict[str, Any]:
+        return self._state.stats()
+
+    def __enter__(self) -> FaultServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _kinds(text: str) -> tuple[str, ...]:
+    if text in ("all", ""):
+        return ALL_KINDS
+    if text == "transport":
+        return TRANSPORT_KINDS
+    if text == "answers":
+        return ANSWER_KINDS
+    return tuple(k.strip() for k in text.split(",") if k.strip())
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m ppprops.testing.fault_server", description=__doc__.splitlines()[0])
+    p.add_argument("--port", type=int, default=0, help="0 = any free port (printed)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--upstream", default=None, help="OpenAI-compatible base URL to pass healthy requests to")
+    src.add_argument("--synthetic", action="store_true", help="answer healthy requests with random vectors (default)")
+    p.add_argument("--fault-rate", type=float, default=0.3)
+    p.add_argument("--kinds", default="all", help="all | transport | answers | comma-separated kinds")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--retry-after", type=float, default=1.0, help="Retry-After of injected 429s, seconds")
+    p.add_argument("--timeout-delay", type=float, default=2.0, help="how long a 'timeout' stalls, seconds")
+    p.add_argument("--delay-max", type=float, default=0.3, help="longest 'delay', seconds")
+    p.add_argument("--dim", type=int, default=None, help="D when a request does not tell")
+    p.add_argument("--max-requests", type=int, default=None)
+    p.add_argument("--max-seconds", type=float, default=600.0)
+    a = p.parse_args(argv)
+    cfg = FaultConfig(
+        fault_rate=a.fault_rate, kinds=_kinds(a.kinds), seed=a.seed, upstream=a.upstream, delay_max_s=a.delay_max,
+        timeout_s=a.timeout_delay, retry_after_s=a.retry_after, max_requests=a.max_requests, max_seconds=a.max_seconds,
+        default_dim=a.dim,
+    )
+    try:
+        server = FaultServer(cfg, port=a.port)
+    except (ValueError, OSError) as e:
+        print(f"fault_server: error: {e}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, lambda *_: server._state.stop.set())
+    server.start()
+    print(f"listening {server.base_url}", flush=True)
+    try:
+        server.wait()
+    except KeyboardInterrupt:
+        pass
+    server.stop()
+    print(json.dumps(server.stats()), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

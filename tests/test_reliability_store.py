@@ -1,0 +1,119 @@
+"""The store under stress: several processes writing one database lose nothing, a schema-1 store
+migrates in place, and a full disk is a one-line StoreError that leaves the store intact."""
+
+from __future__ import annotations
+
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppprops.errors import StoreError
+from ppprops.evaluation import Feedback
+from ppprops.store import SCHEMA_VERSION, Candidate, RunStore
+
+WRITERS, ROWS = 4, 300
+
+_WRITER = textwrap.dedent(
+    """
+    import sys, types
+    import numpy as np
+    from ppprops.evaluation import Feedback
+    from ppprops.store import Candidate, RunStore
+
+    path, w, rows = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    store = RunStore(path)
+    fb = Feedback(ret=float(w), components={"c": 1.0}, diagnostics={"episode_length": 3.0}, episode_returns=(float(w),))
+    for i in range(rows):
+        idx = w * 100000 + i  # each writer its own index range, as runs sharing an experiment store would
+        theta = np.full(4, float(i))
+        store.add_candidate(Candidate(idx, i, "warmup", theta, theta, fb, fb, 0, (i,)))
+        ex = types.SimpleNamespace(request=f"w{w}-{i}", response=None, content="{}", reasoning=None, prompt_chars=2,
+                                   prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, error=None)
+        store.add_llm_call(i, 0, ex, None)
+    store.close()
+    """
+)
+
+
+def test_several_processes_writing_one_store_lose_nothing(tmp_path: Path) -> None:
+    db = tmp_path / "shared.sqlite"
+    procs = [
+        subprocess.Popen([sys.executable, "-c", _WRITER, str(db), str(w), str(ROWS)], stderr=subprocess.PIPE, text=True)
+        for w in range(WRITERS)
+    ]
+    errors = [p.communicate(timeout=240)[1] for p in procs]
+    assert all(p.returncode == 0 for p in procs), errors
+    store = RunStore(db)
+    cands, calls = store.candidates(), store.llm_calls()
+    assert store.integrity_check() == "ok"
+    store.close()
+    assert len(cands) == WRITERS * ROWS and len({c.index for c in cands}) == WRITERS * ROWS
+    assert sorted(c["request"] for c in calls) == sorted(f"w{w}-{i}" for w in range(WRITERS) for i in range(ROWS))
+    for c in cands:  # every row whole: its writer's return and its own parameters
+        assert c.ret == c.index // 100000 and np.all(c.params == c.iteration)
+    with sqlite3.connect(db) as con:  # the writers really ran at the same time (their commits interleave)
+        order = [r[0] // 100000 for r in con.execute("SELECT idx FROM candidates ORDER BY created, rowid")]
+    switches = sum(a != b for a, b in zip(order, order[1:], strict=False))
+    assert switches > WRITERS, f"writers did not overlap ({switches} switches)"
+
+
+_SCHEMA_1 = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE candidates (idx INTEGER PRIMARY KEY, iteration INTEGER NOT NULL, source TEXT NOT NULL, params TEXT NOT NULL,
+    params_enc TEXT NOT NULL, feedback TEXT NOT NULL, feedback_enc TEXT NOT NULL, clipped INTEGER NOT NULL,
+    seeds TEXT NOT NULL, note TEXT NOT NULL DEFAULT '', created REAL NOT NULL);
+CREATE TABLE llm_calls (id INTEGER PRIMARY KEY AUTOINCREMENT, iteration INTEGER NOT NULL, attempt INTEGER NOT NULL,
+    request TEXT NOT NULL, response TEXT, content TEXT, reasoning TEXT, prompt_chars INTEGER NOT NULL,
+    prompt_tokens INTEGER, completion_tokens INTEGER, latency_s REAL NOT NULL, ok INTEGER NOT NULL, error TEXT,
+    parse_error TEXT, created REAL NOT NULL);
+CREATE TABLE final_eval (id INTEGER PRIMARY KEY CHECK (id = 1), candidate_idx INTEGER NOT NULL, returns TEXT NOT NULL,
+    seeds TEXT NOT NULL, created REAL NOT NULL);
+INSERT INTO meta VALUES ('schema_version', '1'), ('run_id', 'old-run');
+INSERT INTO llm_calls (iteration, attempt, request, content, prompt_chars, latency_s, ok, parse_error, created)
+    VALUES (0, 0, '{}', 'hello', 2, 0.5, 1, 'no_numbers', 0);
+"""
+
+
+def test_a_schema_1_store_migrates_in_place(tmp_path: Path) -> None:
+    db = tmp_path / "old.sqlite"
+    with sqlite3.connect(db) as con:
+        con.executescript(_SCHEMA_1)
+    store = RunStore(db)
+    assert store.schema_version() == SCHEMA_VERSION == 2 and store.run_id() == "old-run"
+    (old,) = store.llm_calls()
+    assert old["parse_error"] == "no_numbers" and old["retry"] == 0 and old["error_kind"] is None
+    ex = types.SimpleNamespace(request="{}", response=None, content=None, reasoning=None, prompt_chars=2, prompt_tokens=None,
+                               completion_tokens=None, latency_s=0.1, ok=False, error="timeout", error_kind="timeout", retry=1)
+    store.add_llm_call(1, 0, ex, None)
+    assert store.llm_calls()[1]["error_kind"] == "timeout" and store.llm_calls()[1]["retry"] == 1
+    store.close()
+    RunStore(db).close()  # opening again is a no-op
+
+    with sqlite3.connect(db) as con:
+        con.execute("UPDATE meta SET value = '99' WHERE key = 'schema_version'")
+    with pytest.raises(StoreError, match="has schema 99"):
+        RunStore(db)
+
+
+def test_a_full_disk_is_one_store_error_and_the_store_stays_intact(tmp_path: Path) -> None:
+    store = RunStore(tmp_path / "s.sqlite")
+    pages = store._db.execute("PRAGMA page_count").fetchone()[0]
+    store._db.execute(f"PRAGMA max_page_count = {pages + 2}")  # SQLite's own limit: real SQLITE_FULL errors
+    fb = Feedback(ret=1.0, components={}, diagnostics={}, episode_returns=(1.0,))
+    written = 0
+    with pytest.raises(StoreError) as info:
+        for i in range(10_000):
+            theta = np.full(200, 1.0 / 3.0)
+            store.add_candidate(Candidate(i, i, "warmup", theta, theta, fb, fb, 0, (i,)))
+            written += 1
+    msg = str(info.value)
+    assert "disk is full" in msg and "ppprops resume" in msg and "\n" not in msg
+    assert store.integrity_check() == "ok"
+    assert [c.index for c in store.candidates()] == list(range(written)) and written > 0
+    store.close()
