@@ -42,12 +42,12 @@ def _serial_and_parallel(
 TASKS = [
     pytest.param("CartPole", id="CartPole"),
     pytest.param("Acrobot", id="Acrobot"),
-    pytest.param("Ant-Ultra", id="Ant-Ultra", marks=pytest.mark.skipif(not _installed("mujoco"), reason="mujoco")),
-    pytest.param("Humanoid-Torso", id="Humanoid-Torso", marks=pytest.mark.skipif(not _installed("mujoco"), reason="mujoco")),
+    pytest.param("Ant-Ultra", id="Ant-Ultra"),
+    pytest.param("Humanoid-Torso", id="Humanoid-Torso"),
     pytest.param(
-        "FetchReachDense", id="Fetch", marks=pytest.mark.skipif(not _installed("gymnasium_robotics"), reason="robotics")
+        "FetchReachDense", id="Fetch"
     ),
-    pytest.param("Highway-Fast", id="Highway-Fast", marks=pytest.mark.skipif(not _installed("highway_env"), reason="highway")),
+    pytest.param("Highway-Fast", id="Highway-Fast"),
 ]
 
 

@@ -1,0 +1,330 @@
+"""A grid directory, its master key, and the execution of one run (shared by every executor).
+
+Layout of ``DIR``::
+
+    master.key      32 random bytes (hex), mode 0600: every run's secrets derive from it
+    grid.json       the planned runs (name -> configuration) and each invocation
+    runs/<name>/    one ordinary run directory per run (ppprops show / resume / policy eval work on it)
+    locks/<name>    held while a process executes that run
+    report/         written by ``ppprops report DIR``
+
+Secrets: a run's A and c (and, for hardened runs, its origins and warp exponent) are drawn from
+``numpy.random.default_rng(HMAC-SHA256(master key, "ppprops.grid-secrets/1" NUL name))`` with
+exactly the distributions and draw order of ``Secrets.generate`` / ``Secrets.generate_hardened``
+(docs/privacy.md). The same key and name therefore give the same secrets on any machine, which is
+what makes a grid repeat exactly on Ray or elsewhere; whoever holds ``master.key`` holds every
+run's secrets, so it is created 0600 and never leaves ``DIR``.
+
+Resumption: a run whose store says finished (or stopped on purpose) is skipped, one that is
+running is continued with ``runner.resume``, a missing one is started. An RL baseline cannot be
+resumed, so an unfinished one is trained again from scratch (same seed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import hashlib
+import hmac
+import json
+import os
+import secrets as _os_secrets
+import shutil
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigError, PPPropsError, StoreError
+from .spec import RL, ExperimentSpec, PlannedRun
+
+MASTER_KEY = "master.key"
+MANIFEST = "grid.json"
+RUNS = "runs"
+LOCKS = "locks"
+GRID_FORMAT = "ppprops.grid/1"
+KEY_FORMAT = "ppprops.grid-key/1"
+DERIVE_TAG = b"ppprops.grid-secrets/1\x00"
+LOCK_WAIT_S = 30.0  # a killed grid's workers die with it; their locks are free within moments
+
+DONE, PARTIAL, PENDING = "done", "partial", "pending"
+
+
+# -- master key and derived secrets -------------------------------------------------------------
+def create_master_key(path: Path) -> bytes:
+    """32 bytes from the OS entropy source, written with mode 0600 from the start."""
+    key = _os_secrets.token_bytes(32)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        json.dump({"format": KEY_FORMAT, "key": key.hex()}, f)
+        f.flush()
+        os.fsync(f.fileno())
+    return key
+
+
+def read_master_key(path: Path) -> bytes:
+    try:
+        raw = json.loads(Path(path).read_text(encoding="utf-8"))
+        if raw.get("format") != KEY_FORMAT:
+            raise ValueError("format")
+        key = bytes.fromhex(raw["key"])
+    except FileNotFoundError:
+        raise ConfigError(f"master key {path} is missing") from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        raise ConfigError(f"master key {path} is corrupt") from None
+    if len(key) < 16:
+        raise ConfigError(f"master key {path} is too short")
+    return key
+
+
+def derived_rng(master_key: bytes, name: str) -> np.random.Generator:
+    digest = hmac.new(master_key, DERIVE_TAG + name.encode("utf-8"), hashlib.sha256).digest()
+    return np.random.default_rng(int.from_bytes(digest, "big"))
+
+
+def derive_secrets(master_key: bytes, name: str, config: Any) -> Any:
+    """The run's secrets, drawn as ``client.hardening.generate_secrets`` draws them, from a
+    generator keyed by the master key and the run's name instead of the OS."""
+    from ..client import secrets as sec
+    from ..client.hardening import generate_secrets, reward_scale
+
+    task = config.make_task()
+    rng = derived_rng(master_key, name)
+    if getattr(config.mechanisms, "hardened", False):
+        lo, hi = config.box
+        mid, quarter = (lo + hi) / 2.0, (hi - lo) / 4.0
+        a = np.exp(rng.uniform(*sec.HARDENED_A_LOG, size=task.D))
+        m = rng.uniform(mid - quarter, mid + quarter, size=task.D)
+        c = float(np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH)))
+        scale = abs(reward_scale(task))
+        s = float(rng.uniform(-scale, scale))
+        p = float(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*sec.HARDENED_P_LOG)))
+        out = sec.Secrets(run_id=name, a=a, c=c, m=m, s=s, p=p)
+    else:
+        a = np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH, size=task.D))
+        c = float(np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH)))
+        out = sec.Secrets(run_id=name, a=a, c=c)
+    # Secrets may gain fields; one drawn the ordinary way must have the same ones set, or this
+    # mirror is out of date (a run would silently lack a secret it should have).
+    ref = generate_secrets(name, task, config)
+    for f in dataclasses.fields(sec.Secrets):
+        if (getattr(ref, f.name) is None) != (getattr(out, f.name) is None):
+            raise ConfigError(f"grid secrets do not derive Secrets.{f.name}; update ppprops.experiments.grid.derive_secrets")
+    return out
+
+
+# -- run state and locks ---------------------------------------------------------------------
+def run_state(run_dir: Path, kind: str) -> str:
+    """done (finished, or stopped on purpose), partial (resumable), or pending (nothing usable)."""
+    from ..store import DB_NAME, open_store
+
+    if not (Path(run_dir) / DB_NAME).exists():
+        return PENDING
+    try:
+        store = open_store(run_dir)
+    except StoreError:
+        return PENDING
+    try:
+        status = store.status()
+    finally:
+        store.close()
+    if status == "finished" or (kind != RL and status.startswith("stopped")):
+        return DONE
+    return PARTIAL if kind != RL else PENDING
+
+
+@contextmanager
+def run_lock(path: Path, wait_s: float = LOCK_WAIT_S) -> Iterator[None]:
+    """An exclusive flock, so two grid processes never execute one run at the same time."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise StoreError(f"run {Path(path).name} is being executed by another process (lock {path})") from None
+                time.sleep(0.2)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+# -- one run ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Job:
+    """Everything a worker needs for one run; picklable (sent to processes and Ray tasks)."""
+
+    name: str
+    kind: str
+    config: dict[str, Any]
+    run_dir: str
+    lock: str
+    secrets: Any = None  # Secrets for a search run; None for an RL baseline
+
+
+@dataclass(frozen=True)
+class Outcome:
+    name: str
+    action: str  # started | resumed | skipped | failed
+    status: str  # the store's status afterwards ("" if none)
+    best: float | None  # search-time best return (None for RL)
+    final: float | None  # final-evaluation mean
+    wall_s: float
+    error: str | None = None
+
+
+def _same_config(stored: dict[str, Any], planned: dict[str, Any]) -> bool:
+    """A stored config matches when every planned key has the planned value (RL stores extra keys)."""
+    norm = json.loads(json.dumps(planned))
+    return all(stored.get(k) == v for k, v in norm.items())
+
+
+def _summary(run_dir: Path) -> tuple[str, float | None, float | None]:
+    from ..store import open_store
+
+    store = open_store(run_dir)
+    try:
+        status = store.status()
+        fe = store.final_eval()
+        cands = store.candidates()
+    finally:
+        store.close()
+    finite = [c.ret for c in cands if np.isfinite(c.ret)]
+    return status, (max(finite) if finite else None), (fe.mean if fe is not None and fe.returns else None)
+
+
+def execute_job(job: Job, *, llm_threads: int = 1, llm_gate: Any = None) -> Outcome:
+    """Start, resume or skip one run, in this process. Failures come back as an Outcome."""
+    t0 = time.monotonic()
+    os.environ["PPPROPS_LLM_THREADS"] = str(llm_threads)  # read by the embedded server this run starts
+    run_dir = Path(job.run_dir)
+    try:
+        with run_lock(Path(job.lock)):
+            state = run_state(run_dir, job.kind)
+            if state != PENDING:
+                from ..store import open_store
+
+                store = open_store(run_dir)
+                try:
+                    stored = store.config()
+                finally:
+                    store.close()
+                if not _same_config(stored, job.config):
+                    raise ConfigError(f"{run_dir} holds run {job.name} with other settings than this grid's; "
+                                      "use a new --out or the spec it was started with")  # fmt: skip
+            if state == DONE:
+                status, best, final = _summary(run_dir)
+                return Outcome(job.name, "skipped", status, best, final, time.monotonic() - t0)
+            if job.kind == RL:
+                from ..baselines.rl import RLConfig, run_baseline
+
+                if run_dir.exists():
+                    shutil.rmtree(run_dir)  # an unfinished RL run cannot continue: train again, same seed
+                run_baseline(RLConfig(**job.config), run_dir)
+                action = "started"
+            else:
+                from .. import runner
+                from ..config import RunConfig
+
+                gate = {"llm_gate": llm_gate} if llm_gate is not None else {}
+                if state == PARTIAL:
+                    runner.resume(run_dir, **gate)
+                    action = "resumed"
+                else:
+                    if run_dir.exists() and not any(run_dir.iterdir()):
+                        run_dir.rmdir()
+                    runner.start(RunConfig.from_json(job.config), run_dir, secrets=job.secrets, **gate)
+                    action = "started"
+            status, best, final = _summary(run_dir)
+            return Outcome(job.name, action, status, best, final, time.monotonic() - t0)
+    except PPPropsError as e:
+        return Outcome(job.name, "failed", "", None, None, time.monotonic() - t0, error=str(e))
+    except Exception as e:  # a worker must report, never vanish
+        return Outcome(job.name, "failed", "", None, None, time.monotonic() - t0, error=f"{e.__class__.__name__}: {e}")
+
+
+# -- the grid directory ----------------------------------------------------------------------
+def _write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+class Grid:
+    """A grid directory: opens (or creates) it, checks the spec against it, and makes jobs."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root).resolve()
+        self.runs_dir = self.root / RUNS
+        self.locks_dir = self.root / LOCKS
+
+    @classmethod
+    def open(cls, root: Path, spec: ExperimentSpec) -> Grid:
+        grid = cls(root)
+        if grid.root.exists() and not grid.root.is_dir():
+            raise ConfigError(f"--out {root} is a file, not a directory")
+        manifest_path = grid.root / MANIFEST
+        foreign = grid.root.exists() and any(p.name != MASTER_KEY for p in grid.root.iterdir())
+        if foreign and not manifest_path.exists():  # a copied master.key alone is welcome: it repeats that grid
+            raise ConfigError(f"--out {root} holds files but no {MANIFEST}: it is not a grid directory; choose a new --out")
+        grid.runs_dir.mkdir(parents=True, exist_ok=True)
+        grid.locks_dir.mkdir(parents=True, exist_ok=True)
+        manifest: dict[str, Any] = {"format": GRID_FORMAT, "grid_id": _os_secrets.token_hex(8), "runs": {}, "invocations": []}
+        if manifest_path.exists():
+            try:
+                manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+                assert manifest.get("format") == GRID_FORMAT
+            except (OSError, ValueError, AssertionError):
+                raise ConfigError(f"{manifest_path} is corrupt; it is not a grid this ppprops can continue") from None
+        for run in spec.runs:
+            known = manifest["runs"].get(run.name)
+            if known is not None and not _same_config(known["config"], run.config):
+                changed = sorted(k for k, v in json.loads(json.dumps(run.config)).items() if known["config"].get(k) != v)
+                raise ConfigError(f"run {run.name} already exists in {root} with other settings ({', '.join(changed)}); "
+                                  "rerun with the spec and flags it was started with, or use a new --out")  # fmt: skip
+            manifest["runs"][run.name] = {"kind": run.kind, "task": run.task, "method": run.method, "label": run.label,
+                                          "seed": run.seed, "config": run.config}  # fmt: skip
+        manifest["invocations"].append({"time": time.strftime("%Y-%m-%dT%H:%M:%S"), "spec": spec.name, "source": spec.source,
+                                        "runs": [r.name for r in spec.runs]})  # fmt: skip
+        if not (grid.root / MASTER_KEY).exists():
+            create_master_key(grid.root / MASTER_KEY)
+        _write_json_atomic(manifest_path, manifest)
+        for stale in grid.runs_dir.glob(".*.creating"):  # left by a run killed while its directory was being made
+            shutil.rmtree(stale, ignore_errors=True)
+        return grid
+
+    @property
+    def grid_id(self) -> str:
+        return str(self.manifest()["grid_id"])
+
+    def manifest(self) -> dict[str, Any]:
+        return dict(json.loads((self.root / MANIFEST).read_text(encoding="utf-8")))
+
+    def record(self, **entry: Any) -> None:
+        """Add executor details to the latest invocation (jobs, threads, where it ran)."""
+        m = self.manifest()
+        m["invocations"][-1].update(entry)
+        _write_json_atomic(self.root / MANIFEST, m)
+
+    def run_dir(self, name: str) -> Path:
+        return self.runs_dir / name
+
+    def state(self, run: PlannedRun) -> str:
+        return run_state(self.run_dir(run.name), run.kind)
+
+    def job(self, run: PlannedRun) -> Job:
+        secrets = None
+        if run.kind != RL:
+            from ..config import RunConfig
+
+            key = read_master_key(self.root / MASTER_KEY)
+            secrets = derive_secrets(key, run.name, RunConfig.from_json(run.config))
+        return Job(run.name, run.kind, run.config, str(self.run_dir(run.name)), str(self.locks_dir / run.name), secrets)
