@@ -68,8 +68,12 @@ def test_nan_and_inf_never_reach_the_prompt_or_the_best(tmp_path: Path, capsys) 
     cands, calls, fe = store.candidates(), store.llm_calls(), store.final_eval()
     store.close()
     rets = [c.ret for c in cands]
-    assert any(math.isinf(r) for r in rets), "no episode overflowed: the wrapper did not inject"
-    assert sum(bool(c.feedback.diagnostics.get("numerical_fault")) for c in cands) >= 3
+    # the evaluator stops an episode at the step whose reward would overflow the sum, so every
+    # return stays finite and each injected fault (all three kinds) is marked
+    assert all(math.isfinite(r) for r in rets)
+    faulty = [c for c in cands if c.feedback.diagnostics.get("numerical_fault")]
+    assert len(faulty) >= 3
+    assert {c.seeds[0] % 4 for c in faulty} == {0, 1, 2}
     prompts = [m["content"] for call in calls for m in json.loads(call["request"])["messages"]]
     assert len(prompts) >= 6
     for p in prompts:

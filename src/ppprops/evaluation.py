@@ -70,18 +70,22 @@ def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int) -> Episod
     steps = 0
     terminated = truncated = False
     numerical_fault = False
+    s = task.observation(obs)
     while True:
-        s = task.observation(obs)
         if not np.all(np.isfinite(s)):
             numerical_fault = True
             break
         obs, reward, terminated, truncated, info = env.step(policy.act(s))
         reward = float(reward)
-        if not np.isfinite(reward):
-            numerical_fault = True
+        if not np.isfinite(reward) or not np.isfinite(total + reward):
+            numerical_fault = True  # a bad reward, or a sum that overflowed
             break
         steps += 1
         total += reward
+        s = task.observation(obs)
+        if not np.all(np.isfinite(s)):
+            numerical_fault = True  # recorders derive diagnostics from the observation: keep it out
+            break
         recorder.step(obs, reward, info)
         if terminated or truncated:
             break

@@ -7,6 +7,7 @@ from the number of recorded candidates alone.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -89,11 +90,16 @@ def run_loop(
 
 
 def best_candidate(candidates: Sequence[Candidate]) -> Candidate:
-    """Highest raw return; the earliest wins a tie (Algorithm 1 updates on strict improvement)."""
+    """Highest finite raw return; the earliest wins a tie (Algorithm 1 updates on strict
+    improvement). A NaN or infinite return (a numerical fault) is never the best; if no return
+    is finite, the first candidate."""
     if not candidates:
         raise ValueError("no candidates")
-    best = candidates[0]
-    for c in candidates[1:]:
+    finite = [c for c in candidates if math.isfinite(c.ret)]
+    if not finite:
+        return candidates[0]
+    best = finite[0]
+    for c in finite[1:]:
         if c.ret > best.ret:
             best = c
     return best
