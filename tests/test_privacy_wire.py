@@ -19,9 +19,11 @@ import pytest
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig
 from ppprops.llm.embedded import MODEL_ALIAS
+from ppprops.privacy.audit import audit_run
 from ppprops.runner import start
 from ppprops.store import open_store
 from ppprops.tasks import get_task
+
 from support import make_config, recording_proxy
 
 pytestmark = pytest.mark.llm
@@ -81,15 +83,26 @@ def _same_entry(c, shown: list[float], decimals: int) -> bool:  # type: ignore[n
     return all(f"{p:.{decimals}f}" == f"{s:.{decimals}f}" for p, s in zip(c.params_enc, shown))
 
 
-def _proxied_run(tmp_path: Path, embedded_server, method: str, task: str) -> tuple[list[bytes], Path]:  # type: ignore[no-untyped-def]
+def _proxied_run(  # type: ignore[no-untyped-def]
+    tmp_path: Path, embedded_server, method: str, task: str, iterations: int = 5
+) -> tuple[list[bytes], Path]:
     t = get_task(task)
     rng = np.random.default_rng(11)
-    secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193)
+    secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193) if method != "pp-hardened" else None
     with recording_proxy(embedded_server.base_url.removesuffix("/v1")) as (url, captured):
         llm = LLMConfig(base_url=url + "/v1", model=MODEL_ALIAS, structured="grammar")
-        cfg = make_config(task, method, warmup=6, iterations=5, final_episodes=0, llm=llm)
+        cfg = make_config(task, method, warmup=6, iterations=iterations, final_episodes=0, llm=llm)
         start(cfg, tmp_path / method, secrets=secrets)
     return list(captured), tmp_path / method
+
+
+def _recorded_is_what_was_sent(posts: list[bytes], run_dir: Path) -> None:
+    """The audit reads the store's llm_calls; they must hold exactly the messages that crossed the wire."""
+    store = open_store(run_dir)
+    recorded = [json.loads(c["request"])["messages"] for c in store.llm_calls()]
+    store.close()
+    sent = [json.loads(r.split(b"\r\n\r\n", 1)[1])["messages"] for r in posts]
+    assert sent == recorded
 
 
 @pytest.mark.parametrize("task", ["CartPole", "Acrobot"])
@@ -99,6 +112,21 @@ def test_pp_sends_no_raw_value(tmp_path: Path, embedded_server, task: str) -> No
     assert len(posts) >= 5
     assert sum(b"params: [" in r for r in posts) == len(posts)  # the check did read history entries
     assert leaks(posts, run_dir, get_task(task).optimal_return) == []
+    _recorded_is_what_was_sent(posts, run_dir)
+    report = audit_run(run_dir)  # the audit agrees, and names the known channels instead of ignoring them
+    assert report.exit_code() == 0 and report.entries > 0, report.format()
+    if task == "CartPole":  # episode_length = the raw return, reported as a channel rather than ignored
+        assert any(f.kind == "diagnostic_return" for f in report.channels)
+
+
+def test_pp_hardened_sends_no_raw_value_and_no_known_channel(tmp_path: Path, embedded_server) -> None:  # type: ignore[no-untyped-def]
+    requests, run_dir = _proxied_run(tmp_path, embedded_server, "pp-hardened", "CartPole", iterations=3)
+    posts = [r for r in requests if r.startswith(b"POST")]
+    assert leaks(posts, run_dir, 500.0) == []
+    assert all(b"episode_length" not in r for r in posts)
+    _recorded_is_what_was_sent(posts, run_dir)
+    report = audit_run(run_dir)
+    assert report.exit_code(strict=True) == 0, report.format()
 
 
 def test_the_check_flags_vanilla(tmp_path: Path, embedded_server) -> None:  # type: ignore[no-untyped-def]
@@ -107,3 +135,5 @@ def test_the_check_flags_vanilla(tmp_path: Path, embedded_server) -> None:  # ty
     assert any(f.startswith("raw params") for f in found)
     assert any(f.startswith("raw return") for f in found)
     assert "optimal return stated" in found
+    report = audit_run(run_dir)
+    assert report.exit_code() == 1 and {"raw_param", "raw_return", "optimum"} <= {f.kind for f in report.leaks}

@@ -3,6 +3,11 @@
 Distribution (documented in docs/privacy.md): each a_j and c is drawn independently and
 log-uniformly from [0.1, 10] (ln a_j ~ U(ln 0.1, ln 10)), from the operating system's entropy
 source, never from the run seed, so two runs with the same seed still get different secrets.
+
+Hardened runs (docs/threat-model.md) add three optional secrets: raw origins ``m`` (one per
+parameter) and ``s`` (for rewards), and the reward warp exponent ``p``. Key files without them
+(every file written before they existed) still load, with the neutral values m = 0, s = 0, p = 1,
+and keep their fingerprint.
 """
 
 from __future__ import annotations
@@ -23,27 +28,80 @@ from ..errors import KeyFileError
 LOG_LOW, LOG_HIGH = math.log(0.1), math.log(10.0)
 KEY_FORMAT = "ppprops.secrets/1"
 
+# pp-hardened: a_j is a scale of the warped coordinate (slope at the box centre); a narrower range
+# keeps the warm-up's raw spread useful (see docs/threat-model.md, "cost").
+HARDENED_A_LOG = (math.log(1 / 3), math.log(3.0))
+# |ln p| ~ U(ln 1.25, ln 2) with a random sign: p is never near 1, so integer returns never keep
+# a lattice that the gcd attack could read.
+HARDENED_P_LOG = (math.log(1.25), math.log(2.0))
+
 
 @dataclass(frozen=True, repr=False, eq=False)
 class Secrets:
     run_id: str
     a: NDArray[np.float64]  # diagonal of A, all > 0
     c: float  # reward scale, > 0
+    m: NDArray[np.float64] | None = None  # raw parameter origins (secret_offsets); None = 0
+    s: float | None = None  # raw reward origin (secret_offsets); None = 0
+    p: float | None = None  # reward warp exponent (warp_rewards); None = 1
 
     def __repr__(self) -> str:  # never print secret values by accident
-        return f"Secrets(run_id={self.run_id!r}, D={len(self.a)}, <hidden>)"
+        extra = ", hardened" if self.has_extras else ""
+        return f"Secrets(run_id={self.run_id!r}, D={len(self.a)}{extra}, <hidden>)"
 
     __str__ = __repr__
 
+    @property
+    def has_extras(self) -> bool:
+        return self.m is not None or self.s is not None or self.p is not None
+
+    @property
+    def origin(self) -> NDArray[np.float64]:
+        return np.zeros(len(self.a)) if self.m is None else np.asarray(self.m, dtype=np.float64)
+
+    @property
+    def reward_origin(self) -> float:
+        return 0.0 if self.s is None else float(self.s)
+
+    @property
+    def exponent(self) -> float:
+        return 1.0 if self.p is None else float(self.p)
+
     @classmethod
     def generate(cls, run_id: str, D: int) -> Secrets:
+        """The paper's secrets: A and c only."""
         rng = np.random.default_rng(_os_secrets.randbits(128))
         a = np.exp(rng.uniform(LOG_LOW, LOG_HIGH, size=D))
         c = float(np.exp(rng.uniform(LOG_LOW, LOG_HIGH)))
         return cls(run_id=run_id, a=a, c=c)
 
+    @classmethod
+    def generate_hardened(cls, run_id: str, D: int, *, box: tuple[float, float], reward_scale: float) -> Secrets:
+        """pp-hardened secrets, also from the OS entropy source.
+
+        a_j log-uniform on [1/3, 3]; m_j uniform on the central half of the box; c log-uniform on
+        [0.1, 10]; s uniform on [-reward_scale, reward_scale]; p = exp(+-U(ln 1.25, ln 2)).
+        """
+        rng = np.random.default_rng(_os_secrets.randbits(128))
+        lo, hi = box
+        mid, quarter = (lo + hi) / 2.0, (hi - lo) / 4.0
+        a = np.exp(rng.uniform(*HARDENED_A_LOG, size=D))
+        m = rng.uniform(mid - quarter, mid + quarter, size=D)
+        c = float(np.exp(rng.uniform(LOG_LOW, LOG_HIGH)))
+        s = float(rng.uniform(-abs(reward_scale), abs(reward_scale)))
+        p = float(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*HARDENED_P_LOG)))
+        return cls(run_id=run_id, a=a, c=c, m=m, s=s, p=p)
+
     def _payload(self) -> dict[str, object]:
-        return {"format": KEY_FORMAT, "run_id": self.run_id, "a": [float(v) for v in self.a], "c": self.c}
+        out: dict[str, object] = {"format": KEY_FORMAT, "run_id": self.run_id, "a": [float(v) for v in self.a], "c": self.c}
+        # optional keys only when set, so a paper key keeps the payload (and fingerprint) it always had
+        if self.m is not None:
+            out["m"] = [float(v) for v in self.m]
+        if self.s is not None:
+            out["s"] = float(self.s)
+        if self.p is not None:
+            out["p"] = float(self.p)
+        return out
 
     def fingerprint(self) -> str:
         """A digest that lets the store check a key file belongs to its run, without holding the key."""
@@ -74,13 +132,19 @@ class Secrets:
             a = np.asarray(raw["a"], dtype=np.float64)
             c = float(raw["c"])
             rid = str(raw["run_id"])
+            m = np.asarray(raw["m"], dtype=np.float64) if "m" in raw else None
+            s = float(raw["s"]) if "s" in raw else None
+            p = float(raw["p"]) if "p" in raw else None
         except (KeyError, TypeError, ValueError, AttributeError):
             raise KeyFileError(f"key file {path} is corrupt (missing or malformed fields)") from None
         if a.shape != (D,) or not np.all(np.isfinite(a)) or np.any(a <= 0) or not (math.isfinite(c) and c > 0):
             raise KeyFileError(f"key file {path} is corrupt (values out of range for D={D})")
+        if (m is not None and (m.shape != (D,) or not np.all(np.isfinite(m)))) or (s is not None and not math.isfinite(s)) \
+                or (p is not None and not (math.isfinite(p) and p > 0)):
+            raise KeyFileError(f"key file {path} is corrupt (hardening values out of range for D={D})")
         if rid != run_id:
             raise KeyFileError(f"key file {path} belongs to run {rid}, not to run {run_id}")
-        s = cls(run_id=rid, a=a, c=c)
-        if fingerprint is not None and s.fingerprint() != fingerprint:
+        secrets = cls(run_id=rid, a=a, c=c, m=m, s=s, p=p)
+        if fingerprint is not None and secrets.fingerprint() != fingerprint:
             raise KeyFileError(f"key file {path} does not match the key this run was started with")
-        return s
+        return secrets

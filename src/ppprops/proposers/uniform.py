@@ -1,6 +1,15 @@
-"""Uniform samples from the feasible box: the warm-up of Algorithm 1 (and random search)."""
+"""Uniform samples from the feasible box: the warm-up of Algorithm 1 (and random search).
+
+The paper samples raw parameters uniformly from the public box; their encoded spread then states
+each a_j (max |theta~_j| / 6). The hardened warm-up (``encoded_warmup``) draws uniformly from a
+public *encoded* box instead and decodes, so what the provider sees has the same distribution
+whatever the secrets are.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -8,19 +17,40 @@ from .. import seeding
 from ..store import Candidate
 from .base import Proposal
 
+if TYPE_CHECKING:
+    from ..client.codec import Codec
+    from ..config import RunConfig
+
+Decode = Callable[[np.ndarray], np.ndarray]
+
 
 class UniformSampler:
-    def __init__(self, D: int, box: tuple[float, float], seed: int, *, source: str = "warmup") -> None:
+    def __init__(
+        self, D: int, box: tuple[float, float], seed: int, *, source: str = "warmup", decode: Decode | None = None
+    ) -> None:
+        """``decode`` given: ``box`` is a box of the encoded space and samples are decoded to raw ones."""
         self.D = D
         self.box = box
         self.seed = seed
         self.source = source
+        self.decode = decode
 
     def ask(self, iteration: int) -> Proposal:
         # One stream per sample, so sample m is the same whether or not the run was interrupted.
         lo, hi = self.box
         theta = seeding.rng(self.seed, seeding.WARMUP, iteration).uniform(lo, hi, size=self.D)
+        if self.decode is not None:
+            theta = np.asarray(self.decode(theta), dtype=np.float64)
         return Proposal(theta=theta, source=self.source)
 
     def tell(self, candidate: Candidate) -> None:
         pass
+
+
+def warmup_sampler(D: int, config: RunConfig, codec: Codec) -> UniformSampler:
+    """The run's warm-up: the paper's raw uniform box, or the hardened encoded one."""
+    if config.mechanisms.encoded_warmup and codec.warp_params:
+        from ..client.context import warmup_box
+
+        return UniformSampler(D, warmup_box(config), config.seed, decode=codec.decode)
+    return UniformSampler(D, config.box, config.seed)

@@ -40,6 +40,11 @@ class PromptContext:
     diagnostic_notes: tuple[tuple[str, str], ...] = ()
     decimals: int = 2
     history_limit: int = 0  # K, 0 for unbounded; only shapes the wording
+    # How the encoding is described (docs/threat-model.md): "scale" is the paper's wording;
+    # "affine" adds secret offsets; "warp" is an undisclosed increasing map. Only the words change.
+    param_encoding: str = "scale"
+    reward_encoding: str = "scale"
+    warmup_range: tuple[float, float] | None = None  # public encoded range of the warm-up (hardened)
 
     @property
     def n_s(self) -> int:

@@ -38,10 +38,20 @@ def task_section(ctx: PromptContext) -> str:
     ).rstrip()
 
 
+_PARAM_TEMPLATES = {"scale": "parameters_encoded", "affine": "parameters_offset", "warp": "parameters_warped"}
+_REWARD_NOTES = {"scale": "scale_note", "affine": "scale_note_offset", "warp": "scale_note_warped"}
+
+
 def parameters_section(ctx: PromptContext) -> str:
     desc = layout.describe(ctx.n_s, ctx.n_a)
     if ctx.encoded_params:
-        return _render("parameters_encoded", layout=desc)
+        if ctx.param_encoding not in _PARAM_TEMPLATES:
+            raise ValueError(f"unknown parameter encoding {ctx.param_encoding!r}")
+        text = _render(_PARAM_TEMPLATES[ctx.param_encoding], layout=desc)
+        if ctx.warmup_range is not None:
+            low, high = ctx.warmup_range
+            text += "\n" + _render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+        return text
     if ctx.param_range is None:
         raise ValueError("unencoded parameters need a public range")
     low, high = ctx.param_range
@@ -49,7 +59,9 @@ def parameters_section(ctx: PromptContext) -> str:
 
 
 def feedback_section(ctx: PromptContext) -> str:
-    scale = _render("scale_note") if ctx.scaled_rewards else ""
+    if ctx.scaled_rewards and ctx.reward_encoding not in _REWARD_NOTES:
+        raise ValueError(f"unknown reward encoding {ctx.reward_encoding!r}")
+    scale = _render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
     optimum = _render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
     if not ctx.detailed_feedback:
         return _render("feedback_scalar", scale_note=scale, optimum_note=optimum)
@@ -63,15 +75,20 @@ def interaction_section(ctx: PromptContext) -> str:
     return _render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
 
 
+# Shared with ``wire.transcript``, which reads entries back out of recorded prompts.
+COMPONENTS_PREFIX = "\ncomponents: "
+DIAGNOSTICS_PREFIX = "\ndiagnostics: "
+
+
 def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
     if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
         raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
     d = ctx.decimals
     comps = diags = ""
     if ctx.detailed_feedback and e.components:
-        comps = "\ncomponents: " + ", ".join(f"{k}={fmt(v, d)}" for k, v in e.components)
+        comps = COMPONENTS_PREFIX + ", ".join(f"{k}={fmt(v, d)}" for k, v in e.components)
     if ctx.detailed_feedback and e.diagnostics:
-        diags = "\ndiagnostics: " + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
+        diags = DIAGNOSTICS_PREFIX + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
     return _render("history_entry", params=fmt_vector(e.params, d), ret=fmt(e.ret, d), components=comps, diagnostics=diags)
 
 

@@ -1,0 +1,88 @@
+"""The ``audit`` and ``privacy-report`` subcommands, and the one-line audit printed after a run.
+
+Kept here so the main CLI only registers them; errors are ``PPPropsError``s, which the main CLI
+turns into one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import ConfigError
+
+
+def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
+    au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean, 1 leak)")
+    au.add_argument("dir", type=Path)
+    au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
+    au.add_argument("--json", action="store_true")
+
+    pr = sub.add_parser("privacy-report", help="attacks x scheme (pp, pp-hardened) and their search results")
+    pr.add_argument("--runs", type=Path, default=None, metavar="DIR",
+                    help="analyse the run directories under DIR instead of starting new runs")
+    pr.add_argument("--envs", default="CartPole,Acrobot", help="tasks for new runs (default CartPole,Acrobot)")
+    pr.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 for new runs (default 5)")
+    pr.add_argument("--warmup", type=int, default=10)
+    pr.add_argument("--iterations", type=int, default=10,
+                    help="LLM iterations per new run (default 10: short runs; 0: warm-up only, to compare the warm-ups)")
+    pr.add_argument("--final-episodes", type=int, default=20)
+    pr.add_argument("--out", type=Path, default=None, help="where new runs and the report go (default runs/privacy-report-<time>)")
+    pr.add_argument("--offline", action="store_true",
+                    help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")
+    pr.add_argument("--json", action="store_true", help="print one JSON list of per-run analyses")
+
+
+def cmd_audit(a: argparse.Namespace) -> int:
+    from .audit import audit_run
+
+    report = audit_run(a.dir)
+    print(json.dumps(report.to_json(a.strict)) if a.json else report.format(a.strict))
+    return report.exit_code(a.strict)
+
+
+def cmd_privacy_report(a: argparse.Namespace) -> int:
+    from .report import find_runs, privacy_report, run_matrix, write_report
+
+    if a.runs is not None:
+        dirs = find_runs(a.runs)
+        out = a.runs
+    else:
+        if a.seeds < 1 or a.warmup < 1 or a.iterations < 0:
+            raise ConfigError("--seeds and --warmup must be >= 1, --iterations >= 0 (0: warm-up only, no LLM)")
+        envs = [e.strip() for e in a.envs.split(",") if e.strip()]
+        from ..tasks import get_task
+
+        envs = [get_task(e).name for e in envs]
+        out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
+        dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
+                          final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline)
+    text, analyses = privacy_report(dirs)
+    write_report(out, text, analyses, "ppprops " + " ".join(shlex.quote(x) for x in sys.argv[1:]))
+    print(json.dumps([x.to_json() for x in analyses]) if a.json else text)
+    if not a.json:
+        print(f"\nreport written to {Path(out) / 'privacy-report.md'}")
+    return 0
+
+
+PRIVACY_HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"audit": cmd_audit, "privacy-report": cmd_privacy_report}
+
+
+def self_audit_line(run_dir: Path) -> str:
+    """The verdict a finished run prints about its own transcript (never any value, never the key)."""
+    from .audit import audit_run
+
+    try:
+        report = audit_run(run_dir)
+    except Exception as e:  # the run itself succeeded; a failing check must not turn that into an error
+        return f"privacy audit: could not check this run ({e.__class__.__name__}: {e}); try ppprops audit {run_dir}"
+    if report.requests == 0:
+        return "privacy audit: no LLM request was sent"
+    kinds = sorted({f.kind for f in report.channels})
+    tail = f" Known channels: {', '.join(kinds)}." if kinds else ""
+    return f"privacy audit: {report.verdict()}.{tail} Details: ppprops audit {run_dir}"

@@ -1,0 +1,224 @@
+"""``ppprops privacy-report``: attack x scheme recovery errors and search results, on real runs.
+
+For every run it reads the recorded request bodies only (the transcript), runs every attack,
+and only then compares the estimates with the run's true secrets from its key file. An attack
+that finds nothing falls back to the prior guess (c = 1, a_j = 1: the geometric means of both
+schemes' secret distributions), so "no better than a prior guess" is read off the same table.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..client.secrets import Secrets
+from ..config import RunConfig
+from ..errors import ConfigError, StoreError
+from ..store import DB_NAME, open_store
+from .attacks import ATTACKS, run_attacks
+from .audit import audit_run
+from .transcript import load_requests
+
+SCHEMES = ("pp", "pp-hardened")
+PRIOR = 1.0  # geometric mean of the priors of c and a_j, in both schemes
+
+
+@dataclass
+class RunAnalysis:
+    run_dir: str
+    task: str
+    method: str
+    seed: int
+    warmup: int
+    iterations: int
+    best_return: float
+    final_mean: float | None
+    llm_calls: int
+    fallbacks: int
+    audit: str
+    model: str = ""  # as named in the request bodies
+    errors: dict[str, float] = field(default_factory=dict)  # attack -> relative error of the recovered secret
+    applicable: dict[str, bool] = field(default_factory=dict)
+    details: dict[str, str] = field(default_factory=dict)
+    coverage: dict[str, float] = field(default_factory=dict)  # share of the D coordinates an a-attack estimated
+    coord_errors: dict[str, list[float]] = field(default_factory=dict)  # a-attacks: one error per scored coordinate
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _rel(est: float | np.ndarray, true: float | np.ndarray) -> Any:
+    """Symmetric error factor minus one: exp(|ln(est/true)|) - 1 (0.01 = within 1%, 1.0 = off by 2x either way)."""
+    return np.expm1(np.abs(np.log(np.asarray(est, dtype=np.float64) / true)))
+
+
+def analyse_run(run_dir: Path) -> RunAnalysis:
+    """Attacks on one run's transcript, scored against its key file; plus its search result."""
+    run_dir = Path(run_dir)
+    store = open_store(run_dir)
+    try:
+        stored = store.config()
+        if "mechanisms" not in stored:
+            raise StoreError(f"{run_dir} is not a prompted search run")
+        config = RunConfig.from_json(stored)
+        task = config.make_task()
+        secrets = Secrets.load(run_dir / "secrets.key", run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
+        cands = store.candidates()
+        fe = store.final_eval()
+        calls = store.llm_calls()
+    finally:
+        store.close()
+    m = config.mechanisms
+    true_c = secrets.c if m.scale_rewards else 1.0
+    true_a = np.asarray(secrets.a) if m.encode_params else np.ones(task.D)
+    out = RunAnalysis(
+        run_dir=str(run_dir), task=task.name, method=config.method, seed=config.seed, warmup=config.warmup,
+        iterations=config.iterations, best_return=max((c.ret for c in cands), default=math.nan),
+        final_mean=fe.mean if fe is not None and fe.returns else None, llm_calls=len(calls),
+        fallbacks=sum(c.source == "fallback" for c in cands), audit=audit_run(run_dir).verdict(),
+    )
+    requests = load_requests(run_dir)
+    out.model = _model_of(run_dir) if requests else ""
+    for est in run_attacks(requests, task.name, config.box):
+        if est.target == "c":
+            value = float(est.value) if est.applicable and est.value is not None else PRIOR
+            out.errors[est.attack] = float(_rel(value, true_c))
+        else:
+            arr = np.full(task.D, np.nan) if est.value is None else np.asarray(est.value, dtype=np.float64)
+            known = np.isfinite(arr) & (arr > 0)
+            # scored on the coordinates the attack estimated; with none, the attacker has only the prior
+            coords = _rel(arr[known], true_a[known]) if known.any() else _rel(PRIOR, true_a)
+            out.coord_errors[est.attack] = [float(x) for x in np.atleast_1d(coords)]
+            out.errors[est.attack] = float(np.median(coords))
+            out.coverage[est.attack] = float(known.mean())
+        out.applicable[est.attack] = est.applicable
+        out.details[est.attack] = est.detail
+    out.errors["prior (c)"] = float(_rel(PRIOR, true_c))
+    out.coord_errors["prior (a)"] = [float(x) for x in _rel(np.full(task.D, PRIOR), true_a)]
+    out.errors["prior (a)"] = float(np.median(out.coord_errors["prior (a)"]))
+    return out
+
+
+def _model_of(run_dir: Path) -> str:
+    store = open_store(run_dir)
+    try:
+        calls = store.llm_calls()
+    finally:
+        store.close()
+    try:
+        return str(json.loads(calls[0]["request"]).get("model", ""))
+    except (ValueError, IndexError, AttributeError):
+        return ""
+
+
+def find_runs(root: Path) -> list[Path]:
+    """Run directories under ``root`` (itself included) that hold a store and a key file."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"{root} is not a directory")
+    found = [p.parent for p in sorted(root.rglob(DB_NAME)) if (p.parent / "secrets.key").exists()]
+    if not found:
+        raise ConfigError(f"no run directories (with {DB_NAME} and secrets.key) under {root}")
+    return found
+
+
+def run_matrix(
+    out: Path, *, envs: Sequence[str], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
+    iterations: int = 10, final_episodes: int = 20, log: Callable[[str], None] = print, offline: bool = False,
+) -> list[Path]:
+    """One run per (env, scheme, seed) with the embedded model (or the offline stand-in); finished runs are kept."""
+    from contextlib import nullcontext
+
+    from ..config import LLMConfig
+    from ..methods import resolve
+    from ..runner import start
+    from .simulate import offline_llm
+
+    dirs = []
+    for seed in seeds:
+        for env in envs:
+            for scheme in schemes:
+                d = Path(out) / f"{env}__{scheme}__{seed}"
+                dirs.append(d)
+                if (d / "best_policy.json").exists():
+                    continue
+                if d.exists():
+                    raise ConfigError(f"{d} holds an unfinished run; finish it with 'ppprops resume {d}' or remove it")
+                t0 = time.time()
+                cfg = RunConfig(task=env, method=scheme, mechanisms=resolve(scheme), warmup=warmup, iterations=iterations,
+                                final_episodes=final_episodes, seed=seed, llm=LLMConfig())
+                with offline_llm() if offline else nullcontext():
+                    start(cfg, d)
+                log(f"{d}: done in {time.time() - t0:.0f} s")
+    return dirs
+
+
+def _fmt_err(values: list[float], applicable: list[bool], coverage: list[float] | None = None) -> str:
+    med = float(np.median(values))
+    pct = f"{100 * med:.2g}%" if med < 1e-3 else f"{100 * med:.3g}%" if med < 1 else f"{100 * med:.0f}%"
+    cov = ""
+    if coverage and any(applicable) and min(coverage) < 1.0:
+        cov = f", {100 * float(np.mean([c for c, a in zip(coverage, applicable, strict=True) if a])):.0f}% of coords"
+    return f"{pct} ({sum(applicable)}/{len(applicable)}{cov})"
+
+
+def format_report(runs: Sequence[RunAnalysis]) -> str:
+    groups: dict[tuple[str, str], list[RunAnalysis]] = {}
+    for r in runs:
+        groups.setdefault((r.task, r.method), []).append(r)
+    cols = sorted(groups, key=lambda k: (k[0], SCHEMES.index(k[1]) if k[1] in SCHEMES else 9, k[1]))
+    head = "| attack | secret | " + " | ".join(f"{t} {m}" for t, m in cols) + " |"
+    lines = [
+        "Recovery error of the secret: error factor - 1, i.e. exp(|ln(estimate / true)|) - 1 (1% = within 1%, 100% = off by 2x",
+        "either way). For c: the median over runs. For a: the median over every coordinate the attack estimated, all runs pooled.",
+        "(k/n): runs in which the attack produced an estimate; in the others it falls back to the prior guess 1",
+        "(the geometric mean of the secret's distribution in both schemes). 'prior' rows: that guess alone.",
+        "",
+        head,
+        "|" + "---|" * (len(cols) + 2),
+    ]
+    rows = [(name, "c" if name in ("diagnostic", "lattice", "known-cap") else "a") for name in ATTACKS]
+    rows += [("prior (c)", "c"), ("prior (a)", "a")]
+    for name, target in rows:
+        cells = []
+        for key in cols:
+            rs = groups[key]
+            # c: one value per run; a: every scored coordinate of every run, pooled (D times more draws)
+            errs = [x for r in rs for x in r.coord_errors[name]] if name in rs[0].coord_errors else [r.errors[name] for r in rs]
+            apps = [r.applicable.get(name, True) for r in rs]
+            cells.append(_fmt_err(errs, apps, [r.coverage[name] for r in rs] if name in rs[0].coverage else None))
+        lines.append(f"| {name} | {target} | " + " | ".join(cells) + " |")
+    models = ", ".join(sorted({r.model for r in runs if r.model})) or "-"
+    lines += ["", f"Search results (best return found during the search; final evaluation of that policy on fresh episodes); "
+              f"model: {models}:", "",
+              "| task | scheme | runs | warm-up + iterations | best search return | final evaluation | fallbacks | audit clean |",
+              "|---|---|---|---|---|---|---|---|"]
+    for key in cols:
+        rs = groups[key]
+        best = np.array([r.best_return for r in rs])
+        finals = np.array([r.final_mean for r in rs if r.final_mean is not None])
+        final = f"{finals.mean():.1f} +- {finals.std():.1f}" if len(finals) else "-"
+        budget = ", ".join(sorted({f"{r.warmup} + {r.iterations}" for r in rs}))
+        clean = sum(r.audit.startswith("CLEAN") for r in rs)
+        lines.append(f"| {key[0]} | {key[1]} | {len(rs)} | {budget} | {best.mean():.1f} +- {best.std():.1f} | {final} | "
+                     f"{sum(r.fallbacks for r in rs)} | {clean}/{len(rs)} |")
+    return "\n".join(lines)
+
+
+def privacy_report(run_dirs: Sequence[Path]) -> tuple[str, list[RunAnalysis]]:
+    analyses = [analyse_run(d) for d in run_dirs]
+    return format_report(analyses), analyses
+
+
+def write_report(out: Path, text: str, analyses: Sequence[RunAnalysis], command: str) -> None:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "privacy-report.md").write_text(f"# Privacy report\n\nProduced by: `{command}`\n\n{text}\n", encoding="utf-8")
+    (out / "privacy-report.json").write_text(json.dumps([a.to_json() for a in analyses], indent=1), encoding="utf-8")

@@ -1,0 +1,59 @@
+"""An offline stand-in for the LLM, so audits and attacks can be exercised on many runs quickly.
+
+``EchoOptimizer`` answers each prompt the way a simple optimizer in the encoded space would: it
+reads the best history entry (last in the prompt) and perturbs it with Gaussian noise scaled to
+each coordinate's magnitude. It sees exactly what a provider sees, so its transcripts have the
+structure of real ones (warm-up first, LLM answers that may leave the box and get clipped).
+``offline_llm()`` makes the runner use it in place of the configured endpoint.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+from unittest import mock
+
+import numpy as np
+
+from ..llm.client import Exchange
+from ..wire.transcript import history_entries
+
+
+class EchoOptimizer:
+    """Chat protocol: best shown entry + N(0, spread * (|x| + 1)) per coordinate, two decimals."""
+
+    def __init__(self, config: Any = None, *, spread: float = 0.5) -> None:
+        self.spread = spread
+        self.calls = 0
+
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        self.calls += 1
+        prompt = messages[0]["content"]
+        entries = history_entries(prompt)
+        rng = np.random.default_rng(seed)
+        if entries and len(entries[-1].params) == D:
+            best = np.array([float(t) for t in entries[-1].params])
+        else:
+            best = np.zeros(D)
+        proposal = best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
+        content = json.dumps({"params": [round(float(v), 2) for v in proposal]})
+        body = {"model": "echo-optimizer", "messages": messages, "seed": seed}
+        return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None,
+                        prompt_chars=sum(len(m["content"]) for m in messages), prompt_tokens=None, completion_tokens=None,
+                        latency_s=0.0, ok=True)
+
+    def count_tokens(self, text: str) -> int:
+        return len(text) // 4
+
+    def close(self) -> None:
+        pass
+
+
+@contextmanager
+def offline_llm(spread: float = 0.5) -> Iterator[None]:
+    """Within the block, every run started by ``ppprops.runner`` talks to an ``EchoOptimizer``."""
+    # whatever the runner passes LazyChat (config, and whatever else it grows), the stand-in answers
+    with mock.patch("ppprops.runner.LazyChat", lambda *args, **kwargs: EchoOptimizer(spread=spread)):
+        yield

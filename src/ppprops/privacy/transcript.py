@@ -1,0 +1,50 @@
+"""The recorded outgoing requests of a run, read back as the provider received them."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import StoreError
+from ..store import open_store
+from ..wire.transcript import ShownEntry, history_entries
+
+
+@dataclass(frozen=True)
+class Request:
+    """One recorded request body: the text of the messages the client wrote, and the sampling seed."""
+
+    call_id: int
+    iteration: int
+    attempt: int
+    text: str  # every non-assistant message, joined (assistant messages are the provider's own words)
+    seed: int | None
+    entries: tuple[ShownEntry, ...]
+
+    @property
+    def where(self) -> str:
+        return f"call {self.call_id} (iteration {self.iteration}, attempt {self.attempt})"
+
+
+def parse_request(call_id: int, iteration: int, attempt: int, body: str) -> Request:
+    try:
+        doc = json.loads(body)
+        messages = doc.get("messages", [])
+        text = "\n\n".join(str(m.get("content", "")) for m in messages if m.get("role") != "assistant")
+        seed = doc.get("seed")
+    except (json.JSONDecodeError, AttributeError):
+        text, seed = body, None  # not JSON: audit the bytes as text
+    return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None, tuple(history_entries(text)))
+
+
+def load_requests(run_dir: Path) -> list[Request]:
+    """Every recorded request of a run, in the order sent."""
+    if not Path(run_dir).is_dir():
+        raise StoreError(f"{run_dir} is not a directory")
+    store = open_store(run_dir)
+    try:
+        calls = store.llm_calls()
+    finally:
+        store.close()
+    return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"])) for c in calls]

@@ -1,0 +1,86 @@
+"""Reads history entries back out of a prompt, as printed, for the audit and the attacks.
+
+Positional reading: each entry's fields keep the exact strings the prompt printed (so a reader
+knows their precision) and their place (which parameter, which component), so a printed value
+can be compared with the raw value of the same quantity rather than with every number around.
+Standard library only, like the rest of ``ppprops.wire``.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from .prompt import COMPONENTS_PREFIX, DIAGNOSTICS_PREFIX, template
+
+NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_PAIR_SPLIT = re.compile(r", (?=[A-Za-z_][\w.]*=)")
+
+
+def _entry_pattern() -> re.Pattern[str]:
+    """The history-entry template turned into a regex, so template edits cannot silently blind the audit."""
+    t = template("history_entry").template
+    parts = re.split(r"(\$params|\$ret|\$components|\$diagnostics)", t)
+    rx = ""
+    for part in parts:
+        if part == "$params":
+            rx += r"\[(?P<params>[^\]\n]*)\]"
+        elif part == "$ret":
+            rx += r"(?P<ret>\S+)"
+        elif part == "$components":
+            rx += f"(?:{re.escape(COMPONENTS_PREFIX)}(?P<components>[^\\n]*))?"
+        elif part == "$diagnostics":
+            rx += f"(?:{re.escape(DIAGNOSTICS_PREFIX)}(?P<diagnostics>[^\\n]*))?"
+        else:
+            rx += re.escape(part)
+    return re.compile(rx)
+
+
+@dataclass(frozen=True)
+class ShownEntry:
+    """One history entry as printed: strings, not floats, so their precision is known."""
+
+    start: int
+    end: int
+    params: tuple[str, ...]
+    ret: str
+    components: tuple[tuple[str, str], ...] = ()
+    diagnostics: tuple[tuple[str, str], ...] = ()
+
+
+def _pairs(text: str | None) -> tuple[tuple[str, str], ...]:
+    if not text:
+        return ()
+    out = []
+    for item in _PAIR_SPLIT.split(text):
+        key, sep, value = item.partition("=")
+        if sep:
+            out.append((key.strip(), value.strip()))
+    return tuple(out)
+
+
+def history_entries(text: str) -> list[ShownEntry]:
+    """Every history entry in a prompt, in the order printed."""
+    out: list[ShownEntry] = []
+    for m in _entry_pattern().finditer(text):
+        params = tuple(v.strip() for v in m.group("params").split(",") if v.strip())
+        out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(m.group("components")), _pairs(m.group("diagnostics"))))
+    return out
+
+
+def outside_entries(text: str, entries: list[ShownEntry]) -> list[tuple[int, str]]:
+    """The stretches of text that are not history entries (the prose), with their offsets."""
+    out: list[tuple[int, str]] = []
+    pos = 0
+    for e in entries:
+        if e.start > pos:
+            out.append((pos, text[pos:e.start]))
+        pos = e.end
+    if pos < len(text):
+        out.append((pos, text[pos:]))
+    return out
+
+
+def number_tokens(text: str) -> list[tuple[int, str]]:
+    """Numbers as printed in free text (offset, token); digits inside words (s[0], v1) are skipped."""
+    return [(m.start(), m.group(0)) for m in re.finditer(rf"(?<![\w.]){NUMBER}(?![\w])", text)]

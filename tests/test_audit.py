@@ -1,0 +1,250 @@
+"""The transcript audit: clean on pp runs, and it finds every kind of leak planted in a transcript.
+
+Runs here are built from the real codec, prompt builder and store (no LLM, no simulator), so the
+planted values are exact; `test_pp_runs_through_the_runner_audit_clean` runs the whole loop with an
+offline stand-in for the LLM, and test_privacy_wire.py audits runs with the embedded model.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppprops import seeding
+from ppprops.cli import main
+from ppprops.client.codec import encode_feedback
+from ppprops.client.context import prompt_context
+from ppprops.client.hardening import codec_for
+from ppprops.client.secrets import Secrets
+from ppprops.errors import StoreError
+from ppprops.evaluation import Feedback
+from ppprops.llm.client import Exchange
+from ppprops.privacy.audit import audit_run, renders, token_value
+from ppprops.privacy.simulate import offline_llm
+from ppprops.runner import create_run, start
+from ppprops.store import Candidate, open_store
+from ppprops.tasks import get_task
+from ppprops.wire import build_prompt, top_k
+from ppprops.wire.numbers import fmt, fmt_vector
+
+from support import make_config
+
+
+def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False) -> Path:
+    """12 candidates (6 warm-up, then one request and one answer each), CartPole-like feedback with components."""
+    task = get_task("CartPole")
+    cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3)
+    run_dir = root / (name or method)
+    secrets = None
+    if method != "pp-hardened":
+        rng = np.random.default_rng(11)
+        a = rng.uniform(1.7, 4.3, task.D)
+        if a_one:
+            a[0] = 1.0  # a factor of 1: that coordinate is sent as it is, which is not a leak anyone can see
+        secrets = Secrets(run_id=f"audit-{method}", a=a, c=3.7193)
+    store, secrets = create_run(cfg, run_dir, secrets)
+    codec = codec_for(secrets, task, cfg)
+    ctx = prompt_context(task, cfg, codec)
+    rng = np.random.default_rng(5)
+    entries = []
+    for i in range(12):
+        theta = rng.uniform(-6, 6, task.D)
+        r = float(rng.integers(8, 200))
+        fb = Feedback(ret=r, components={"alive": r, "ctrl": round(-0.37 * (i + 1), 4)},
+                      diagnostics={"episode_length": r, "termination": "pole_fell"}, episode_returns=(r,))
+        enc = encode_feedback(codec, fb)
+        c = Candidate(i, i if i < 6 else i - 6, "warmup" if i < 6 else "llm", theta, codec.encode(theta), fb, enc, 0, (i,))
+        if i >= 6:  # the request that produced candidate i shows the history so far
+            it = i - 6
+            prompt = build_prompt(ctx, top_k(entries, cfg.top_k))
+            body = {"model": "m", "messages": [{"role": "user", "content": prompt}], "seed": seeding.llm_seed(cfg.seed, it, 0)}
+            store.add_llm_call(it, 0, Exchange(json.dumps(body), None, "{}", None, len(prompt), None, None, 0.0, True), None)
+        store.add_candidate(c)
+        detailed = cfg.mechanisms.detailed_feedback
+        entries.append(codec.entry(i, c.params_enc, enc.ret, enc.components if detailed else {}, enc.diagnostics if detailed else {}))
+    store.close()
+    return run_dir
+
+
+def _last_request(run_dir: Path) -> tuple[int, str]:
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    row = db.execute("SELECT id, request FROM llm_calls ORDER BY id DESC LIMIT 1").fetchone()
+    db.close()
+    return int(row[0]), json.loads(row[1])["messages"][0]["content"]
+
+
+def plant(run_dir: Path, old: str, new: str) -> None:
+    """Rewrite the last recorded request, as if the client had sent ``new`` where it sent ``old``."""
+    call_id, text = _last_request(run_dir)
+    assert text.count(old) >= 1, old
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    row = db.execute("SELECT request FROM llm_calls WHERE id = ?", (call_id,)).fetchone()
+    body = json.loads(row[0])
+    body["messages"][0]["content"] = text.replace(old, new, 1)
+    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call_id))
+    db.commit()
+    db.close()
+
+
+def _shown_candidate(run_dir: Path) -> Candidate:
+    """A candidate whose entry is in the last request (with raw values distinct from the encoded ones)."""
+    store = open_store(run_dir)
+    cands = store.candidates()
+    store.close()
+    _, text = _last_request(run_dir)
+    return next(c for c in cands[:11] if fmt_vector(list(c.params_enc), 2) in text)
+
+
+@pytest.fixture()
+def pp_run(tmp_path: Path) -> Path:
+    return build_run(tmp_path, "pp")
+
+
+def test_token_precision_covers_every_notation() -> None:
+    assert token_value("47.60") == (47.6, pytest.approx(0.005))
+    assert token_value("47.6")[1] == pytest.approx(0.05)  # type: ignore[index]
+    assert token_value("48")[1] == 0.5  # type: ignore[index]
+    assert token_value("4.764e+01")[1] == pytest.approx(0.005)  # type: ignore[index]
+    assert token_value("-0.00") == (0.0, 0.005) and token_value("pole_fell") is None
+    assert renders(47.6449, *token_value("47.64")) and not renders(47.646, *token_value("47.64"))  # type: ignore[misc]
+
+
+def test_a_clean_pp_transcript_passes_and_names_its_known_channels(pp_run: Path) -> None:
+    r = audit_run(pp_run)
+    assert r.requests == 6 and r.entries > 30 and r.checked["params"] == 10 * r.entries and r.checked["components"] > 0
+    assert r.leaks == [] and r.unverified == [] and r.exit_code() == 0
+    assert r.verdict().startswith("CLEAN")
+    kinds = {f.kind for f in r.channels}
+    # episode_length = the raw CartPole return: a known channel of the paper's scheme, not silently ignored
+    assert {"diagnostic_return", "diagnostic_determines", "warmup_scale", "run_seed", "reward_lattice"} <= kinds
+    assert any("episode_length equals the raw return" in f.detail for f in r.channels)
+    assert any("episode_length equals the raw component alive" in f.detail for f in r.channels)
+    assert r.exit_code(strict=True) == 1
+
+
+def test_a_factor_of_one_is_a_coincidence_not_a_leak(tmp_path: Path) -> None:
+    r = audit_run(build_run(tmp_path, "pp", a_one=True))
+    assert r.clean and r.coincidences >= r.entries  # params[0] equals its raw value in every entry
+
+
+def test_planted_raw_parameter_is_found_at_its_place(pp_run: Path) -> None:
+    c = _shown_candidate(pp_run)
+    shown = [fmt(v, 2) for v in c.params_enc]
+    leaked = list(shown)
+    leaked[3] = fmt(c.params[3], 2)
+    plant(pp_run, "[" + ", ".join(shown) + "]", "[" + ", ".join(leaked) + "]")
+    r = audit_run(pp_run)
+    assert r.exit_code() == 1 and [f.kind for f in r.leaks] == ["raw_param"]
+    assert "params[3]" in r.leaks[0].detail and f"candidate {c.index}" in r.leaks[0].locations[0]
+    assert not r.leaks[0].by_design
+
+
+@pytest.mark.parametrize("notation", ["{:.3e}", "{:.4f}", "{:.1f}"])
+def test_planted_raw_parameter_in_other_notations(pp_run: Path, notation: str) -> None:
+    c = _shown_candidate(pp_run)
+    shown = [fmt(v, 2) for v in c.params_enc]
+    leaked = list(shown)
+    leaked[5] = notation.format(c.params[5])
+    plant(pp_run, "[" + ", ".join(shown) + "]", "[" + ", ".join(leaked) + "]")
+    assert [f.kind for f in audit_run(pp_run).leaks] == ["raw_param"]
+
+
+def test_planted_raw_vector_is_found(pp_run: Path) -> None:
+    c = _shown_candidate(pp_run)
+    plant(pp_run, fmt_vector(list(c.params_enc), 2), fmt_vector(list(c.params), 2))
+    r = audit_run(pp_run)
+    assert r.exit_code() == 1 and r.leaks[0].kind == "raw_param" and f"candidate {c.index}" in r.leaks[0].locations[0]
+
+
+@pytest.mark.parametrize("render", [lambda v: str(int(v)), lambda v: f"{v:.1f}", lambda v: f"{v:.3e}"])
+def test_planted_raw_return_is_found_as_integer_short_decimals_or_exponent(pp_run: Path, render) -> None:  # type: ignore[no-untyped-def]
+    c = _shown_candidate(pp_run)
+    old = fmt_vector(list(c.params_enc), 2) + "\nreturn: " + fmt(c.feedback_enc.ret, 2)
+    plant(pp_run, old, fmt_vector(list(c.params_enc), 2) + "\nreturn: " + render(c.ret))
+    r = audit_run(pp_run)
+    assert [f.kind for f in r.leaks] == ["raw_return"] and f"candidate {c.index}" in r.leaks[0].locations[0]
+
+
+def test_planted_raw_component_is_found(pp_run: Path) -> None:
+    c = _shown_candidate(pp_run)
+    old = f"ctrl={fmt(c.feedback_enc.components['ctrl'], 2)}"
+    plant(pp_run, old, f"ctrl={c.feedback.components['ctrl']:g}")
+    r = audit_run(pp_run)
+    assert [f.kind for f in r.leaks] == ["raw_component"] and "ctrl" in r.leaks[0].detail
+
+
+@pytest.mark.parametrize("sentence", ["A good policy reaches 500.", "Aim for 500.00 or more.", "Target: 5.0e+02."])
+def test_planted_optimum_in_the_prose_is_found(pp_run: Path, sentence: str) -> None:
+    plant(pp_run, "\n\n4. How we will interact:", f" {sentence}\n\n4. How we will interact:")
+    r = audit_run(pp_run)
+    assert [f.kind for f in r.leaks] == ["optimum"] and not r.leaks[0].by_design
+
+
+def test_planted_raw_return_in_the_prose_is_found(pp_run: Path) -> None:
+    store = open_store(pp_run)
+    c = store.candidates()[2]
+    store.close()
+    plant(pp_run, "\n\n4. How we will interact:", f" The best return so far is {c.ret:.2f}.\n\n4. How we will interact:")
+    assert "raw_return" in {f.kind for f in audit_run(pp_run).leaks}
+
+
+def test_an_entry_the_audit_cannot_account_for_fails_it(pp_run: Path) -> None:
+    c = _shown_candidate(pp_run)
+    plant(pp_run, fmt_vector(list(c.params_enc), 2), fmt_vector([123.45] * len(c.params), 2))
+    r = audit_run(pp_run)
+    assert r.leaks == [] and r.unverified and r.exit_code() == 1 and r.verdict().startswith("UNVERIFIED")
+
+
+@pytest.mark.parametrize("method", ["vanilla", "df"])
+def test_vanilla_and_df_send_raw_values_by_design(tmp_path: Path, method: str) -> None:
+    r = audit_run(build_run(tmp_path, method))
+    kinds = {f.kind for f in r.leaks}
+    assert r.exit_code() == 1 and "by design of preset" in r.verdict()
+    assert {"raw_param", "raw_return", "optimum"} <= kinds and all(f.by_design for f in r.leaks)
+    assert ("raw_component" in kinds) == (method == "df")
+
+
+def test_hardened_transcript_is_clean_even_under_strict(tmp_path: Path) -> None:
+    run = build_run(tmp_path, "pp-hardened")
+    r = audit_run(run)
+    assert r.exit_code(strict=True) == 0 and r.channels == [] and r.checked["params"] > 0 and r.checked["components"] > 0
+    _, text = _last_request(run)
+    assert "termination=pole_fell" in text and "episode_length" not in text
+
+
+def test_pp_runs_through_the_runner_audit_clean(tmp_path: Path) -> None:
+    for task in ("CartPole", "Acrobot"):
+        rng = np.random.default_rng(7)
+        secrets = Secrets(run_id=f"runner-{task}", a=np.exp(rng.uniform(-2.3, 2.3, get_task(task).D)), c=0.731)
+        with offline_llm():
+            start(make_config(task, "pp", warmup=8, iterations=6, final_episodes=0), tmp_path / task, secrets=secrets)
+        r = audit_run(tmp_path / task)
+        assert r.requests == 6 and r.clean, r.format()
+        if task == "Acrobot":  # return = -episode_length + success, found as a run-level channel
+            assert any("episode_length, success determine the raw return" in f.detail for f in r.channels)
+
+
+def test_cli_audit_exit_codes_and_the_self_audit_after_a_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pp = build_run(tmp_path, "pp")
+    assert main(["audit", str(pp)]) == 0
+    assert main(["audit", str(pp), "--strict"]) == 1
+    assert main(["audit", str(build_run(tmp_path, "vanilla")), "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert doc["exit_code"] == 1 and doc["findings"][0]["severity"] == "leak"
+    assert main(["audit", str(tmp_path / "missing")]) == 2
+    with offline_llm():
+        assert main(["run", "--env", "CartPole", "--method", "pp-hardened", "--warmup", "3", "--iterations", "2",
+                     "--final-episodes", "0", "--out", str(tmp_path / "h"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "privacy audit: CLEAN" in out and "Known channels" not in out
+    key = json.loads((tmp_path / "h" / "secrets.key").read_text())
+    assert f"{key['c']:.2f}" not in out and f"{key['s']:.2f}" not in out
+
+
+def test_a_directory_without_a_search_is_an_input_error(tmp_path: Path) -> None:
+    with pytest.raises(StoreError):
+        audit_run(tmp_path)
