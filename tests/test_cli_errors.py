@@ -43,6 +43,16 @@ RUN = ["run", "--env", "CartPole", "--quiet"]
         (["show", "/nonexistent/run"], "is not a ppprops run directory"),
         (["resume", "/nonexistent/run"], "is not a directory"),
         (["policy", "eval", "/nonexistent/p.json"], "does not exist"),
+        (RUN + ["--warmup", "10001"], "--warmup must be <= 10000"),
+        (RUN + ["--iterations", "100001"], "--iterations must be <= 100000"),
+        (RUN + ["--episodes", "10001"], "--episodes must be <= 10000"),
+        (RUN + ["--parse-retries", "11"], "--parse-retries must be <= 10"),
+        (RUN + ["--retries", "-1"], "--retries must be in [0, 20]"),
+        (RUN + ["--retry-base-delay", "nan"], "--retry-base-delay must be in [0, 3600] seconds"),
+        (RUN + ["--retry-base-delay", "5", "--retry-max-delay", "1"], "--retry-max-delay (1.0) must be >= --retry-base-delay"),
+        (RUN + ["--on-llm-failure", "retry"], "invalid choice"),
+        (["run", "--quiet"], "--env is required"),
+        (RUN + ["--config", "/nonexistent/c.toml"], "config file /nonexistent/c.toml does not exist"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(capsys, args: list[str], needle: str) -> None:  # type: ignore[no-untyped-def]
@@ -70,7 +80,7 @@ def test_output_directory_holding_a_run_is_not_overwritten(capsys, tmp_path: Pat
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
-@pytest.mark.parametrize("damage", ["delete", "corrupt", "other_run"])
+@pytest.mark.parametrize("damage", ["delete", "corrupt", "other_run", "unreadable", "swapped"])
 def test_resume_refuses_a_bad_key_file(capsys, tmp_path: Path, damage: str) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "r"
     assert _call(capsys, RUN + ["--warmup", "2", "--iterations", "0", "--final-episodes", "0", "--out", str(out)])[0] == 0
@@ -80,6 +90,13 @@ def test_resume_refuses_a_bad_key_file(capsys, tmp_path: Path, damage: str) -> N
         key.unlink()
     elif damage == "corrupt":
         key.write_text("{not json")
+    elif damage == "unreadable":  # tests run as root, so chmod 000 would not stop a read: a directory does
+        key.unlink()
+        key.mkdir()
+    elif damage == "swapped":  # the right run id, other secrets: caught by the store's fingerprint
+        doc = json.loads(key.read_text())
+        doc["c"] = doc["c"] * 1.5
+        key.write_text(json.dumps(doc))
     else:
         doc = json.loads(key.read_text())
         doc["run_id"] = "someone-else"
@@ -104,3 +121,86 @@ def test_corrupt_store_and_policy_file(capsys, tmp_path: Path) -> None:  # type:
 def test_console_script_exit_code() -> None:
     proc = subprocess.run([sys.executable, "-m", "ppprops", "run", "--env", "Nope"], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.startswith("ppprops: error: unknown task")
+
+
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("env = 'CartPole'\nwarmup = [", "is not valid TOML"),
+        ("env = 'CartPole'\nwarmpu = 3", "unknown key 'warmpu'"),
+        ("env = 'CartPole'\nwarmup = 'three'", "warmup must be an integer"),
+        ("env = 'CartPole'\nmethod = 'secret'", "method must be one of"),
+        ("env = 'CartPole'\nbox = [1, 'a']", "box = [1, 'a'] is not a valid value"),
+        ("env = 'CartPole'\nencode-params = 'maybe'", "expected on or off"),
+        ("env = 'CartPole'\nwarmup = 20000", "--warmup must be <= 10000"),
+        ("env = 'CartPole'\non-llm-failure = 'retry'", "on-llm-failure must be one of stop, skip"),
+    ],
+)
+def test_malformed_config_file(capsys, tmp_path: Path, text: str, needle: str) -> None:  # type: ignore[no-untyped-def]
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    code, err = _call(capsys, ["run", "--quiet", "--out", str(tmp_path / "r"), "--config", str(cfg)])
+    assert code == 2 and err.count("\n") == 1 and err.startswith("ppprops: error:") and needle in err, err
+    assert not (tmp_path / "r").exists()
+
+
+def test_config_file_values_are_used_and_flags_win(capsys, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        "env = 'CartPole'\nmethod = 'pe'\nwarmup = 2\niterations = 0\nfinal-episodes = 0\ntop_k = 4\n"
+        "box = [-3, 3]\nscale-rewards = true\non-llm-failure = 'skip'\nretries = 7\nquiet = true\n"
+    )
+    out = tmp_path / "r"
+    assert _call(capsys, ["run", "--config", str(cfg), "--warmup", "3", "--out", str(out)])[0] == 0
+    from ppprops.store import open_store
+
+    store = open_store(out)
+    c = store.config()
+    store.close()
+    assert (c["method"], c["warmup"], c["iterations"], c["top_k"], c["box"]) == ("pe", 3, 0, 4, [-3.0, 3.0])
+    assert c["mechanisms"]["scale_rewards"] is True and c["on_llm_failure"] == "skip" and c["llm"]["transport_retries"] == 7
+
+
+def test_full_disk_during_a_run_is_one_line_and_resumable(capsys, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import sqlite3
+
+    from ppprops.store import RunStore, open_store
+
+    real_init = RunStore.__init__
+
+    def small_disk(self: RunStore, path: Path) -> None:  # SQLite's own page limit: real SQLITE_FULL errors
+        real_init(self, path)
+        pages = self._db.execute("PRAGMA page_count").fetchone()[0]
+        self._db.execute(f"PRAGMA max_page_count = {pages + 2}")
+
+    monkeypatch.setattr(RunStore, "__init__", small_disk)
+    out = tmp_path / "r"
+    code, err = _call(capsys, RUN + ["--warmup", "300", "--iterations", "0", "--final-episodes", "0", "--out", str(out)])
+    assert code == 2 and err.count("\n") == 1 and "the disk is full" in err, err
+    monkeypatch.undo()
+    with sqlite3.connect(out / "run.sqlite") as con:
+        assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        idx = [r[0] for r in con.execute("SELECT idx FROM candidates ORDER BY idx")]
+    assert 0 < len(idx) < 300 and idx == list(range(len(idx)))
+    assert _call(capsys, ["resume", str(out), "--quiet"])[0] == 0
+    store = open_store(out)
+    assert len(store.candidates()) == 300 and store.status() == "finished"
+    store.close()
+
+
+def test_no_space_for_the_policy_file_is_one_line_and_resumable(capsys, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import errno
+
+    import ppprops.runner
+
+    def full(path: Path, doc: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ppprops.runner, "write_json_atomic", full)
+    out = tmp_path / "r"
+    code, err = _call(capsys, RUN + ["--warmup", "2", "--iterations", "0", "--final-episodes", "2", "--out", str(out)])
+    assert code == 2 and err.count("\n") == 1 and "No space left on device" in err and "ppprops resume" in err
+    assert not (out / "best_policy.json").exists()
+    monkeypatch.undo()
+    assert _call(capsys, ["resume", str(out), "--quiet"])[0] == 0
+    assert (out / "best_policy.json").exists()

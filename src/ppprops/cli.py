@@ -13,7 +13,7 @@ from typing import Any
 from . import __version__
 from .config import LLMConfig, RunConfig
 from .errors import PPPropsError
-from .methods import PRESETS, Mechanisms, resolve
+from .methods import HARDENING, PRESETS, Mechanisms, resolve
 from .strategies import BLACK_BOX
 
 EXIT_INPUT = 2
@@ -46,21 +46,32 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     r = sub.add_parser("run", help="start a search")
-    r.add_argument("--env", required=True, help="task name (see `ppprops envs`) or its Gymnasium id")
-    r.add_argument("--method", choices=[*PRESETS, *BLACK_BOX], default="pp",
-                   help="a preset of the paper (default pp), or a black-box baseline at the same budget")
+    r.add_argument("--env", default=None, help="task name (see `ppprops envs`) or its Gymnasium id (required, here or in --config)")
+    r.add_argument("--method", choices=[*PRESETS, "r2po", *BLACK_BOX], default="pp",
+                   help="a preset of the paper (default pp), R2PO, or a black-box baseline at the same budget")
     r.add_argument("--warmup", type=int, default=10, help="random warm-up policies (default 10)")
     r.add_argument("--iterations", type=int, default=50, help="LLM iterations (default 50)")
     r.add_argument("--top-k", type=int, default=10, help="history entries in the prompt; 0 = all (default 10)")
-    r.add_argument("--episodes", type=int, default=1, help="episodes per candidate (default 1)")
+    r.add_argument("--episodes", type=int, default=None, help="episodes per candidate (default 1; 20 for r2po)")
     r.add_argument("--final-episodes", type=int, default=20, help="fresh episodes for the best policy (default 20)")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>__<time>)")
     r.add_argument("--box", type=_box, default=(-6.0, 6.0), metavar="LOW,HIGH", help="feasible range of every parameter")
     r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
+    r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
+    r.add_argument("--component", action="append", default=[], metavar="KEY",
+                   help="for a plain Gymnasium id: an info key to sum as a reward component (repeatable)")
+    r.add_argument("--diagnostic", action="append", default=[], metavar="KEY",
+                   help="for a plain Gymnasium id: an info key to report as a diagnostic (repeatable)")
     r.add_argument("--parse-retries", type=int, default=2, help="corrections asked for before a fallback (default 2)")
+    r.add_argument("--on-llm-failure", choices=["stop", "skip"], default="stop",
+                   help="when the endpoint stays down past --retries: stop, resumable (default), or skip: "
+                        "record a fallback candidate and go on")
+    r.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="TOML file whose keys mirror these flags (env = \"CartPole\", top-k = 5, box = [-6, 6]); flags given here win")
     g = r.add_argument_group("mechanisms (override the preset one by one)")
-    for name in ("encode-params", "scale-rewards", "detailed-feedback", "disclose-optimum", "disclose-reward-structure"):
+    for name in ("encode-params", "scale-rewards", "detailed-feedback", "disclose-optimum", "disclose-reward-structure",
+                 *(h.replace("_", "-") for h in HARDENING)):  # hardening switches: docs/threat-model.md
         g.add_argument(f"--{name}", type=_flag, default=None, metavar="on|off")
     llm = r.add_argument_group("LLM endpoint (default: the embedded Gemma 3 270M, offline)")
     llm.add_argument("--base-url", default=None, help="OpenAI-compatible endpoint, e.g. http://localhost:11434/v1")
@@ -73,6 +84,13 @@ def build_parser() -> argparse.ArgumentParser:
     llm.add_argument("--structured", default="auto", choices=["auto", "json_schema", "grammar", "none"],
                      help="constrained output: auto = grammar for the embedded model, JSON schema otherwise")
     llm.add_argument("--context-size", type=int, default=16384, help="embedded model context (default 16384)")
+    llm.add_argument("--retries", type=int, default=4,
+                     help="retries of one request after a timeout, refused or dropped connection, 429 or 5xx (default 4)")
+    llm.add_argument("--retry-base-delay", type=float, default=1.0, metavar="S",
+                     help="first backoff in seconds, doubled per retry, with jitter (default 1)")
+    llm.add_argument("--retry-max-delay", type=float, default=30.0, metavar="S", help="longest backoff in seconds (default 30)")
+    llm.add_argument("--retry-after-cap", type=float, default=60.0, metavar="S",
+                     help="longest Retry-After of a 429 that is honoured, seconds (default 60)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
 
     rs = sub.add_parser("resume", help="continue an interrupted run with its own secrets")
@@ -91,40 +109,78 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument("--seed", type=int, default=0)
     pe.add_argument("--json", action="store_true")
 
+    from .baselines.algorithms import ALGORITHMS  # plain data: no torch here
+
+    bl = sub.add_parser("baseline", help="train a standard baseline and store it as a run")
+    blsub = bl.add_subparsers(dest="baseline_command", required=True, parser_class=_Parser)
+    brl = blsub.add_parser("rl", help="a Stable-Baselines3 agent with the library's default hyperparameters (the rl extra)")
+    brl.add_argument("--algo", required=True, choices=list(ALGORITHMS),
+                     help="sac, td3, ddpg: continuous actions only; dqn: discrete only; ppo, a2c, trpo: both")
+    brl.add_argument("--env", required=True, help="task name (see `ppprops envs`), e.g. Ant-Ultra, or a Gymnasium id")
+    brl.add_argument("--timesteps", type=int, required=True, help="training timesteps (environment steps)")
+    brl.add_argument("--seed", type=int, default=0)
+    brl.add_argument("--final-episodes", type=int, default=20, help="fresh episodes for the trained agent (default 20)")
+    brl.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__rl-<algo>__<seed>__<time>)")
+    brl.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"], help="torch device (default cpu)")
+    brl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: small MLPs gain nothing from more)")
+    brl.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    from .privacy.commands import add_privacy_commands  # audit, privacy-report
+
+    add_privacy_commands(sub, _Parser)
+
+    from .experiments.cli import add_subcommands as add_experiment_subcommands  # argparse only; grids load on use
+
+    add_experiment_subcommands(sub, run_parser=r)
+
     en = sub.add_parser("envs", help="list the tasks")
     en.add_argument("--json", action="store_true")
     return p
 
 
 def _run_config(a: argparse.Namespace) -> RunConfig:
+    if a.env is None:
+        from .errors import ConfigError
+
+        raise ConfigError("--env is required (on the command line, or as env in the --config file)")
     if a.method in BLACK_BOX:
         # no prompt: only whether the optimizer works in the encoded space matters
         mech = Mechanisms(bool(a.encode_params), bool(a.encode_params), False, False, False)
     else:
         mech = resolve(
-            a.method,
+            "vanilla" if a.method == "r2po" else a.method,
             encode_params=a.encode_params,
             scale_rewards=a.scale_rewards,
             detailed_feedback=a.detailed_feedback,
             disclose_optimum=a.disclose_optimum,
             disclose_reward_structure=a.disclose_reward_structure,
+            **{h: getattr(a, h) for h in HARDENING},
         )
     from .tasks import get_task
 
-    task = get_task(a.env)
+    if a.component or a.diagnostic:
+        from .tasks import generic_task
+
+        task = generic_task(a.env, tuple(a.component), tuple(a.diagnostic))
+    else:
+        task = get_task(a.env)
     return RunConfig(
-        task=task.name,
+        task=task.env_id if (a.component or a.diagnostic) else task.name,
+        workers=a.workers,
+        components=tuple(a.component),
+        diagnostics=tuple(a.diagnostic),
         method=a.method,
         mechanisms=mech,
         warmup=a.warmup,
         iterations=a.iterations,
         top_k=a.top_k,
-        episodes=a.episodes,
+        episodes=a.episodes if a.episodes is not None else (20 if a.method == "r2po" else 1),
         final_episodes=a.final_episodes,
         seed=a.seed,
         box=a.box,
         decimals=a.decimals,
         parse_retries=a.parse_retries,
+        on_llm_failure=a.on_llm_failure,
         llm=LLMConfig(
             base_url=a.base_url,
             model=a.model,
@@ -135,6 +191,10 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
             reasoning_effort=a.reasoning_effort,
             structured=a.structured,
             context_size=a.context_size,
+            transport_retries=a.retries,
+            retry_base_s=a.retry_base_delay,
+            retry_max_s=a.retry_max_delay,
+            retry_after_cap_s=a.retry_after_cap,
         ),
     )
 
@@ -152,17 +212,25 @@ def _cmd_run(a: argparse.Namespace) -> int:
         start(config, out, events.hooks())
     print(format_summary(run_summary(out)))
     print(f"run directory: {out}")
+    from .privacy.commands import self_audit_line
+
+    print(self_audit_line(out))  # the run checks its own transcript
     return 0
 
 
 def _cmd_resume(a: argparse.Namespace) -> int:
+    from .baselines.record import refuse_resume
     from .progress import ProgressEvents
     from .report import format_summary, run_summary
     from .runner import resume
 
+    refuse_resume(a.dir)  # an RL baseline run has no search to continue
     with ProgressEvents(enabled=not a.quiet, label=str(a.dir)) as events:
         resume(a.dir, events.hooks())
     print(format_summary(run_summary(a.dir)))
+    from .privacy.commands import self_audit_line
+
+    print(self_audit_line(a.dir))
     return 0
 
 
@@ -201,6 +269,20 @@ def _cmd_policy_eval(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_baseline(a: argparse.Namespace) -> int:
+    from .baselines.rl import RLConfig, default_run_dir, run_baseline
+    from .report import format_summary, run_summary
+
+    config = RLConfig(task=a.env, algo=a.algo, timesteps=a.timesteps, seed=a.seed, final_episodes=a.final_episodes,
+                      device=a.device, threads=a.threads)  # fmt: skip
+    config.validate()
+    out = a.out or default_run_dir(config)
+    run_baseline(config, out, progress=not a.quiet)
+    print(format_summary(run_summary(out)))
+    print(f"run directory: {out}")
+    return 0
+
+
 def _cmd_envs(a: argparse.Namespace) -> int:
     from .tasks import list_tasks
 
@@ -213,9 +295,32 @@ def _cmd_envs(a: argparse.Namespace) -> int:
     return 0
 
 
+def _with_config_file(parser: argparse.ArgumentParser, argv: Sequence[str] | None, path: Path) -> argparse.Namespace:
+    """Re-parse with the TOML file's values as the defaults of `run`, so flags on the command line win."""
+    from .config import defaults_from_file
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    run = sub.choices["run"]
+    run.set_defaults(**defaults_from_file(path, run._actions, skip=("config",)))
+    return parser.parse_args(argv)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    handlers = {"run": _cmd_run, "resume": _cmd_resume, "show": _cmd_show, "envs": _cmd_envs}
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "config", None) is not None and args.command == "run":
+        try:
+            args = _with_config_file(parser, argv, args.config)
+        except PPPropsError as e:
+            print(f"ppprops: error: {e}", file=sys.stderr)
+            return EXIT_INPUT
+    handlers = {"run": _cmd_run, "resume": _cmd_resume, "show": _cmd_show, "envs": _cmd_envs, "baseline": _cmd_baseline}
+    from .experiments.cli import cmd_experiment, cmd_report
+
+    handlers.update(experiment=cmd_experiment, report=cmd_report)
+    from .privacy.commands import PRIVACY_HANDLERS
+
+    handlers.update(PRIVACY_HANDLERS)
     try:
         if args.command == "policy":
             return _cmd_policy_eval(args)

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import argparse
+import difflib
 import math
+import tomllib
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError
 from .methods import Mechanisms
+
+# Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
+MAX_WARMUP = 10_000
+MAX_ITERATIONS = 100_000
+MAX_EPISODES = 10_000
+MAX_PARSE_RETRIES = 10
+MAX_TRANSPORT_RETRIES = 20
+MAX_DELAY_S = 3600.0
+ON_LLM_FAILURE = ("stop", "skip")
 
 
 @dataclass(frozen=True)
@@ -22,8 +36,11 @@ class LLMConfig:
     timeout_s: float = 300.0
     reasoning_effort: str | None = None  # for reasoning models such as gpt-oss ("low", "medium", "high")
     structured: str = "auto"  # auto | json_schema | grammar | none
-    transport_retries: int = 4
+    transport_retries: int = 4  # extra tries of one request after a timeout, dropped connection, 429 or 5xx
     context_size: int = 16384  # embedded server only
+    retry_base_s: float = 1.0  # first backoff; doubles per retry, with jitter
+    retry_max_s: float = 30.0  # longest backoff between two tries
+    retry_after_cap_s: float = 60.0  # a server's Retry-After is honoured up to this
 
     def validate(self) -> None:
         if not (0.0 <= self.temperature <= 2.0):
@@ -36,8 +53,16 @@ class LLMConfig:
             raise ConfigError(f"--structured must be auto, json_schema, grammar or none, got {self.structured!r}")
         if self.reasoning_effort not in (None, "minimal", "low", "medium", "high"):
             raise ConfigError(f"--reasoning-effort must be minimal, low, medium or high, got {self.reasoning_effort!r}")
-        if self.transport_retries < 0:
-            raise ConfigError(f"transport retries must be >= 0, got {self.transport_retries}")
+        if not (0 <= self.transport_retries <= MAX_TRANSPORT_RETRIES):
+            raise ConfigError(f"--retries must be in [0, {MAX_TRANSPORT_RETRIES}], got {self.transport_retries}")
+        for flag, v in (("--retry-base-delay", self.retry_base_s), ("--retry-max-delay", self.retry_max_s),
+                        ("--retry-after-cap", self.retry_after_cap_s)):
+            if not (math.isfinite(v) and 0 <= v <= MAX_DELAY_S):
+                raise ConfigError(f"{flag} must be in [0, {MAX_DELAY_S:g}] seconds, got {v}")
+        if self.retry_max_s < self.retry_base_s:
+            raise ConfigError(f"--retry-max-delay ({self.retry_max_s}) must be >= --retry-base-delay ({self.retry_base_s})")
+        if self.context_size < 512:
+            raise ConfigError(f"--context-size must be >= 512, got {self.context_size}")
         if self.base_url is not None and not self.base_url.startswith(("http://", "https://")):
             raise ConfigError(f"--base-url must start with http:// or https://, got {self.base_url!r}")
         if self.base_url is not None and not self.model:
@@ -63,17 +88,29 @@ class RunConfig:
     decimals: int = 2
     parse_retries: int = 2  # extra asks with a correction before falling back
     llm: LLMConfig = field(default_factory=LLMConfig)
+    on_llm_failure: str = "stop"  # stop (resumable) | skip (record a fallback candidate and go on)
+    workers: int = 1  # processes that run episodes in parallel (results identical to serial)
+    components: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys summed as reward components
+    diagnostics: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys reported as diagnostics
 
     def validate(self) -> None:
         checks = [
             (self.warmup >= 1, f"--warmup must be >= 1 (the history starts from it), got {self.warmup}"),
+            (self.warmup <= MAX_WARMUP, f"--warmup must be <= {MAX_WARMUP}, got {self.warmup}"),
             (self.iterations >= 0, f"--iterations must be >= 0, got {self.iterations}"),
+            (self.iterations <= MAX_ITERATIONS, f"--iterations must be <= {MAX_ITERATIONS}, got {self.iterations}"),
             (self.top_k >= 0, f"--top-k must be >= 0 (0 keeps every entry), got {self.top_k}"),
             (self.episodes >= 1, f"--episodes must be >= 1, got {self.episodes}"),
+            (self.episodes <= MAX_EPISODES, f"--episodes must be <= {MAX_EPISODES}, got {self.episodes}"),
             (self.final_episodes >= 0, f"--final-episodes must be >= 0, got {self.final_episodes}"),
+            (self.final_episodes <= MAX_EPISODES, f"--final-episodes must be <= {MAX_EPISODES}, got {self.final_episodes}"),
             (0 <= self.seed < 2**63, f"--seed must be in [0, 2^63), got {self.seed}"),
             (0 <= self.decimals <= 8, f"--decimals must be in [0, 8], got {self.decimals}"),
-            (self.parse_retries >= 0, f"parse retries must be >= 0, got {self.parse_retries}"),
+            (self.parse_retries >= 0, f"--parse-retries must be >= 0, got {self.parse_retries}"),
+            (self.parse_retries <= MAX_PARSE_RETRIES,
+             f"--parse-retries must be <= {MAX_PARSE_RETRIES}, got {self.parse_retries}"),
+            (1 <= self.workers <= 256, f"--workers must be in [1, 256], got {self.workers}"),
+            (self.on_llm_failure in ON_LLM_FAILURE, f"--on-llm-failure must be stop or skip, got {self.on_llm_failure!r}"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -94,4 +131,94 @@ class RunConfig:
         d["mechanisms"] = Mechanisms.from_json(d["mechanisms"])
         d["llm"] = LLMConfig(**d["llm"])
         d["box"] = tuple(d["box"])
+        for key in ("components", "diagnostics"):
+            d[key] = tuple(d.get(key, ()))
         return cls(**d)
+
+    def make_task(self):  # type: ignore[no-untyped-def]  # -> Task; imported late (tasks pull in gymnasium)
+        """The task this run searches; generic Gymnasium ids carry their declared info keys."""
+        from .tasks import generic_task, get_task
+
+        if self.components or self.diagnostics:
+            return generic_task(self.task, self.components, self.diagnostics)
+        return get_task(self.task)
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    """A TOML file as a table; every way it can fail is one ConfigError line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"config file {path} cannot be read ({e.__class__.__name__})") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path} is not valid TOML: {str(e).splitlines()[0]}") from None
+
+
+def defaults_from_file(path: Path, actions: Iterable[argparse.Action], *, skip: Iterable[str] = ()) -> dict[str, Any]:
+    """Turn a TOML file whose keys mirror command-line flags into argparse defaults (dest -> value).
+
+    A key is a flag's long name without dashes (``top-k``) or its dest (``top_k``). Values are
+    checked against the flag's type and choices here, because argparse checks neither for defaults.
+    """
+    raw = read_toml(path)
+    by_key: dict[str, argparse.Action] = {}
+    for act in actions:
+        if act.dest in skip or act.dest == "help" or not act.option_strings:
+            continue
+        for opt in act.option_strings:
+            if opt.startswith("--"):
+                by_key[opt[2:]] = act
+        by_key[act.dest] = act
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        act = by_key.get(key)
+        if act is None:
+            names = sorted(k for k in by_key if "_" not in k)
+            close = difflib.get_close_matches(key.replace("_", "-"), names, n=1)
+            hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(names)}"
+            raise ConfigError(f"config file {path}: unknown key {key!r} ({hint})")
+        out[act.dest] = _file_value(path, key, value, act)
+    return out
+
+
+def _file_value(path: Path, key: str, value: Any, act: argparse.Action) -> Any:
+    bad = ConfigError(f"config file {path}: {key} = {value!r} is not a valid value")
+    conv = act.type
+    if act.nargs == 0:  # store_true
+        if not isinstance(value, bool):
+            raise ConfigError(f"config file {path}: {key} must be true or false, got {value!r}")
+        return value
+    if isinstance(value, dict):
+        raise bad
+    if isinstance(act, argparse._AppendAction):  # a repeatable flag: a list of strings
+        if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):
+            raise ConfigError(f"config file {path}: {key} must be a list of strings, got {value!r}")
+        return [v if conv is None else conv(v) for v in value]
+    if isinstance(value, list):  # a box: [low, high]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise bad
+        value = ",".join(str(v) for v in value)
+    if conv is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"config file {path}: {key} must be an integer, got {value!r}")
+    elif conv is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config file {path}: {key} must be a number, got {value!r}")
+        value = float(value)
+    elif isinstance(value, bool):
+        value = "on" if value else "off"  # on|off flags
+    if conv is not None and conv not in (int, float):
+        try:
+            value = conv(str(value))
+        except (argparse.ArgumentTypeError, TypeError, ValueError) as e:
+            raise ConfigError(f"config file {path}: {key}: {e}") from None
+    elif conv is None and not isinstance(value, str):
+        raise ConfigError(f"config file {path}: {key} must be a string, got {value!r}")
+    if act.choices is not None and value not in act.choices:
+        raise ConfigError(f"config file {path}: {key} must be one of {', '.join(map(str, act.choices))}, got {value!r}")
+    return value

@@ -2,28 +2,63 @@
 
 from __future__ import annotations
 
+import math
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from .baselines.record import format_rl_summary, is_rl_config, rl_summary
 from .config import RunConfig
-from .loop import best_candidate
+from .runner import best_finite_candidate
 from .store import open_store
+
+
+def _finite(x: Any) -> Any:
+    """JSON has no NaN or Infinity: non-finite numbers (numerical faults) come out as null."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def _fault_counts(cands: list[Any], calls: list[dict[str, Any]]) -> dict[str, Any]:
+    """Endpoint faults, retries, unusable answers and numerical faults, each counted per kind."""
+    transport = Counter(c["error_kind"] or "unknown" for c in calls if not c["ok"])
+    answers = Counter(c["parse_error"] for c in calls if c["ok"] and c["parse_error"])
+    reasons: Counter[str] = Counter()
+    for c in cands:
+        if c.source == "fallback":
+            reasons[c.note.removeprefix("after ").split(" (")[0] or "unknown"] += 1
+    numerical = sum(
+        (not math.isfinite(c.ret)) or bool(c.feedback.diagnostics.get("numerical_fault")) for c in cands
+    )
+    return {
+        "llm_requests_failed": sum(transport.values()),
+        "transport_failures": dict(sorted(transport.items())),
+        "retries": sum(1 for c in calls if c["retry"]),
+        "answer_failures": dict(sorted(answers.items())),
+        "answers_from_reasoning": sum(1 for c in calls if c["answer_source"] == "reasoning"),
+        "llm_unavailable": reasons.get("llm_unavailable", 0),
+        "fallback_reasons": dict(sorted(reasons.items())),
+        "numerical_faults": numerical,
+    }
 
 
 def run_summary(run_dir: Path) -> dict[str, Any]:
     """The `ppprops show --json` object. Raw values: this stays on the client."""
     store = open_store(run_dir)
     try:
+        if is_rl_config(store.config()):  # an RL baseline run: same keys, no candidates, plus "training"
+            return rl_summary(store)
         config = RunConfig.from_json(store.config())
         cands = store.candidates()
         calls = store.llm_calls()
         fe = store.final_eval()
-        best = best_candidate(cands) if cands else None
-        failures: dict[str, int] = {}
-        for call in calls:
-            if call["parse_error"]:
-                failures[call["parse_error"]] = failures.get(call["parse_error"], 0) + 1
-        return {
+        best = best_finite_candidate(cands) if cands else None
+        return _finite({
             "run_id": store.run_id(),
             "status": store.status(),
             "env": config.task,
@@ -42,7 +77,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                 "fallback": sum(c.source == "fallback" for c in cands),
                 "clipped_candidates": sum(c.clipped > 0 for c in cands),
                 "llm_calls": len(calls),
-                "answer_failures": failures,
+                **_fault_counts(cands, calls),
             },
             "candidates": [
                 {
@@ -68,15 +103,20 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                     "prompt_chars": call["prompt_chars"],
                     "ok": call["ok"] and call["parse_error"] is None,
                     "error": call["error"] or call["parse_error"],
+                    "error_kind": call["error_kind"] or call["parse_error"],
+                    "retry": call["retry"],
+                    "answer_source": call["answer_source"],
                 }
                 for call in calls
             ],
-        }
+        })
     finally:
         store.close()
 
 
 def format_summary(s: dict[str, Any]) -> str:
+    if s.get("training") is not None:
+        return format_rl_summary(s)
     lines = [
         f"run      {s['run_id']} ({s['status']})",
         f"task     {s['env']}   method {s['method']}   seed {s['seed']}",
@@ -88,7 +128,18 @@ def format_summary(s: dict[str, Any]) -> str:
     )
     if c["answer_failures"]:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
-    if s["best"]:
+    if c.get("answers_from_reasoning"):
+        lines.append(f"answers  {c['answers_from_reasoning']} taken from the reasoning text (empty content)")
+    if c.get("transport_failures"):
+        lines.append(
+            "endpoint failed tries: " + ", ".join(f"{k} x{v}" for k, v in c["transport_failures"].items())
+            + f"; {c['retries']} retries, {c['llm_unavailable']} iterations skipped as unavailable"
+        )
+    if c.get("fallback_reasons"):
+        lines.append("fallback " + ", ".join(f"{k} x{v}" for k, v in c["fallback_reasons"].items()))
+    if c.get("numerical_faults"):
+        lines.append(f"numeric  {c['numerical_faults']} candidates hit NaN/Inf (episode ended, kept out of the prompt)")
+    if s["best"] and s["best"]["return"] is not None:
         lines.append(f"best     return {s['best']['return']:.2f} (candidate {s['best']['index']})")
     if s["final_eval"]:
         fe = s["final_eval"]

@@ -2,35 +2,49 @@
 
 A run directory holds ``run.sqlite`` (the store), ``secrets.key`` (mode 0600) and, once
 finished, ``best_policy.json``.
+
+Crash safety: the directory is built under a temporary name and renamed into place, so a run
+killed while starting leaves either nothing at ``--out`` or a complete, resumable directory.
+After that every step is a committed store row or an atomic file rename, so ``resume`` after a
+``kill -9`` at any moment finishes the run with each candidate recorded once.
 """
 
 from __future__ import annotations
 
+import errno
+import json
+import math
 import os
+import shutil
+import urllib.request
 import uuid
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import ExitStack, closing, contextmanager
+from contextlib import AbstractContextManager, ExitStack, closing, contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from . import seeding
-from .client.codec import Codec
 from .client.context import prompt_context
+from .client.hardening import codec_for, generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
-from .errors import ConfigError, StoreError
+from .errors import ConfigError, LLMError, StoreError
 from .evaluation import Evaluator, Feedback
-from .llm.client import ChatClient, Exchange
-from .loop import Phase, best_candidate, run_loop
+from .llm.client import ChatClient, Exchange, default_max_tokens
+from .loop import Phase, StopSearch, best_candidate, run_loop
 from .policy_file import policy_document, write_json_atomic
-from .proposers import LLMProposer, UniformSampler
-from .strategies import BLACK_BOX, black_box_phase
+from .proposers import LLMProposer
+from .proposers.r2po import R2POProposer
+from .proposers.uniform import warmup_sampler
+from .rollout import record_rollout
 from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
-from .tasks import Task, get_task
+from .strategies import BLACK_BOX, black_box_phase
+from .tasks import Task
 
 KEY_NAME = "secrets.key"
+CHAT_TEMPLATE_MARGIN = 32  # tokens the chat template adds around a single user message
 POLICY_NAME = "best_policy.json"
 
 
@@ -51,32 +65,51 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     """Make the directory, key file and store. Refuses a directory that already holds something.
 
     ``secrets`` is for tests and controlled experiments; normally they are drawn fresh here.
+    Everything is written under a temporary sibling name first, then renamed to ``run_dir``.
     """
     config.validate()
-    task = get_task(config.task)
+    task = config.make_task()
     run_dir = Path(run_dir)
-    if run_dir.exists() and any(run_dir.iterdir()):
+    if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
         what = "another run" if (run_dir / DB_NAME).exists() else "files"
         raise ConfigError(f"output directory {run_dir} already holds {what}; choose a new --out or use 'ppprops resume'")
-    try:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ConfigError(f"cannot create output directory {run_dir}: {e.strerror}") from None
     run_id = new_run_id(config) if secrets is None else secrets.run_id
     if secrets is None:
-        secrets = Secrets.generate(run_id, task.D)
+        secrets = generate_secrets(run_id, task, config)  # paper secrets, plus offsets/warp when hardened
     elif len(secrets.a) != task.D:
         raise ConfigError(f"given secrets have D={len(secrets.a)}, task {task.name} needs {task.D}")
-    secrets.save(run_dir / KEY_NAME)
-    store = open_store(run_dir, create=True)
-    store.init_run(run_id, config.to_json(), secrets.fingerprint())
-    return store, secrets
+    tmp = run_dir.parent / f".{run_dir.name}.{uuid.uuid4().hex[:8]}.creating"
+    try:
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as e:
+        raise ConfigError(f"cannot create output directory {run_dir}: {e.strerror}") from None
+    try:
+        try:
+            secrets.save(tmp / KEY_NAME)
+        except OSError as e:
+            raise StoreError(f"cannot write the key file in {run_dir}: {e.strerror}") from None
+        store = RunStore(tmp / DB_NAME)
+        try:
+            store.init_run(run_id, config.to_json(), secrets.fingerprint())
+        finally:
+            store.close()  # the last connection checkpoints the WAL, so the directory can move
+        try:
+            os.rename(tmp, run_dir)  # onto a missing or empty directory, atomically
+        except OSError as e:
+            if e.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                raise ConfigError(f"output directory {run_dir} was filled meanwhile; choose a new --out") from None
+            raise StoreError(f"cannot create output directory {run_dir}: {e.strerror}") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return open_store(run_dir), secrets
 
 
 def load_run(run_dir: Path) -> tuple[RunStore, RunConfig, Secrets]:
     store = open_store(run_dir)
     config = RunConfig.from_json(store.config())
-    task = get_task(config.task)
+    task = config.make_task()
     secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
     return store, config, secrets
 
@@ -105,27 +138,58 @@ def chat_client(config: RunConfig) -> Iterator[ChatClient]:
             client.close()
 
 
-def execute(run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, events: RunEvents = RunEvents()) -> FinalEval | None:
+def execute(
+    run_dir: Path,
+    store: RunStore,
+    config: RunConfig,
+    secrets: Secrets,
+    events: RunEvents = RunEvents(),
+    *,
+    llm_gate: AbstractContextManager[object] | None = None,
+) -> FinalEval | None:
     """Run (or continue) the search, then the final evaluation, then write the policy file."""
-    task = get_task(config.task)
-    codec = Codec(secrets, encode_params=config.mechanisms.encode_params, scale_rewards=config.mechanisms.scale_rewards)
+    task = config.make_task()
+    codec = codec_for(secrets, task, config)  # every mechanism of the config, hardening included
     done = store.candidates()
     total = config.warmup + config.iterations
     events.on_start(len(done), total)
-    with Evaluator(task) as evaluator, ExitStack() as stack:
+    status = store.status()
+    if not status.startswith("stopped"):
+        status = "finished"
+    elif len(done) < total:
+        total = len(done)  # a run stopped on purpose (e.g. context overflow) is not continued
+    with Evaluator(task, workers=config.workers) as evaluator, ExitStack() as stack:
 
         def evaluate(theta: np.ndarray, index: int) -> tuple[Feedback, Sequence[int]]:
             seeds = seeding.episode_seeds(config.seed, index, config.episodes)
             return evaluator.evaluate(theta, seeds), seeds
 
         if len(done) < total:
-            warmup = UniformSampler(task.D, config.box, config.seed)
+            warmup = warmup_sampler(task.D, config, codec)  # the paper's raw box, or an encoded one (hardened)
             phases = [Phase("warmup", warmup, config.warmup)]
             proposer: LLMProposer | None = None
             if config.iterations > 0 and config.method in BLACK_BOX:
                 phases.append(black_box_phase(task, config, codec))
+            elif config.iterations > 0 and config.method == "r2po":
+                chat = stack.enter_context(closing(LazyChat(config, llm_gate)))
+                r2po = R2POProposer(
+                    chat=chat,
+                    codec=codec,
+                    context=prompt_context(task, config, codec),
+                    top_k=config.top_k,
+                    box=config.box,
+                    seed=config.seed,
+                    rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
+                    count_tokens=chat.count_tokens,
+                    context_window=config.llm.context_size,
+                    max_tokens=config.llm.max_tokens or default_max_tokens(task.D),
+                    parse_retries=config.parse_retries,
+                    on_exchange=lambda it, att, ex, err: store.add_llm_call(it, att, ex, err),
+                )
+                proposer = r2po  # type: ignore[assignment]
+                phases.append(Phase("r2po", r2po, config.iterations))
             elif config.iterations > 0:
-                chat = stack.enter_context(closing(LazyChat(config)))
+                chat = stack.enter_context(closing(LazyChat(config, llm_gate)))
                 proposer = LLMProposer(
                     chat=chat,
                     codec=codec,
@@ -135,23 +199,37 @@ def execute(run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets,
                     seed=config.seed,
                     parse_retries=config.parse_retries,
                     on_exchange=lambda it, att, ex, err: store.add_llm_call(it, att, ex, err),
+                    on_llm_failure=config.on_llm_failure,
                 )
                 phases.append(Phase("llm", proposer, config.iterations))
-            best_so_far = [max((c.ret for c in done), default=-np.inf)]
+            best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
             def on_candidate(c: Candidate) -> None:
-                best_so_far[0] = max(best_so_far[0], c.ret)
+                if math.isfinite(c.ret):  # a numerical fault is never the best so far
+                    best_so_far[0] = max(best_so_far[0], c.ret)
                 latency = proposer.last_latency if (proposer is not None and c.source != "warmup") else None
                 events.on_candidate(c, latency, best_so_far[0])
 
-            done = run_loop(phases, evaluate=evaluate, codec=codec, store=store, done=done, on_candidate=on_candidate)
-        fe = finish(run_dir, store, config, task, evaluator, done)
+            try:
+                done = run_loop(phases, evaluate=evaluate, codec=codec, store=store, done=done, on_candidate=on_candidate)
+            except StopSearch as stop:
+                done = store.candidates()
+                status = f"stopped: {stop.reason}"
+            except LLMError as e:  # the endpoint stayed down past the retry bound: stop, resumable
+                raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {run_dir}'") from e
+        fe = finish(run_dir, store, config, task, evaluator, done, status=status)
     events.on_final(fe) if fe is not None else None
     return fe
 
 
-def finish(run_dir: Path, store: RunStore, config: RunConfig, task: Task, evaluator: Evaluator, done: list[Candidate]) -> FinalEval | None:
-    best = best_candidate(done)
+best_finite_candidate = best_candidate  # kept for callers; the loop's version skips non-finite returns
+
+
+def finish(
+    run_dir: Path, store: RunStore, config: RunConfig, task: Task, evaluator: Evaluator, done: list[Candidate],
+    *, status: str = "finished",
+) -> FinalEval | None:
+    best = best_finite_candidate(done)
     fe = store.final_eval()
     if fe is None or fe.candidate_index != best.index:
         seeds = seeding.final_eval_seeds(config.seed, config.final_episodes)
@@ -160,16 +238,23 @@ def finish(run_dir: Path, store: RunStore, config: RunConfig, task: Task, evalua
         store.set_final_eval(fe)
     final = {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "seed": config.seed} if fe.returns else None
     search = {"run_id": store.run_id(), "method": config.method, "seed": config.seed, "return": best.ret, "candidate": best.index}
-    write_json_atomic(Path(run_dir) / POLICY_NAME, policy_document(task, best.params, search=search, final_eval=final))
-    store.set_status("finished")
+    path = Path(run_dir) / POLICY_NAME
+    for stale in Path(run_dir).glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
+        stale.unlink(missing_ok=True)
+    try:
+        write_json_atomic(path, policy_document(task, best.params, search=search, final_eval=final))
+    except OSError as e:
+        raise StoreError(f"cannot write {path}: {e.strerror or e}; then continue with 'ppprops resume {run_dir}'") from None
+    store.set_status(status)
     return fe
 
 
 class LazyChat:
     """Starts the LLM only when the first LLM iteration asks, so warm-up never waits for it."""
 
-    def __init__(self, config: RunConfig) -> None:
+    def __init__(self, config: RunConfig, gate: AbstractContextManager[object] | None = None) -> None:
         self.config = config
+        self.gate = gate if gate is not None else nullcontext()  # a grid's cap on concurrent LLM calls
         self._stack = ExitStack()
         self._client: ChatClient | None = None
 
@@ -179,27 +264,48 @@ class LazyChat:
         return self._client
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        return self._get().complete(messages, D=D, seed=seed)
+        client = self._get()
+        with self.gate:
+            return client.complete(messages, D=D, seed=seed)
+
+    def count_tokens(self, text: str) -> int:
+        """Exact with a llama.cpp server (its /tokenize endpoint); otherwise a conservative
+        estimate of one token per two characters (digit-heavy prompts tokenize densely)."""
+        client = self._get()
+        root = str(client._client.base_url).rstrip("/").removesuffix("/v1")
+        try:
+            req = urllib.request.Request(root + "/tokenize", data=json.dumps({"content": text}).encode(),
+                                         headers={"Content-Type": "application/json"}, method="POST")
+            with urllib.request.urlopen(req, timeout=30) as resp:
+                return len(json.loads(resp.read())["tokens"]) + CHAT_TEMPLATE_MARGIN
+        except (OSError, ValueError, KeyError):
+            return len(text) // 2 + CHAT_TEMPLATE_MARGIN
 
     def close(self) -> None:
         self._stack.close()
 
 
 def start(
-    config: RunConfig, run_dir: Path, events: RunEvents = RunEvents(), *, secrets: Secrets | None = None
+    config: RunConfig,
+    run_dir: Path,
+    events: RunEvents = RunEvents(),
+    *,
+    secrets: Secrets | None = None,
+    llm_gate: AbstractContextManager[object] | None = None,
 ) -> FinalEval | None:
+    """``llm_gate`` (e.g. a shared semaphore) is held around every LLM request of the run."""
     store, secrets = create_run(config, run_dir, secrets)
     try:
-        return execute(run_dir, store, config, secrets, events)
+        return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate)
     finally:
         store.close()
 
 
-def resume(run_dir: Path, events: RunEvents = RunEvents()) -> FinalEval | None:
+def resume(run_dir: Path, events: RunEvents = RunEvents(), *, llm_gate: AbstractContextManager[object] | None = None) -> FinalEval | None:
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
     try:
-        return execute(run_dir, store, config, secrets, events)
+        return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate)
     finally:
         store.close()

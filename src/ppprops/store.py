@@ -2,7 +2,12 @@
 
 Every evaluated candidate is inserted in its own transaction, with a unique (index), so a run
 killed at any moment holds each evaluated candidate once or not at all, and ``resume`` picks up
-from there. The schema carries a version for future migrations.
+from there. Several processes may write one store at once: WAL, a busy timeout and
+``BEGIN IMMEDIATE`` serialise the writers without losing a row. Every SQLite failure (a full disk,
+an I/O error, a lock held too long) surfaces as a one-line ``StoreError``.
+
+Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``answer_source``
+(transport faults and answers taken from the reasoning text), migrated in place from 1.
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ import numpy as np
 from .errors import StoreError
 from .evaluation import Feedback
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"
 
 _SCHEMA = """
@@ -54,7 +60,10 @@ CREATE TABLE IF NOT EXISTS llm_calls (
     ok INTEGER NOT NULL,
     error TEXT,
     parse_error TEXT,
-    created REAL NOT NULL
+    created REAL NOT NULL,
+    error_kind TEXT,
+    retry INTEGER NOT NULL DEFAULT 0,
+    answer_source TEXT
 );
 CREATE TABLE IF NOT EXISTS final_eval (
     id INTEGER PRIMARY KEY CHECK (id = 1),
@@ -64,6 +73,28 @@ CREATE TABLE IF NOT EXISTS final_eval (
     created REAL NOT NULL
 );
 """
+
+# Columns added after schema 1, with their definitions, in the order they were added.
+_ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("llm_calls", "error_kind", "TEXT"),
+    ("llm_calls", "retry", "INTEGER NOT NULL DEFAULT 0"),
+    ("llm_calls", "answer_source", "TEXT"),
+)
+
+
+def _describe(e: sqlite3.Error, path: Path) -> str:
+    """One line for a SQLite failure, naming the cause a user can act on."""
+    text = str(e)
+    low = text.lower()
+    if "disk is full" in low or getattr(e, "sqlite_errorname", "") == "SQLITE_FULL":
+        return f"run store {path}: the disk is full ({text}); free space, then continue with 'ppprops resume'"
+    if "locked" in low or "busy" in low:
+        return f"run store {path} stayed locked by another process for {BUSY_TIMEOUT_S:g} s ({text})"
+    if "readonly" in low or "read-only" in low:
+        return f"run store {path} is read-only ({text})"
+    if "malformed" in low or "not a database" in low:
+        return f"run store {path} is not a readable SQLite database ({text})"
+    return f"run store {path}: {e.__class__.__name__}: {text}"
 
 
 @dataclass(frozen=True)
@@ -94,47 +125,93 @@ class FinalEval:
 
     @property
     def mean(self) -> float:
-        return float(np.mean(self.returns)) if self.returns else float("nan")
+        with np.errstate(invalid="ignore", over="ignore"):  # an episode that overflowed makes this inf, quietly
+            return float(np.mean(self.returns)) if self.returns else float("nan")
 
     @property
     def std(self) -> float:
-        return float(np.std(self.returns)) if self.returns else float("nan")
+        with np.errstate(invalid="ignore", over="ignore"):
+            return float(np.std(self.returns)) if self.returns else float("nan")
 
 
 class RunStore:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         try:
-            self._db = sqlite3.connect(self.path, timeout=30.0, isolation_level=None)
+            self._db = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+        except sqlite3.Error as e:
+            raise StoreError(f"run store {self.path} cannot be opened ({e})") from None
+        try:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.executescript(_SCHEMA)
-            version = self._meta("schema_version")
+            with self._tx() as db:  # one writer creates or migrates; the others wait for it
+                self._create_or_migrate(db)
+        except StoreError:
+            self._db.close()
+            raise
         except sqlite3.DatabaseError as e:
+            self._db.close()
             raise StoreError(f"run store {self.path} is not a readable SQLite database ({e})") from None
-        if version is None:
-            self._set_meta("schema_version", str(SCHEMA_VERSION))
-        elif int(version) > SCHEMA_VERSION:
+
+    def _create_or_migrate(self, db: sqlite3.Connection) -> None:
+        for stmt in _SCHEMA.split(";"):
+            if stmt.strip():
+                db.execute(stmt)
+        row = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        version = None if row is None else int(row[0])
+        if version is not None and version > SCHEMA_VERSION:
             raise StoreError(f"run store {self.path} has schema {version}; this ppprops reads up to {SCHEMA_VERSION}")
+        for table, column, decl in _ADDED_COLUMNS:  # from 1: add what is missing (new stores have it all)
+            have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
+            if column not in have:
+                db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
+        if version != SCHEMA_VERSION:
+            db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
 
     # -- plumbing -------------------------------------------------------------------------
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
-        self._db.execute("BEGIN IMMEDIATE")
+        """One write transaction, taken up front (BEGIN IMMEDIATE) so concurrent writers queue
+        on the busy timeout instead of failing on a lock upgrade. SQLite errors become StoreError;
+        IntegrityError passes through for the caller to word."""
+        try:
+            self._db.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as e:
+            raise StoreError(_describe(e, self.path)) from None
         try:
             yield self._db
-        except BaseException:
-            self._db.execute("ROLLBACK")
+            self._db.execute("COMMIT")
+        except BaseException as e:
+            if self._db.in_transaction:
+                try:
+                    self._db.execute("ROLLBACK")
+                except sqlite3.Error:
+                    pass  # SQLite already rolled back (e.g. after SQLITE_FULL)
+            if isinstance(e, sqlite3.Error) and not isinstance(e, sqlite3.IntegrityError):
+                raise StoreError(_describe(e, self.path)) from None
             raise
-        self._db.execute("COMMIT")
+
+    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> sqlite3.Cursor:
+        try:
+            return self._db.execute(sql, args)
+        except sqlite3.Error as e:
+            raise StoreError(_describe(e, self.path)) from None
 
     def _meta(self, key: str) -> str | None:
-        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        row = self._read("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
         return None if row is None else str(row[0])
 
     def _set_meta(self, key: str, value: str) -> None:
         with self._tx() as db:
             db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
+
+    def schema_version(self) -> int:
+        return int(self._meta("schema_version") or 0)
+
+    def integrity_check(self) -> str:
+        """SQLite's own verdict on the file: 'ok' or the first problems found."""
+        rows = self._read("PRAGMA integrity_check").fetchall()
+        return "; ".join(str(r[0]) for r in rows)
 
     def close(self) -> None:
         self._db.close()
@@ -187,7 +264,7 @@ class RunStore:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
     def candidates(self) -> list[Candidate]:
-        rows = self._db.execute(
+        rows = self._read(
             "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note"
             " FROM candidates ORDER BY idx"
         ).fetchall()
@@ -203,21 +280,25 @@ class RunStore:
 
     # -- LLM exchanges --------------------------------------------------------------------
     def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None) -> None:
+        """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry and
+        answer_source are optional, so older exchange-like objects still record)."""
         with self._tx() as db:
             db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, response, content, reasoning, prompt_chars,"
-                " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created)"
-                " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created, error_kind, retry,"
+                " answer_source) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     iteration, attempt, ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars,
                     ex.prompt_tokens, ex.completion_tokens, ex.latency_s, int(ex.ok), ex.error, parse_error, time.time(),
+                    getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)), getattr(ex, "answer_source", None),
                 ),
             )
 
     def llm_calls(self) -> list[dict[str, Any]]:
-        cur = self._db.execute(
+        cur = self._read(
             "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
-            " completion_tokens, latency_s, ok, error, parse_error FROM llm_calls ORDER BY id"
+            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source"
+            " FROM llm_calls ORDER BY id"
         )
         cols = [d[0] for d in cur.description]
         out = []
@@ -236,7 +317,7 @@ class RunStore:
             )
 
     def final_eval(self) -> FinalEval | None:
-        row = self._db.execute("SELECT candidate_idx, returns, seeds FROM final_eval WHERE id = 1").fetchone()
+        row = self._read("SELECT candidate_idx, returns, seeds FROM final_eval WHERE id = 1").fetchone()
         if row is None:
             return None
         return FinalEval(candidate_index=row[0], returns=tuple(json.loads(row[1])), seeds=tuple(json.loads(row[2])))

@@ -1,15 +1,21 @@
 """A thin chat-completions client over the official ``openai`` SDK that records every exchange.
 
 Only the request body is recorded (never headers, so never the API key). Transport faults
-(timeouts, refused connections, 429 with Retry-After, 5xx) are retried by the SDK's own bounded
-exponential backoff; what is left after that surfaces as ``LLMError``.
+(timeouts, refused or dropped connections, 429, 5xx, a garbled body) are retried here, not in the
+SDK (its ``max_retries`` is 0), so every try is counted and recorded: exponential backoff from
+``retry_base_s`` with jitter, capped at ``retry_max_s``; a 429's Retry-After is honoured up to
+``retry_after_cap_s``. Past ``transport_retries`` retries the request ends in ``LLMUnavailable``,
+carrying the failed tries so the caller can record them.
 """
 
 from __future__ import annotations
 
+import email.utils
 import json
+import random
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 from ..config import LLMConfig
@@ -30,6 +36,26 @@ class Exchange:
     latency_s: float
     ok: bool
     error: str | None = None
+    error_kind: str | None = None  # timeout | refused | dropped | rate_limited | http_NNN | bad_response | bad_request
+    retry: int = 0  # 0 for the first try of a request, n for its n-th transport retry
+    answer_source: str | None = None  # set by the proposer: content | reasoning
+    failures: tuple[Exchange, ...] = ()  # failed tries before this one (transport retries)
+
+
+class LLMUnavailable(LLMError):
+    """A request kept failing with transient faults past the retry bound. Carries the failed tries."""
+
+    def __init__(self, message: str, failures: tuple[Exchange, ...]) -> None:
+        super().__init__(message)
+        self.failures = failures
+
+    @property
+    def kind(self) -> str:
+        return (self.failures[-1].error_kind or "unknown") if self.failures else "unknown"
+
+
+class LLMRejected(LLMUnavailable):
+    """The endpoint refused the request for good (401, 403, 404, ...): retrying or skipping cannot help."""
 
 
 class Chat(Protocol):
@@ -76,9 +102,9 @@ class ChatClient:
         self.structured = config.structured
         if self.structured == "auto":
             self.structured = "grammar" if grammar_ok else "json_schema"
-        self._client = OpenAI(
-            base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=config.transport_retries
-        )
+        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
+        self.sleep: Callable[[float], None] = time.sleep
+        self._jitter = random.Random()
 
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
         body: dict[str, Any] = {
@@ -101,6 +127,46 @@ class ChatClient:
         return body
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """One answer, after up to ``transport_retries`` retries of transient faults.
+
+        Returns an ``ok`` exchange (or a non-retryable 400, ``ok`` False, for the caller's
+        correction loop), with the failed tries in ``failures``. Raises ``LLMUnavailable``.
+        """
+        failures: list[Exchange] = []
+        retries = self.config.transport_retries
+        retry = 0
+        while True:
+            ex, retry_after = self._attempt(messages, D=D, seed=seed, retry=retry)
+            if ex.ok:
+                return replace(ex, failures=tuple(failures))
+            if ex.error_kind == "bad_request":
+                if self.structured == "json_schema" and self.config.structured == "auto":
+                    # The endpoint does not take JSON-schema output: go on with plain answers.
+                    self.structured = "none"
+                    failures.append(ex)
+                    continue
+                return replace(ex, failures=tuple(failures))
+            failures.append(ex)
+            if not _retryable(ex.error_kind):
+                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
+            if retry >= retries:
+                raise LLMUnavailable(
+                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
+                )
+            self.sleep(self.backoff(retry, retry_after))
+            retry += 1
+
+    def backoff(self, retry: int, retry_after: float | None) -> float:
+        """Seconds to wait before retry ``retry + 1``: Retry-After (capped) if given, else
+        exponential with "equal jitter" (half fixed, half random), so clients do not retry in step."""
+        cfg = self.config
+        if retry_after is not None:
+            return min(max(retry_after, 0.0), cfg.retry_after_cap_s)
+        d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
+        return d / 2 + self._jitter.uniform(0.0, d / 2)
+
+    def _attempt(self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int) -> tuple[Exchange, float | None]:
+        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds)."""
         import openai
 
         body = self.body(messages, D=D, seed=seed)
@@ -109,21 +175,31 @@ class ChatClient:
         sdk_args = {k: v for k, v in body.items() if k != "grammar"}
         extra = {"grammar": body["grammar"]} if "grammar" in body else None
         t0 = time.perf_counter()
+
+        def failed(kind: str, error: str, response: str | None = None) -> Exchange:
+            return Exchange(request, response, None, None, prompt_chars, None, None, time.perf_counter() - t0, False,
+                            error, error_kind=kind, retry=retry)
+
         try:
             raw = self._client.chat.completions.with_raw_response.create(**sdk_args, extra_body=extra)
             latency = time.perf_counter() - t0
+            text = raw.http_response.text
             completion = raw.parse()
-        except openai.BadRequestError as e:
-            if self.structured == "json_schema" and self.config.structured == "auto":
-                # The endpoint does not take JSON-schema output: go on with plain answers.
-                self.structured = "none"
-                return self.complete(messages, D=D, seed=seed)
-            return Exchange(request, _body_text(e), None, None, prompt_chars, None, None, time.perf_counter() - t0, False, f"bad_request: {e.status_code}")
-        except (openai.APIConnectionError, openai.APITimeoutError, openai.RateLimitError, openai.InternalServerError) as e:
-            raise LLMError(f"LLM endpoint failed after {self.config.transport_retries} retries: {e.__class__.__name__}") from e
+            choices = completion.choices  # a garbled body may parse into something without them
+        except openai.APITimeoutError:
+            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s"), None
+        except openai.APIConnectionError as e:
+            kind = "refused" if _is_refused(e) else "dropped"
+            return failed(kind, f"{kind}: {_cause(e)}"), None
         except openai.APIStatusError as e:
-            raise LLMError(f"LLM endpoint answered HTTP {e.status_code}: {_short(e)}") from e
-        choice = completion.choices[0] if completion.choices else None
+            code = e.status_code
+            kind = "bad_request" if code == 400 else "rate_limited" if code == 429 else f"http_{code}"
+            after = _retry_after(e)
+            note = f" (Retry-After {after:g} s)" if after is not None else ""
+            return failed(kind, f"{kind}: HTTP {code}{note}: {_short(e)}", _body_text(e)), after
+        except Exception as e:  # a 200 whose body is not a chat completion (garbled, cut, not JSON)
+            return failed("bad_response", f"bad_response: {e.__class__.__name__}: {_short(e)}"), None
+        choice = choices[0] if choices else None
         message = choice.message if choice else None
         content = message.content if message else None
         extra_fields = (message.model_extra or {}) if message else {}
@@ -131,7 +207,7 @@ class ChatClient:
         usage = completion.usage
         return Exchange(
             request=request,
-            response=raw.http_response.text,
+            response=text,
             content=content,
             reasoning=reasoning if isinstance(reasoning, str) else None,
             prompt_chars=prompt_chars,
@@ -139,10 +215,64 @@ class ChatClient:
             completion_tokens=usage.completion_tokens if usage else None,
             latency_s=latency,
             ok=True,
-        )
+            retry=retry,
+        ), None
 
     def close(self) -> None:
         self._client.close()
+
+
+def _retryable(kind: str | None) -> bool:
+    """Transient faults only: a 401, 403 or 404 will not heal by asking again."""
+    if kind in ("timeout", "refused", "dropped", "rate_limited", "bad_response"):
+        return True
+    if kind is not None and kind.startswith("http_"):
+        code = int(kind[5:])
+        return code >= 500 or code in (408, 409, 425)
+    return False
+
+
+def _retry_after(e: Exception) -> float | None:
+    """Seconds from Retry-After-Ms or Retry-After (seconds or an HTTP date), if the answer has one."""
+    resp = getattr(e, "response", None)
+    headers = getattr(resp, "headers", None)
+    if headers is None:
+        return None
+    ms = headers.get("retry-after-ms")
+    if ms is not None:
+        try:
+            return float(ms) / 1000.0
+        except ValueError:
+            pass
+    value = headers.get("retry-after")
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        pass
+    try:
+        when = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
+        return None
+    return max(0.0, when.timestamp() - time.time())
+
+
+def _cause(e: BaseException) -> str:
+    """The innermost exception's class, e.g. ConnectError or RemoteProtocolError."""
+    inner: BaseException = e
+    while inner.__cause__ is not None:
+        inner = inner.__cause__
+    return inner.__class__.__name__
+
+
+def _is_refused(e: BaseException) -> bool:
+    inner: BaseException | None = e
+    while inner is not None:
+        if isinstance(inner, ConnectionRefusedError) or inner.__class__.__name__ == "ConnectError":
+            return True
+        inner = inner.__cause__ or inner.__context__
+    return False
 
 
 def _body_text(e: Exception) -> str | None:

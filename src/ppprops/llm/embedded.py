@@ -35,7 +35,8 @@ class EmbeddedServer:
 
     def __init__(self, *, context_size: int = 16384, threads: int | None = None) -> None:
         self.context_size = context_size
-        self.threads = threads or max(1, os.cpu_count() or 1)
+        # PPPROPS_LLM_THREADS lets a grid that runs several searches side by side share the cores
+        self.threads = threads or int(os.environ.get("PPPROPS_LLM_THREADS", 0)) or max(1, os.cpu_count() or 1)
         self._server: Any = None
         self.base_url = ""
 

@@ -4,19 +4,30 @@ It straddles the trust boundary on purpose: it holds the codec (client side) and
 wire side only ``EncodedEntry`` values. Parse failures get a bounded number of corrections;
 after that the candidate is a documented fallback: the best policy so far plus Gaussian noise
 with standard deviation 5% of the box width, clipped to the box, recorded with source
-``fallback``.
+``fallback``. An answer whose content is empty but whose separate reasoning text holds exactly
+one valid vector (gpt-oss behind some servers) is used as a last resort and recorded as such.
+
+An endpoint that stays down past the client's retry bound either stops the run (``stop``,
+resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``. Every HTTP
+try, failed ones included, goes to ``on_exchange``.
+
+Numerical faults never reach the prompt: a candidate with a non-finite return is left out of
+the history (and never becomes the best), non-finite components are dropped and non-finite
+diagnostics shown as "non-finite".
 """
 
 from __future__ import annotations
 
+import math
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import replace
 
 import numpy as np
 
 from .. import seeding
 from ..client.codec import Codec
-from ..llm.client import Chat, Exchange
+from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
 from ..store import Candidate
 from ..wire import EncodedEntry, PromptContext, build_correction, build_prompt, parse_answer, top_k
 from .base import Proposal, clip_to_box
@@ -37,6 +48,7 @@ class LLMProposer:
         seed: int,
         parse_retries: int = 2,
         on_exchange: ExchangeHook | None = None,
+        on_llm_failure: str = "stop",
     ) -> None:
         self.chat = chat
         self.codec = codec
@@ -46,6 +58,8 @@ class LLMProposer:
         self.seed = seed
         self.parse_retries = parse_retries
         self.on_exchange = on_exchange
+        self.on_llm_failure = on_llm_failure
+        self.nonfinite_skipped = 0
         self.entries: list[EncodedEntry] = []
         self.best: Candidate | None = None
         self.failures: Counter[str] = Counter()
@@ -57,14 +71,17 @@ class LLMProposer:
 
     def tell(self, candidate: Candidate) -> None:
         fb = candidate.feedback_enc
+        if not (math.isfinite(fb.ret) and math.isfinite(candidate.ret)):
+            self.nonfinite_skipped += 1  # a numerical fault: never shown, never the best
+            return
         detailed = self.ctx.detailed_feedback
         self.entries.append(
             self.codec.entry(
                 candidate.index,
                 candidate.params_enc,
                 fb.ret,
-                fb.components if detailed else {},
-                fb.diagnostics if detailed else {},
+                _finite_components(fb.components) if detailed else {},
+                _finite_diagnostics(fb.diagnostics) if detailed else {},
             )
         )
         if self.best is None or candidate.ret > self.best.ret:
@@ -77,18 +94,37 @@ class LLMProposer:
         messages = [{"role": "user", "content": self.prompt()}]
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
-            ex = self.chat.complete(messages, D=self.D, seed=seeding.llm_seed(self.seed, iteration, attempt))
+            seed = seeding.llm_seed(self.seed, iteration, attempt)
+            try:
+                ex = self.chat.complete(messages, D=self.D, seed=seed)
+            except LLMUnavailable as e:
+                self._record(iteration, attempt, e.failures)
+                if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
+                    raise
+                self.failures["llm_unavailable"] += 1
+                return self._fallback(iteration, f"llm_unavailable ({e.kind})")
+            self._record(iteration, attempt, ex.failures)
             self.last_latency = ex.latency_s
             result = parse_answer(ex.content, self.D) if ex.ok else None
-            error = (result.error if result is not None else "http_error")
+            if ex.ok:
+                ex = replace(ex, answer_source="content")
+            if result is not None and result.error == "empty" and ex.reasoning:
+                from_reasoning = parse_answer(ex.reasoning, self.D)
+                if from_reasoning.ok:  # last resort: the vector only in the reasoning text
+                    result = from_reasoning
+                    ex = replace(ex, answer_source="reasoning")
+            error = result.error if result is not None else None
             if self.on_exchange is not None:
                 self.on_exchange(iteration, attempt, ex, error)
             if result is not None and result.values is not None:
-                theta = self.codec.decode(np.asarray(result.values))
+                with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box
+                    theta = self.codec.decode(np.asarray(result.values))
                 theta, clipped = clip_to_box(theta, self.box)
-                return Proposal(theta=theta, source="llm", clipped=clipped)
-            self.failures[error or "unknown"] += 1
-            last_error = error or "unknown"
+                note = "answer taken from the reasoning text" if ex.answer_source == "reasoning" else ""
+                return Proposal(theta=theta, source="llm", clipped=clipped, note=note)
+            kind = error or ex.error_kind or "http_error"
+            self.failures[kind] += 1
+            last_error = kind
             detail = result.detail if result is not None else (ex.error or "the request failed")
             messages = [
                 messages[0],
@@ -97,10 +133,24 @@ class LLMProposer:
             ]
         return self._fallback(iteration, last_error)
 
+    def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:
+        if self.on_exchange is not None:
+            for t in tries:
+                self.on_exchange(iteration, attempt, t, None)
+
     def _fallback(self, iteration: int, reason: str) -> Proposal:
-        if self.best is None:
-            raise RuntimeError("LLMProposer needs at least one evaluated candidate (the warm-up) before asking")
         lo, hi = self.box
-        noise = seeding.rng(self.seed, seeding.FALLBACK, iteration).normal(0.0, FALLBACK_SIGMA * (hi - lo), size=self.D)
+        rng = seeding.rng(self.seed, seeding.FALLBACK, iteration)
+        if self.best is None:  # every candidate so far had a numerical fault: sample the box
+            return Proposal(theta=rng.uniform(lo, hi, size=self.D), source="fallback", note=f"after {reason}")
+        noise = rng.normal(0.0, FALLBACK_SIGMA * (hi - lo), size=self.D)
         theta, clipped = clip_to_box(self.best.params + noise, self.box)
         return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
+
+
+def _finite_components(components: Mapping[str, float]) -> dict[str, float]:
+    return {k: float(v) for k, v in components.items() if math.isfinite(float(v))}
+
+
+def _finite_diagnostics(diagnostics: Mapping[str, float | str]) -> dict[str, float | str]:
+    return {k: (v if isinstance(v, str) or math.isfinite(float(v)) else "non-finite") for k, v in diagnostics.items()}
