@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import http.server
+import threading
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 from ppprops.config import LLMConfig, RunConfig
 from ppprops.methods import resolve
 
@@ -13,12 +20,6 @@ def make_config(task: str = "CartPole", method: str = "pp", **kw: object) -> Run
     return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)  # type: ignore[arg-type]
 
 
-import http.server
-import threading
-import urllib.error
-import urllib.request
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 
 class _Recorder(http.server.BaseHTTPRequestHandler):

@@ -46,7 +46,9 @@ def test_reward_scaling_preserves_ranking(returns: list[float], seed: int) -> No
 
 def test_components_scaled_diagnostics_not() -> None:
     s = _secrets(2, 0)
-    fb = Feedback(ret=10.0, components={"forward": 4.0, "ctrl": -1.0}, diagnostics={"episode_length": 50.0, "termination": "pole_fell"}, episode_returns=(10.0,))
+    fb = Feedback(
+        ret=10.0, components={"forward": 4.0, "ctrl": -1.0}, diagnostics={"episode_length": 50.0, "termination": "pole_fell"}, episode_returns=(10.0,)
+    )
     enc = encode_feedback(Codec(s, encode_params=True, scale_rewards=True), fb)
     assert enc.ret == pytest.approx(s.c * 10.0)
     assert enc.components == pytest.approx({"forward": s.c * 4.0, "ctrl": -s.c})

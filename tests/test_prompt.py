@@ -43,7 +43,7 @@ def test_five_sections_in_order_with_best_last(method: str) -> None:
     text = build_prompt(ctx, top_k(entries, 10))
     positions = [text.index(s) for s in SECTIONS]
     assert positions == sorted(positions)
-    history = text[positions[-1]:]
+    history = text[positions[-1] :]
     rets = [float(x) for x in re.findall(r"^return: (\S+)$", history, flags=re.M)]
     assert rets == sorted(rets) and len(rets) == 3
 
@@ -144,5 +144,15 @@ def test_history_limit_wording_and_unbounded() -> None:
 
 
 def test_templates_are_files() -> None:
-    for name in ["prompt", "task", "parameters_raw", "parameters_encoded", "feedback_scalar", "feedback_detailed", "interaction", "history_entry", "correction"]:
+    for name in [
+        "prompt",
+        "task",
+        "parameters_raw",
+        "parameters_encoded",
+        "feedback_scalar",
+        "feedback_detailed",
+        "interaction",
+        "history_entry",
+        "correction",
+    ]:
         assert template(name).template.strip()

@@ -9,7 +9,6 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
-from support import make_config
 
 from ppprops.cli import main
 from ppprops.config import LLMConfig
@@ -18,6 +17,8 @@ from ppprops.report import run_summary
 from ppprops.runner import resume, start
 from ppprops.store import open_store
 from ppprops.testing.fault_server import ANSWER_KINDS, FaultConfig, FaultServer
+
+from support import make_config
 
 # what the client-side parser calls each injected bad answer (None: usable after all)
 PARSED_AS = {

@@ -11,7 +11,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from support import make_config
 
 from ppprops.cli import main
 from ppprops.client.codec import Codec, encode_feedback
@@ -19,11 +18,14 @@ from ppprops.client.context import prompt_context
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig
 from ppprops.evaluation import Feedback
+from ppprops.loop import best_candidate
 from ppprops.proposers import LLMProposer
-from ppprops.runner import best_finite_candidate, start
+from ppprops.runner import start
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task
 from ppprops.testing.fault_server import FaultConfig, FaultServer
+
+from support import make_config
 
 ENV_ID = "PPPropsNaNCartPole-v0"
 NON_FINITE = re.compile(r"(?<![A-Za-z])-?(nan|inf|infinity)(?![A-Za-z])", re.IGNORECASE)
@@ -78,7 +80,7 @@ def test_nan_and_inf_never_reach_the_prompt_or_the_best(tmp_path: Path, capsys) 
     assert len(prompts) >= 6
     for p in prompts:
         assert not NON_FINITE.search(p), NON_FINITE.search(p)
-    best = best_finite_candidate(cands)
+    best = best_candidate(cands)
     assert math.isfinite(best.ret) and best.ret == max(r for r in rets if math.isfinite(r))
     assert fe is not None and fe.candidate_index == best.index
     assert math.isfinite(json.loads((out / "best_policy.json").read_text())["search"]["return"])

@@ -9,7 +9,7 @@ from typing import Any
 
 from .baselines.record import format_rl_summary, is_rl_config, rl_summary
 from .config import RunConfig
-from .runner import best_finite_candidate
+from .loop import best_candidate
 from .store import open_store
 
 
@@ -57,7 +57,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         cands = store.candidates()
         calls = store.llm_calls()
         fe = store.final_eval()
-        best = best_finite_candidate(cands) if cands else None
+        best = best_candidate(cands) if cands else None
         return _finite({
             "run_id": store.run_id(),
             "status": store.status(),
@@ -75,6 +75,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                 "warmup": sum(c.source == "warmup" for c in cands),
                 "llm": sum(c.source == "llm" for c in cands),
                 "fallback": sum(c.source == "fallback" for c in cands),
+                "by_source": dict(Counter(c.source for c in cands)),
                 "clipped_candidates": sum(c.clipped > 0 for c in cands),
                 "llm_calls": len(calls),
                 **_fault_counts(cands, calls),
@@ -122,10 +123,8 @@ def format_summary(s: dict[str, Any]) -> str:
         f"task     {s['env']}   method {s['method']}   seed {s['seed']}",
     ]
     c = s["counts"]
-    lines.append(
-        f"evals    {c['candidates']} ({c['warmup']} warm-up, {c['llm']} LLM, {c['fallback']} fallback); "
-        f"{c['llm_calls']} LLM calls"
-    )
+    sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())
+    lines.append(f"evals    {c['candidates']} ({sources}); {c['llm_calls']} LLM calls")
     if c["answer_failures"]:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
     if c.get("answers_from_reasoning"):

@@ -222,14 +222,11 @@ def execute(
     return fe
 
 
-best_finite_candidate = best_candidate  # kept for callers; the loop's version skips non-finite returns
-
-
 def finish(
     run_dir: Path, store: RunStore, config: RunConfig, task: Task, evaluator: Evaluator, done: list[Candidate],
     *, status: str = "finished",
 ) -> FinalEval | None:
-    best = best_finite_candidate(done)
+    best = best_candidate(done)
     fe = store.final_eval()
     if fe is None or fe.candidate_index != best.index:
         seeds = seeding.final_eval_seeds(config.seed, config.final_episodes)
