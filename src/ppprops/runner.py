@@ -170,27 +170,9 @@ def execute(
             proposer: LLMProposer | None = None
             if config.iterations > 0 and config.method in BLACK_BOX:
                 phases.append(black_box_phase(task, config, codec))
-            elif config.iterations > 0 and config.method == "r2po":
-                chat = stack.enter_context(closing(LazyChat(config, llm_gate)))
-                r2po = R2POProposer(
-                    chat=chat,
-                    codec=codec,
-                    context=prompt_context(task, config, codec),
-                    top_k=config.top_k,
-                    box=config.box,
-                    seed=config.seed,
-                    rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
-                    count_tokens=chat.count_tokens,
-                    context_window=config.llm.context_size,
-                    max_tokens=config.llm.max_tokens or default_max_tokens(task.D),
-                    parse_retries=config.parse_retries,
-                    on_exchange=lambda it, att, ex, err: store.add_llm_call(it, att, ex, err),
-                )
-                proposer = r2po  # type: ignore[assignment]
-                phases.append(Phase("r2po", r2po, config.iterations))
             elif config.iterations > 0:
                 chat = stack.enter_context(closing(LazyChat(config, llm_gate)))
-                proposer = LLMProposer(
+                common = dict(
                     chat=chat,
                     codec=codec,
                     context=prompt_context(task, config, codec),
@@ -199,9 +181,20 @@ def execute(
                     seed=config.seed,
                     parse_retries=config.parse_retries,
                     on_exchange=lambda it, att, ex, err: store.add_llm_call(it, att, ex, err),
-                    on_llm_failure=config.on_llm_failure,
                 )
-                phases.append(Phase("llm", proposer, config.iterations))
+                if config.method == "r2po":
+                    r2po = R2POProposer(
+                        rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
+                        count_tokens=chat.count_tokens,
+                        context_window=config.llm.context_size,
+                        max_tokens=config.llm.max_tokens or default_max_tokens(task.D),
+                        **common,  # type: ignore[arg-type]
+                    )
+                    proposer = r2po  # type: ignore[assignment]
+                    phases.append(Phase("r2po", r2po, config.iterations))
+                else:
+                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, **common)  # type: ignore[arg-type]
+                    phases.append(Phase("llm", proposer, config.iterations))
             best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
             def on_candidate(c: Candidate) -> None:
