@@ -144,15 +144,20 @@ class RunConfig:
         return get_task(self.task)
 
 
+def read_text(path: Path, what: str = "config file") -> str:
+    """A user-named text file; a missing or unreadable one is one ConfigError line."""
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{what} {path} cannot be read ({e.__class__.__name__})") from None
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     """A TOML file as a table; every way it can fail is one ConfigError line."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"config file {path} cannot be read ({e.__class__.__name__})") from None
+    text = read_text(path)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

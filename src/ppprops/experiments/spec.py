@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..config import read_text
 from ..errors import ConfigError, MissingExtraError
 
 # `ppprops run` flags a grid sets itself, per run or for the whole grid.
@@ -97,12 +98,7 @@ class ExperimentSpec:
 def read_spec_file(path: Path) -> dict[str, Any]:
     """A spec file as a table: TOML by default, YAML for .yaml/.yml (the ``experiments`` extra)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"spec file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"spec file {path} cannot be read ({e.__class__.__name__})") from None
+    text = read_text(path, "spec file")
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
             import yaml
