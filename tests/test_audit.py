@@ -34,10 +34,10 @@ from ppprops.wire.numbers import fmt, fmt_vector
 from support import make_config
 
 
-def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False) -> Path:
+def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False, **settings: object) -> Path:
     """12 candidates (6 warm-up, then one request and one answer each), CartPole-like feedback with components."""
     task = get_task("CartPole")
-    cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3)
+    cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3, **settings)
     run_dir = root / (name or method)
     secrets = None
     if method != "pp-hardened":
@@ -197,6 +197,18 @@ def test_an_entry_the_audit_cannot_account_for_fails_it(pp_run: Path) -> None:
     plant(pp_run, fmt_vector(list(c.params_enc), 2), fmt_vector([123.45] * len(c.params), 2))
     r = audit_run(pp_run)
     assert r.leaks == [] and r.unverified and r.exit_code() == 1 and r.verdict().startswith("UNVERIFIED")
+
+
+@pytest.mark.parametrize("layout", ["static-first", "history-first"])
+def test_the_audit_reads_the_props_params_form_and_either_layout(tmp_path: Path, layout: str) -> None:
+    run = build_run(tmp_path, "pp", prompt_params="indexed", prompt_layout=layout)
+    r = audit_run(run)
+    assert r.clean and r.entries >= 6 * 5 and r.checked["params"] == r.entries * get_task("CartPole").D, r.format()
+    c = next(c for c in open_store(run).candidates()[:11] if f"params[0]: {fmt(c.params_enc[0], 2)}, params[1]:" in _last_request(run)[1])
+    plant(run, f"params[2]: {fmt(c.params_enc[2], 2)},", f"params[2]: {fmt(c.params[2], 2)},")
+    r = audit_run(run)
+    assert [f.kind for f in r.leaks] == ["raw_param"] and "params[2]" in r.leaks[0].detail
+    assert audit_run(build_run(tmp_path, "vanilla", name="v", prompt_params="indexed")).exit_code() == 1
 
 
 @pytest.mark.parametrize("method", ["vanilla", "df"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -156,3 +157,32 @@ def test_templates_are_files() -> None:
         "correction",
     ]:
         assert template(name).template.strip()
+
+
+def test_props_params_form_shows_the_same_values_pair_by_pair() -> None:
+    ctx, _, entries, _ = _setup("pp")
+    compact = build_prompt(ctx, entries)
+    props = build_prompt(replace(ctx, params_style="indexed"), entries)
+    e = entries[0]
+    pairs = ", ".join(f"params[{i}]: {v:.2f}".replace("-0.00", "0.00") for i, v in enumerate(e.params))
+    assert pairs in props and "params: [" not in props and "params: [" in compact
+    assert len(props) > len(compact)
+    with pytest.raises(ValueError, match="unknown params style 'csv'"):
+        build_prompt(replace(ctx, params_style="csv"), entries)
+
+
+def test_static_first_layout_changes_only_the_tail_between_iterations() -> None:
+    """What a prefix cache keeps when the worst of K=2 entries drops out: with the default layout
+    every fixed section; history first, only the opening line."""
+    ctx, _, entries, _ = _setup("pp")
+
+    def shared(a: str, b: str) -> int:
+        return next((i for i, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), min(len(a), len(b)))
+
+    before, after = build_prompt(ctx, top_k(entries[:2], 2)), build_prompt(ctx, top_k(entries, 2))
+    assert shared(before, after) > after.index("5. Here is the history:")
+    hf = replace(ctx, layout="history-first")
+    hb, ha = build_prompt(hf, top_k(entries[:2], 2)), build_prompt(hf, top_k(entries, 2))
+    assert shared(hb, ha) < ha.index("1. Here is the history:") + 40 < ha.index("2. The task description:")
+    for section in ("The task description:", "The policy parameters:", "The feedback:", "How we will interact:"):
+        assert after.split(section)[1].split("\n\n")[0] == ha.split(section)[1].split("\n\n")[0]

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import LLMConfig, RunConfig
+from .config import PROMPT_LAYOUTS, PROMPT_PARAMS, LLMConfig, RunConfig
 from .errors import PPPropsError
 from .methods import HARDENING, PRESETS, Mechanisms, resolve
 from .strategies import BLACK_BOX
@@ -58,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>__<time>)")
     r.add_argument("--box", type=_box, default=(-6.0, 6.0), metavar="LOW,HIGH", help="feasible range of every parameter")
     r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
+    r.add_argument("--prompt-params", choices=PROMPT_PARAMS, default="list",
+                   help="history parameters as one list (default, compact) or as ProPS-style params[i]: value pairs")
+    r.add_argument("--prompt-layout", choices=PROMPT_LAYOUTS, default="static-first",
+                   help="fixed sections before the history (default; a server's prefix cache reuses them) or history first")
     r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
     r.add_argument("--component", action="append", default=[], metavar="KEY",
                    help="for a plain Gymnasium id: an info key to sum as a reward component (repeatable)")
@@ -179,6 +183,8 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
         seed=a.seed,
         box=a.box,
         decimals=a.decimals,
+        prompt_params=a.prompt_params,
+        prompt_layout=a.prompt_layout,
         parse_retries=a.parse_retries,
         on_llm_failure=a.on_llm_failure,
         llm=LLMConfig(

@@ -22,6 +22,8 @@ MAX_PARSE_RETRIES = 10
 MAX_TRANSPORT_RETRIES = 20
 MAX_DELAY_S = 3600.0
 ON_LLM_FAILURE = ("stop", "skip")
+PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
+PROMPT_LAYOUTS = ("static-first", "history-first")
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,8 @@ class RunConfig:
     workers: int = 1  # processes that run episodes in parallel (results identical to serial)
     components: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys summed as reward components
     diagnostics: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys reported as diagnostics
+    prompt_params: str = "list"  # how history parameters are written: list | indexed (ProPS form)
+    prompt_layout: str = "static-first"  # fixed sections before the history (prefix-cache friendly) | history-first
 
     def validate(self) -> None:
         checks = [
@@ -111,6 +115,9 @@ class RunConfig:
              f"--parse-retries must be <= {MAX_PARSE_RETRIES}, got {self.parse_retries}"),
             (1 <= self.workers <= 256, f"--workers must be in [1, 256], got {self.workers}"),
             (self.on_llm_failure in ON_LLM_FAILURE, f"--on-llm-failure must be stop or skip, got {self.on_llm_failure!r}"),
+            (self.prompt_params in PROMPT_PARAMS, f"--prompt-params must be list or indexed, got {self.prompt_params!r}"),
+            (self.prompt_layout in PROMPT_LAYOUTS,
+             f"--prompt-layout must be static-first or history-first, got {self.prompt_layout!r}"),
         ]
         for ok, msg in checks:
             if not ok:

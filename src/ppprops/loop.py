@@ -8,6 +8,7 @@ from the number of recorded candidates alone.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -66,8 +67,11 @@ def run_loop(
     total = sum(ph.budget for ph in phases)
     for index in range(len(history), total):
         phase, iteration = locate(phases, index)
+        t0 = time.perf_counter()
         proposal = phase.proposer.ask(iteration)
+        t1 = time.perf_counter()
         feedback, seeds = evaluate(proposal.theta, index)
+        t2 = time.perf_counter()
         cand = Candidate(
             index=index,
             iteration=iteration,
@@ -79,6 +83,8 @@ def run_loop(
             clipped=proposal.clipped,
             seeds=tuple(seeds),
             note=proposal.note,
+            ask_s=t1 - t0,
+            eval_s=t2 - t1,
         )
         store.add_candidate(cand)
         history.append(cand)

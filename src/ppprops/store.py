@@ -7,7 +7,8 @@ from there. Several processes may write one store at once: WAL, a busy timeout a
 an I/O error, a lock held too long) surfaces as a one-line ``StoreError``.
 
 Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``answer_source``
-(transport faults and answers taken from the reasoning text), migrated in place from 1.
+(transport faults and answers taken from the reasoning text); 3 adds ``candidates.ask_s`` and
+``eval_s`` (where an iteration's time goes). Older stores are migrated in place.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 from .errors import StoreError
 from .evaluation import Feedback
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"
 
@@ -79,6 +80,8 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("llm_calls", "error_kind", "TEXT"),
     ("llm_calls", "retry", "INTEGER NOT NULL DEFAULT 0"),
     ("llm_calls", "answer_source", "TEXT"),
+    ("candidates", "ask_s", "REAL"),
+    ("candidates", "eval_s", "REAL"),
 )
 
 
@@ -111,6 +114,8 @@ class Candidate:
     clipped: int
     seeds: tuple[int, ...]
     note: str = ""
+    ask_s: float | None = None  # seconds in the proposer's ask (LLM calls included); None when not measured
+    eval_s: float | None = None  # seconds evaluating the episodes
 
     @property
     def ret(self) -> float:
@@ -251,13 +256,13 @@ class RunStore:
         try:
             with self._tx() as db:
                 db.execute(
-                    "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, created)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
+                    " created, ask_s, eval_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (
                         c.index, c.iteration, c.source,
                         json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
                         json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
-                        c.clipped, json.dumps(list(c.seeds)), c.note, time.time(),
+                        c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s,
                     ),
                 )
         except sqlite3.IntegrityError:
@@ -265,7 +270,7 @@ class RunStore:
 
     def candidates(self) -> list[Candidate]:
         rows = self._read(
-            "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note"
+            "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s"
             " FROM candidates ORDER BY idx"
         ).fetchall()
         return [
@@ -273,10 +278,16 @@ class RunStore:
                 index=r[0], iteration=r[1], source=r[2],
                 params=np.asarray(json.loads(r[3])), params_enc=np.asarray(json.loads(r[4])),
                 feedback=Feedback.from_json(json.loads(r[5])), feedback_enc=Feedback.from_json(json.loads(r[6])),
-                clipped=r[7], seeds=tuple(json.loads(r[8])), note=r[9],
+                clipped=r[7], seeds=tuple(json.loads(r[8])), note=r[9], ask_s=r[10], eval_s=r[11],
             )
             for r in rows
         ]
+
+    def candidate_times(self) -> list[tuple[int, str, int, float, float | None, float | None]]:
+        """(index, source, iteration, created, ask_s, eval_s) per candidate: when each was
+        recorded and where its time went, for the overhead benchmark and progress reports."""
+        return [tuple(r) for r in self._read(  # type: ignore[misc]
+            "SELECT idx, source, iteration, created, ask_s, eval_s FROM candidates ORDER BY idx").fetchall()]
 
     # -- LLM exchanges --------------------------------------------------------------------
     def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None) -> None:

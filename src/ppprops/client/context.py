@@ -50,6 +50,8 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         component_notes=tuple((k, text.components.get(k, k)) for k in task.components),
         diagnostic_notes=tuple((k, text.diagnostics.get(k, k)) for k in diagnostics),
         decimals=config.decimals,
+        params_style=config.prompt_params,
+        layout=config.prompt_layout,
         history_limit=config.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,

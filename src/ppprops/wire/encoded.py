@@ -45,6 +45,12 @@ class PromptContext:
     param_encoding: str = "scale"
     reward_encoding: str = "scale"
     warmup_range: tuple[float, float] | None = None  # public encoded range of the warm-up (hardened)
+    # Prompt form, not meaning (benchmarks/RESULTS.md measured both choices):
+    # "list" writes a history entry's parameters as one JSON-like list, "indexed" as the
+    # ProPS-style ``params[i]: value`` pairs; "static-first" puts every fixed section before the
+    # history so a server's prefix cache reuses them, "history-first" is the opposite order.
+    params_style: str = "list"
+    layout: str = "static-first"
 
     @property
     def n_s(self) -> int:

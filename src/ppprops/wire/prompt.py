@@ -80,6 +80,25 @@ COMPONENTS_PREFIX = "\ncomponents: "
 DIAGNOSTICS_PREFIX = "\ndiagnostics: "
 
 
+PARAMS_STYLES = {"list": "history_entry", "indexed": "history_entry_indexed"}
+LAYOUTS = {"static-first": "prompt", "history-first": "prompt_history_first"}
+
+
+def _choice(table: dict[str, str], value: str, what: str) -> str:
+    if value not in table:
+        raise ValueError(f"unknown {what} {value!r} (known: {', '.join(table)})")
+    return table[value]
+
+
+def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
+    """The list form is the compact default; the ProPS form repeats ``params[i]: `` per value
+    (benchmarks/RESULTS.md compares the two in characters, tokens and search results)."""
+    d = ctx.decimals
+    if _choice(PARAMS_STYLES, ctx.params_style, "params style") == PARAMS_STYLES["list"]:
+        return fmt_vector(params, d)
+    return ", ".join(f"params[{i}]: {fmt(v, d)}" for i, v in enumerate(params))
+
+
 def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
     if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
         raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
@@ -89,13 +108,17 @@ def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
         comps = COMPONENTS_PREFIX + ", ".join(f"{k}={fmt(v, d)}" for k, v in e.components)
     if ctx.detailed_feedback and e.diagnostics:
         diags = DIAGNOSTICS_PREFIX + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
-    return _render("history_entry", params=fmt_vector(e.params, d), ret=fmt(e.ret, d), components=comps, diagnostics=diags)
+    params = params_text(ctx, e.params)  # checks the style
+    return _render(PARAMS_STYLES[ctx.params_style], params=params, ret=fmt(e.ret, d), components=comps, diagnostics=diags)
 
 
 def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
+    """With the default static-first layout only the history (last) changes between
+    iterations, so a server that caches prompt prefixes re-reads just that part."""
+    name = _choice(LAYOUTS, ctx.layout, "prompt layout")
     hist = "\n\n".join(history_entry(ctx, e) for e in history) if history else "(empty)"
     return _render(
-        "prompt",
+        name,
         task=task_section(ctx),
         parameters=parameters_section(ctx),
         feedback=feedback_section(ctx),

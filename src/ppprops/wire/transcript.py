@@ -17,14 +17,22 @@ NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _PAIR_SPLIT = re.compile(r", (?=[A-Za-z_][\w.]*=)")
 
 
-def _entry_pattern() -> re.Pattern[str]:
-    """The history-entry template turned into a regex, so template edits cannot silently blind the audit."""
-    t = template("history_entry").template
+_INDEXED_PARAM = re.compile(r"params\[(\d+)\]: ([^,\n]+)")
+# The parameter field of each history-entry template (see wire.prompt.PARAMS_STYLES).
+_PARAMS_RX = {
+    "history_entry": r"\[(?P<params>[^\]\n]*)\]",
+    "history_entry_indexed": r"(?P<indexed>params\[0\]: [^,\n]+(?:, params\[\d+\]: [^,\n]+)*)",
+}
+
+
+def _entry_pattern(name: str) -> re.Pattern[str]:
+    """A history-entry template turned into a regex, so template edits cannot silently blind the audit."""
+    t = template(name).template
     parts = re.split(r"(\$params|\$ret|\$components|\$diagnostics)", t)
     rx = ""
     for part in parts:
         if part == "$params":
-            rx += r"\[(?P<params>[^\]\n]*)\]"
+            rx += _PARAMS_RX[name]
         elif part == "$ret":
             rx += r"(?P<ret>\S+)"
         elif part == "$components":
@@ -59,12 +67,31 @@ def _pairs(text: str | None) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
+def _indexed_params(text: str) -> tuple[str, ...] | None:
+    """Values of ``params[i]: v`` pairs by index. Indices out of order make it no entry at all,
+    so its numbers stay in the prose, where the audit checks every one of them."""
+    pairs = _INDEXED_PARAM.findall(text)
+    if [int(i) for i, _ in pairs] != list(range(len(pairs))):
+        return None
+    return tuple(v.strip() for _, v in pairs)
+
+
 def history_entries(text: str) -> list[ShownEntry]:
-    """Every history entry in a prompt, in the order printed."""
+    """Every history entry in a prompt, in the order printed, in either parameter style."""
     out: list[ShownEntry] = []
-    for m in _entry_pattern().finditer(text):
-        params = tuple(v.strip() for v in m.group("params").split(",") if v.strip())
-        out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(m.group("components")), _pairs(m.group("diagnostics"))))
+    for name in _PARAMS_RX:
+        for m in _entry_pattern(name).finditer(text):
+            groups = m.groupdict()
+            if groups.get("params") is not None:
+                params = tuple(v.strip() for v in groups["params"].split(",") if v.strip())
+            else:
+                indexed = _indexed_params(groups["indexed"])
+                if indexed is None:
+                    continue
+                params = indexed
+            out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(m.group("components")),
+                                  _pairs(m.group("diagnostics"))))
+    out.sort(key=lambda e: e.start)
     return out
 
 
