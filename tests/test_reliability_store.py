@@ -7,6 +7,7 @@ import sqlite3
 import subprocess
 import sys
 import textwrap
+import time
 import types
 from pathlib import Path
 
@@ -21,13 +22,16 @@ WRITERS, ROWS = 4, 300
 
 _WRITER = textwrap.dedent(
     """
-    import sys, types
+    import os, sys, time, types
     import numpy as np
     from ppprops.evaluation import Feedback
     from ppprops.store import Candidate, RunStore
 
-    path, w, rows = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    path, w, rows, go = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
     store = RunStore(path)
+    open(go + f".ready{w}", "w").close()
+    while not os.path.exists(go):  # start together: imports take longer than the writing
+        time.sleep(0.005)
     fb = Feedback(ret=float(w), components={"c": 1.0}, diagnostics={"episode_length": 3.0}, episode_returns=(float(w),))
     for i in range(rows):
         idx = w * 100000 + i  # each writer its own index range, as runs sharing an experiment store would
@@ -42,11 +46,15 @@ _WRITER = textwrap.dedent(
 
 
 def test_several_processes_writing_one_store_lose_nothing(tmp_path: Path) -> None:
-    db = tmp_path / "shared.sqlite"
+    db, go = tmp_path / "shared.sqlite", tmp_path / "go"
     procs = [
-        subprocess.Popen([sys.executable, "-c", _WRITER, str(db), str(w), str(ROWS)], stderr=subprocess.PIPE, text=True)
+        subprocess.Popen([sys.executable, "-c", _WRITER, str(db), str(w), str(ROWS), str(go)], stderr=subprocess.PIPE, text=True)
         for w in range(WRITERS)
     ]
+    deadline = time.monotonic() + 120
+    while len(list(tmp_path.glob("go.ready*"))) < WRITERS and time.monotonic() < deadline and all(p.poll() is None for p in procs):
+        time.sleep(0.01)
+    go.touch()
     errors = [p.communicate(timeout=240)[1] for p in procs]
     assert all(p.returncode == 0 for p in procs), errors
     store = RunStore(db)
