@@ -29,9 +29,14 @@ from ppprops.runner import create_run, start
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task
 from ppprops.wire import build_prompt, top_k
-from ppprops.wire.numbers import fmt, fmt_vector
+from ppprops.wire.numbers import fmt, fmt_sig, fmt_vector
 
 from support import make_config
+
+
+def shown_vector(values: object) -> str:
+    """A parameter vector as the default prompt form prints it."""
+    return fmt_vector(list(values), 2, digits=3, sep=",")  # type: ignore[call-overload]
 
 
 def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False, **settings: object) -> Path:
@@ -96,7 +101,7 @@ def _shown_candidate(run_dir: Path) -> Candidate:
     cands = store.candidates()
     store.close()
     _, text = _last_request(run_dir)
-    return next(c for c in cands[:11] if fmt_vector(list(c.params_enc), 2) in text)
+    return next(c for c in cands[:11] if shown_vector(c.params_enc) in text)
 
 
 @pytest.fixture()
@@ -133,10 +138,10 @@ def test_a_factor_of_one_is_a_coincidence_not_a_leak(tmp_path: Path) -> None:
 
 def test_planted_raw_parameter_is_found_at_its_place(pp_run: Path) -> None:
     c = _shown_candidate(pp_run)
-    shown = [fmt(v, 2) for v in c.params_enc]
+    shown = [fmt_sig(v, 3, 2) for v in c.params_enc]
     leaked = list(shown)
     leaked[3] = fmt(c.params[3], 2)
-    plant(pp_run, "[" + ", ".join(shown) + "]", "[" + ", ".join(leaked) + "]")
+    plant(pp_run, "[" + ",".join(shown) + "]", "[" + ",".join(leaked) + "]")
     r = audit_run(pp_run)
     assert r.exit_code() == 1 and [f.kind for f in r.leaks] == ["raw_param"]
     assert "params[3]" in r.leaks[0].detail and f"candidate {c.index}" in r.leaks[0].locations[0]
@@ -146,16 +151,16 @@ def test_planted_raw_parameter_is_found_at_its_place(pp_run: Path) -> None:
 @pytest.mark.parametrize("notation", ["{:.3e}", "{:.4f}", "{:.1f}"])
 def test_planted_raw_parameter_in_other_notations(pp_run: Path, notation: str) -> None:
     c = _shown_candidate(pp_run)
-    shown = [fmt(v, 2) for v in c.params_enc]
+    shown = [fmt_sig(v, 3, 2) for v in c.params_enc]
     leaked = list(shown)
     leaked[5] = notation.format(c.params[5])
-    plant(pp_run, "[" + ", ".join(shown) + "]", "[" + ", ".join(leaked) + "]")
+    plant(pp_run, "[" + ",".join(shown) + "]", "[" + ",".join(leaked) + "]")
     assert [f.kind for f in audit_run(pp_run).leaks] == ["raw_param"]
 
 
 def test_planted_raw_vector_is_found(pp_run: Path) -> None:
     c = _shown_candidate(pp_run)
-    plant(pp_run, fmt_vector(list(c.params_enc), 2), fmt_vector(list(c.params), 2))
+    plant(pp_run, shown_vector(c.params_enc), shown_vector(c.params))
     r = audit_run(pp_run)
     assert r.exit_code() == 1 and r.leaks[0].kind == "raw_param" and f"candidate {c.index}" in r.leaks[0].locations[0]
 
@@ -163,8 +168,8 @@ def test_planted_raw_vector_is_found(pp_run: Path) -> None:
 @pytest.mark.parametrize("render", [lambda v: str(int(v)), lambda v: f"{v:.1f}", lambda v: f"{v:.3e}"])
 def test_planted_raw_return_is_found_as_integer_short_decimals_or_exponent(pp_run: Path, render) -> None:  # type: ignore[no-untyped-def]
     c = _shown_candidate(pp_run)
-    old = fmt_vector(list(c.params_enc), 2) + "\nreturn: " + fmt(c.feedback_enc.ret, 2)
-    plant(pp_run, old, fmt_vector(list(c.params_enc), 2) + "\nreturn: " + render(c.ret))
+    old = shown_vector(c.params_enc) + "\nreturn: " + fmt(c.feedback_enc.ret, 2)
+    plant(pp_run, old, shown_vector(c.params_enc) + "\nreturn: " + render(c.ret))
     r = audit_run(pp_run)
     assert [f.kind for f in r.leaks] == ["raw_return"] and f"candidate {c.index}" in r.leaks[0].locations[0]
 
@@ -194,7 +199,7 @@ def test_planted_raw_return_in_the_prose_is_found(pp_run: Path) -> None:
 
 def test_an_entry_the_audit_cannot_account_for_fails_it(pp_run: Path) -> None:
     c = _shown_candidate(pp_run)
-    plant(pp_run, fmt_vector(list(c.params_enc), 2), fmt_vector([123.45] * len(c.params), 2))
+    plant(pp_run, shown_vector(c.params_enc), shown_vector([123.45] * len(c.params)))
     r = audit_run(pp_run)
     assert r.leaks == [] and r.unverified and r.exit_code() == 1 and r.verdict().startswith("UNVERIFIED")
 

@@ -15,6 +15,7 @@ from ppprops.evaluation import Feedback
 from ppprops.store import Candidate
 from ppprops.tasks import get_task
 from ppprops.wire import build_prompt, top_k
+from ppprops.wire.numbers import fmt_sig, fmt_vector
 from ppprops.wire.prompt import history_entry, template
 
 from support import make_config
@@ -61,7 +62,7 @@ def test_vanilla_discloses_raw_values_reward_structure_and_optimum() -> None:
     assert "Every parameter must lie in [-6, 6]" in text
     assert "encoded" not in text and "undisclosed" not in text and "not disclosed" not in text
     for c in cands:
-        assert "[" + ", ".join(f"{v:.2f}" for v in c.params) + "]" in text.replace("-0.00", "0.00")
+        assert fmt_vector(list(c.params), 2, digits=3, sep=",") in text
         assert f"return: {c.ret:.2f}" in text
     assert "diagnostics:" not in text  # scalar feedback only
 
@@ -73,8 +74,8 @@ def test_pe_encodes_parameters_only() -> None:
     assert "The global optimal return is about 500.00" in text and "+1 for every step" in text
     for c in cands:
         assert f"return: {c.ret:.2f}" in text  # rewards stay raw in pe
-        assert "[" + ", ".join(f"{v:.2f}" for v in c.params) + "]" not in text
-        assert "[" + ", ".join(f"{v:.2f}" for v in c.params_enc) + "]" in text
+        assert fmt_vector(list(c.params), 2, digits=3, sep=",") not in text
+        assert fmt_vector(list(c.params_enc), 2, digits=3, sep=",") in text
     assert "[-6, 6]" not in text  # the range would reveal A
     assert "diagnostics:" not in text
 
@@ -186,3 +187,10 @@ def test_static_first_layout_changes_only_the_tail_between_iterations() -> None:
     assert shared(hb, ha) < ha.index("1. Here is the history:") + 40 < ha.index("2. The task description:")
     for section in ("The task description:", "The policy parameters:", "The feedback:", "How we will interact:"):
         assert after.split(section)[1].split("\n\n")[0] == ha.split(section)[1].split("\n\n")[0]
+
+
+@pytest.mark.parametrize(("x", "shown"), [(-33.77, "-33.8"), (0.59, "0.59"), (5.425, "5.42"), (123.4, "123"), (0.004, "0.00"),
+                                         (-0.001, "0.00"), (9.996, "10.00"), (0.0, "0.00")])
+def test_parameters_keep_three_significant_digits_at_most_two_decimals(x: float, shown: str) -> None:
+    assert fmt_sig(x, 3, 2) == shown
+    assert fmt_sig(x, 0, 2) == f"{x:.2f}".replace("-0.00", "0.00")  # 0 digits: fixed decimals, as --param-digits 0 asks

@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
     r.add_argument("--prompt-params", choices=PROMPT_PARAMS, default="list",
                    help="history parameters as one list (default, compact) or as ProPS-style params[i]: value pairs")
+    r.add_argument("--param-digits", type=int, default=3,
+                   help="list form: significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals (default 3)")
     r.add_argument("--prompt-layout", choices=PROMPT_LAYOUTS, default="static-first",
                    help="fixed sections before the history (default; a server's prefix cache reuses them) or history first")
     r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
@@ -184,6 +186,7 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
         box=a.box,
         decimals=a.decimals,
         prompt_params=a.prompt_params,
+        param_digits=a.param_digits,
         prompt_layout=a.prompt_layout,
         parse_retries=a.parse_retries,
         on_llm_failure=a.on_llm_failure,

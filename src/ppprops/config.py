@@ -95,6 +95,7 @@ class RunConfig:
     components: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys summed as reward components
     diagnostics: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys reported as diagnostics
     prompt_params: str = "list"  # how history parameters are written: list | indexed (ProPS form)
+    param_digits: int = 3  # list form: significant digits per parameter (at most `decimals` decimals); 0: fixed decimals
     prompt_layout: str = "static-first"  # fixed sections before the history (prefix-cache friendly) | history-first
 
     def validate(self) -> None:
@@ -115,6 +116,7 @@ class RunConfig:
              f"--parse-retries must be <= {MAX_PARSE_RETRIES}, got {self.parse_retries}"),
             (1 <= self.workers <= 256, f"--workers must be in [1, 256], got {self.workers}"),
             (self.on_llm_failure in ON_LLM_FAILURE, f"--on-llm-failure must be stop or skip, got {self.on_llm_failure!r}"),
+            (0 <= self.param_digits <= 8, f"--param-digits must be in [0, 8], got {self.param_digits}"),
             (self.prompt_params in PROMPT_PARAMS, f"--prompt-params must be list or indexed, got {self.prompt_params!r}"),
             (self.prompt_layout in PROMPT_LAYOUTS,
              f"--prompt-layout must be static-first or history-first, got {self.prompt_layout!r}"),

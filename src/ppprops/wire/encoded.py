@@ -50,6 +50,7 @@ class PromptContext:
     # ProPS-style ``params[i]: value`` pairs; "static-first" puts every fixed section before the
     # history so a server's prefix cache reuses them, "history-first" is the opposite order.
     params_style: str = "list"
+    param_digits: int = 3  # list form: significant digits of a parameter (at most ``decimals`` decimals); 0: fixed decimals
     layout: str = "static-first"
 
     @property

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 
 def fmt(x: float, decimals: int) -> str:
     """Fixed-point with a set number of decimals; no exponent, no negative zero."""
@@ -11,8 +13,16 @@ def fmt(x: float, decimals: int) -> str:
     return s
 
 
-def fmt_vector(values: tuple[float, ...] | list[float], decimals: int) -> str:
-    return "[" + ", ".join(fmt(v, decimals) for v in values) + "]"
+def fmt_sig(x: float, digits: int, decimals: int) -> str:
+    """``digits`` significant digits but never more than ``decimals`` decimals (fixed-point,
+    no exponent): -33.77 -> -33.8, 0.59 -> 0.59, 0.004 -> 0 with (3, 2). ``digits`` 0 is plain ``fmt``."""
+    if digits <= 0 or x == 0 or not math.isfinite(x):
+        return fmt(x, decimals)
+    return fmt(x, max(0, min(decimals, digits - 1 - math.floor(math.log10(abs(x))))))
+
+
+def fmt_vector(values: tuple[float, ...] | list[float], decimals: int, *, digits: int = 0, sep: str = ", ") -> str:
+    return "[" + sep.join(fmt_sig(v, digits, decimals) for v in values) + "]"
 
 
 def fmt_value(v: float | str, decimals: int) -> str:

@@ -91,11 +91,13 @@ def _choice(table: dict[str, str], value: str, what: str) -> str:
 
 
 def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
-    """The list form is the compact default; the ProPS form repeats ``params[i]: `` per value
-    (benchmarks/RESULTS.md compares the two in characters, tokens and search results)."""
+    """The list form is the compact default: no space after a comma and ``param_digits``
+    significant digits (one token per character saved with Gemma's tokenizer). The ProPS form
+    repeats ``params[i]: `` before every value at fixed decimals. benchmarks/RESULTS.md compares
+    the two in characters, tokens and search results."""
     d = ctx.decimals
     if _choice(PARAMS_STYLES, ctx.params_style, "params style") == PARAMS_STYLES["list"]:
-        return fmt_vector(params, d)
+        return fmt_vector(params, d, digits=ctx.param_digits, sep=",")
     return ", ".join(f"params[{i}]: {fmt(v, d)}" for i, v in enumerate(params))
 
 

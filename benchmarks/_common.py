@@ -1,0 +1,213 @@
+"""Shared pieces of the benchmark suite: the machine, runs, prompt replay, the embedded server.
+
+Each benchmark module exposes ``run(ctx) -> Section``; ``run_all.py`` calls them in one process
+and writes ``RESULTS.md`` from their sections, so every figure in it comes from one run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import time
+import urllib.request
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from ppprops import __version__
+from ppprops.client.context import prompt_context
+from ppprops.client.hardening import codec_for
+from ppprops.client.secrets import Secrets
+from ppprops.config import LLMConfig, RunConfig
+from ppprops.llm.client import ChatClient
+from ppprops.methods import resolve
+from ppprops.proposers.llm import LLMProposer
+from ppprops.runner import chat_client, load_run, start
+from ppprops.store import open_store
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@dataclass
+class Section:
+    """One benchmark's part of RESULTS.md: Markdown for people, ``data`` for results.json."""
+
+    key: str
+    title: str
+    body: str
+    data: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+@dataclass
+class Context:
+    out: Path  # working directory for runs; kept so every figure can be traced to a store
+    quick: bool = False  # tiny budgets: checks the suite end to end, figures mean nothing
+    cache: dict[str, Any] = field(default_factory=dict)  # runs one benchmark leaves for another
+
+    def dir(self, name: str) -> Path:
+        d = self.out / name
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+def machine() -> str:
+    """CPU model, cores, memory, OS, Python and the code's commit: enough to compare two RESULTS.md."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = ""
+    try:
+        kb = int(Path("/proc/meminfo").read_text().split("MemTotal:")[1].split()[0])
+        mem = f", {kb / 2**20:.0f} GiB RAM"
+    except (OSError, IndexError, ValueError):
+        pass
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return (f"{cpu}, {os.cpu_count()} logical CPUs{mem}, {platform.system()} {platform.release()}, "
+            f"Python {platform.python_version()}, ppprops {__version__}{f' ({commit})' if commit else ''}, "
+            f"load average at start {load:.2f}")
+
+
+def config(task: str, method: str = "pp", **kw: Any) -> RunConfig:
+    llm = kw.pop("llm", LLMConfig())
+    base: dict[str, Any] = dict(warmup=10, iterations=10, top_k=10, final_episodes=0, seed=0)
+    base.update(kw)
+    return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)
+
+
+def run_search(cfg: RunConfig, run_dir: Path, secrets: Secrets | None = None) -> Path:
+    """A real search, started fresh (a leftover directory from an earlier suite run is replaced).
+    Passing another run's ``secrets`` gives both runs the same encoding, hence the same warm-up history."""
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    start(cfg, run_dir, secrets=secrets)
+    return run_dir
+
+
+def run_secrets(run_dir: Path) -> Secrets:
+    store, _, secrets = load_run(run_dir)
+    store.close()
+    return secrets
+
+
+def llm_calls(run_dir: Path) -> list[dict[str, Any]]:
+    store = open_store(run_dir)
+    try:
+        return store.llm_calls()
+    finally:
+        store.close()
+
+
+def timings(response: str | None) -> dict[str, float]:
+    """llama.cpp's own accounting of one answer: cache_n (prompt tokens reused from its cache),
+    prompt_n (prompt tokens it processed), prompt_ms, predicted_n, predicted_ms."""
+    if not response:
+        return {}
+    try:
+        t = json.loads(response).get("timings") or {}
+    except (ValueError, AttributeError):
+        return {}
+    return {k: float(v) for k, v in t.items() if isinstance(v, (int, float))}
+
+
+def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
+    """(iteration, prompt) for every LLM iteration of a recorded ProPS run, rebuilt from its store
+    and key with the prompt context changed by ``overrides`` (e.g. ``layout="history-first"``).
+    With no overrides the result must equal what the run sent; the caller can check that."""
+    store, cfg, secrets = load_run(run_dir)
+    try:
+        cands = store.candidates()
+    finally:
+        store.close()
+    task = cfg.make_task()
+    codec = codec_for(secrets, task, cfg)
+    ctx = replace(prompt_context(task, cfg, codec), **overrides)
+    prop = LLMProposer(chat=None, codec=codec, context=ctx, top_k=cfg.top_k, box=cfg.box, seed=cfg.seed)  # type: ignore[arg-type]
+    out = []
+    for c in cands:
+        if c.source in ("llm", "fallback"):
+            out.append((c.iteration, prop.prompt()))
+        prop.tell(c)
+    return out
+
+
+def prompt_after(run_dir: Path, *, top_k: int, **overrides: Any) -> str:
+    """The prompt the run would send next, after all its recorded candidates, with K = ``top_k``."""
+    store, cfg, secrets = load_run(run_dir)
+    try:
+        cands = store.candidates()
+    finally:
+        store.close()
+    task = cfg.make_task()
+    codec = codec_for(secrets, task, cfg)
+    ctx = replace(prompt_context(task, cfg, codec), history_limit=top_k, **overrides)
+    prop = LLMProposer(chat=None, codec=codec, context=ctx, top_k=top_k, box=cfg.box, seed=cfg.seed)  # type: ignore[arg-type]
+    for c in cands:
+        prop.tell(c)
+    return prop.prompt()
+
+
+def sent_prompts(run_dir: Path) -> list[tuple[int, str]]:
+    """(iteration, prompt) of every first attempt the run actually sent."""
+    return [(c["iteration"], json.loads(c["request"])["messages"][0]["content"])
+            for c in llm_calls(run_dir) if c["attempt"] == 0 and c["retry"] == 0]
+
+
+@contextmanager
+def embedded(context_size: int = 32768) -> Iterator[ChatClient]:
+    """A fresh embedded server (empty prompt cache) and a client for it."""
+    with chat_client(config("CartPole", llm=LLMConfig(context_size=context_size))) as client:
+        yield client
+
+
+def count_tokens(client: ChatClient, text: str) -> int:
+    """Tokens of ``text`` under the embedded model's own tokenizer (llama.cpp /tokenize)."""
+    root = str(client._client.base_url).rstrip("/").removesuffix("/v1")
+    req = urllib.request.Request(root + "/tokenize", data=json.dumps({"content": text}).encode(),
+                                 headers={"Content-Type": "application/json"}, method="POST")
+    with urllib.request.urlopen(req, timeout=120) as resp:
+        return len(json.loads(resp.read())["tokens"])
+
+
+def mean_std(values: Sequence[float]) -> str:
+    """``mean (std)`` as the paper's tables print it; population std over seeds."""
+    if not values:
+        return "n/a"
+    return f"{statistics.fmean(values):.1f} ({statistics.pstdev(values):.1f})"
+
+
+def table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def pct_less(new: float, old: float) -> float:
+    """How much smaller ``new`` is than ``old``, in percent (the paper's "-80.2%")."""
+    return 100.0 * (1.0 - new / old) if old else float("nan")
+
+
+@contextmanager
+def stopwatch() -> Iterator[list[float]]:
+    box = [0.0]
+    t0 = time.perf_counter()
+    try:
+        yield box
+    finally:
+        box[0] = time.perf_counter() - t0
