@@ -43,6 +43,7 @@ class Section:
     body: str
     data: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    targets: list[tuple[str, str, bool | None]] = field(default_factory=list)  # (target, measured, met; None: no target)
 
 
 @dataclass

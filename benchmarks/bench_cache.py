@@ -52,7 +52,8 @@ def replay(run_dir: Path) -> dict[str, list[dict[str, float]]]:
 
 
 def run(ctx: Context) -> Section:
-    sources = [("CartPole (D=10)", ctx.cache.get("cache_cartpole_run")), ("Ant-Ultra (D=88)", ctx.cache.get("history_K10_run"))]
+    sources = [("CartPole (D=10)", ctx.cache.get("cache_cartpole_run")), ("Acrobot (D=21)", ctx.cache.get("cache_acrobot_run")),
+               ("Ant-Ultra (D=88)", ctx.cache.get("history_K10_run"))]
     rows, data = [], {}
     for label, run_dir in sources:
         if run_dir is None:
@@ -84,4 +85,7 @@ def run(ctx: Context) -> Section:
                 "worst entry leaves from the front of the history and everything after the fixed sections is new; static-first "
                 "saves exactly those fixed sections, history-first saves nothing. When the new candidate does not enter the top K "
                 "the prompt repeats and both layouts reuse it whole.")
-    return Section("cache", "3. Prefix-cache reuse", "\n".join(body), data)
+    targets = [(f"cached share and response time, static-first vs history-first ({label})",
+                f"{100 * e['static-first']['cached_share']:.1f}% vs {100 * e['history-first']['cached_share']:.1f}% cached; "
+                f"history-first {e['latency_ratio_history_first']:.2f}x the time", None) for label, e in data.items()]
+    return Section("cache", "3. Prefix-cache reuse", "\n".join(body), data, targets=targets)

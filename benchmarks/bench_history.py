@@ -63,22 +63,36 @@ def run(ctx: Context) -> Section:
         "prefill": pct_less(b["prefill_ms"] or 0, u["prefill_ms"] or 1),
     }
     data["cuts_percent"] = cuts
-    data["met"] = cuts["chars"] > PAPER_SIZE_CUT and cuts["latency"] > PAPER_TIME_CUT
+    size_met, time_met = cuts["chars"] > PAPER_SIZE_CUT, cuts["latency"] > PAPER_TIME_CUT
+    data["met"] = {"size": size_met, "time": time_met}
     body = [
         f"Ant-Ultra (D=88), pp, {warmup} warm-up + {iters} LLM iterations, same key and seed, embedded model "
-        "(context 32,768 tokens, 2 decimals, list form, static-first layout). Last iteration:",
+        "(context 32,768 tokens; default prompt form). Last iteration:",
         "",
         table(["history", "entries shown", "prompt chars", "prompt tokens", "response time (s)", "of which prefill (s)",
                "of which decoding (s)", "mean response time, all iterations (s)"], rows),
         "",
-        f"- K=10 against the whole history at the last iteration: prompt **{cuts['chars']:.1f}% smaller** in characters "
-        f"({cuts['tokens']:.1f}% in tokens), response **{cuts['latency']:.1f}% faster** (mean over the iterations "
-        f"{cuts['mean_latency']:.1f}%; prefill alone {cuts['prefill']:.1f}%). The paper: {PAPER_SIZE_CUT}% and {PAPER_TIME_CUT}%.",
+        f"- Response time, K=10 against the whole history: **{cuts['latency']:.1f}% less** at the last iteration "
+        f"({cuts['mean_latency']:.1f}% less on average over the iterations); the paper: {PAPER_TIME_CUT}%. Target "
+        f"{'met' if time_met else 'NOT met'}." + (
+            " The last K=10 prompt repeated the one before (the new candidate had not entered the top 10), so llama.cpp "
+            "reused it whole and only decoding was left; the whole history changes with every candidate."
+            if (b["cached_tokens"] or 0) >= 0.9 * b["prompt_tokens"] else ""),
+        f"- Prompt size: **{cuts['chars']:.1f}% smaller** in characters ({cuts['tokens']:.1f}% in tokens); the paper: "
+        f"{PAPER_SIZE_CUT}% in characters. Target {'met' if size_met else 'NOT met'}.",
     ]
-    if not data["met"]:
+    full = ctx.cache.get("prompt_data")
+    if not size_met and full:
+        ours = pct_less(full["K10_list"]["chars"], full["K0_list"]["chars"])
+        ours_t = pct_less(full["K10_list"]["tokens"], full["K0_list"]["tokens"])
+        props = pct_less(full["K10_indexed"]["chars"], full["K0_indexed"]["chars"])
         body.append(
-            f"- Target (a larger cut than the paper's) {'partly ' if cuts['chars'] > PAPER_SIZE_CUT or cuts['latency'] > PAPER_TIME_CUT else ''}"
-            f"not met here. Limits: the whole history must fit the embedded model's 32k-token window, so the comparison stops "
-            f"at {u['entries_shown']} entries where the paper's stopped at 59 (benchmark 1 gives both prompt sizes at 59 entries); "
-            "and decoding the 88-number answer costs the same with either history, which bounds the time cut.")
-    return Section("history", "2. Bounded history", "\n".join(body), data)
+            f"- What limits it: the whole history has to fit the 32k-token window, so the comparison stops at {u['entries_shown']} "
+            f"entries (the paper's at 59); and compact entries leave bounding less to cut, since the fixed sections stay. At 59 "
+            f"entries (benchmark 1) the cut is {ours:.1f}% in characters ({ours_t:.1f}% in tokens) with our list form and "
+            f"{props:.1f}% with the ProPS form, which matches the paper's {PAPER_SIZE_CUT}%. In absolute terms the K=10 prompt "
+            f"({full['K10_list']['chars']:,} characters) is {pct_less(full['K10_list']['chars'], 114_000):.0f}% smaller than the "
+            "paper's whole-history prompt (114,000).")
+    targets = [("response time cut > 74.9% (paper), K=10 vs all, last iteration", f"{cuts['latency']:.1f}%", time_met),
+               ("prompt size cut > 80.2% (paper)", f"{cuts['chars']:.1f}% chars, {cuts['tokens']:.1f}% tokens", size_met)]
+    return Section("history", "2. Bounded history", "\n".join(body), data, targets=targets)

@@ -45,16 +45,18 @@ def run(ctx: Context) -> Section:
         rows.append([it, f"{wall:.2f}", f"{llm_s[it]:.2f}", f"{eval_s:.3f}", f"{overhead:.3f}", f"{ask_extra:.3f}",
                      f"{100 * overhead / wall:.2f}%"])
     steady = [p for p in per if p["iteration"] > 0]
-    share = 100 * sum(p["overhead_s"] for p in steady) / sum(p["wall_s"] for p in steady) if steady else float("nan")
-    data = {"iterations": per, "steady_share_percent": share, "met": share < TARGET}
+    share = 100 * sum(p["overhead_s"] for p in per) / sum(p["wall_s"] for p in per)
+    steady_share = 100 * sum(p["overhead_s"] for p in steady) / sum(p["wall_s"] for p in steady) if steady else float("nan")
+    data = {"iterations": per, "share_percent": share, "steady_share_percent": steady_share, "met": share < TARGET}
     body = [
         f"Humanoid-Torso (D=782), pp, {warmup} warm-up + {iters} LLM iterations, K=10, embedded model (context 32,768):",
         "",
         table(["LLM iteration", "wall (s)", "LLM round trips (s)", "episodes (s)", "framework (s)", "of which in ask (s)",
                "framework share"], rows),
         "",
-        f"- Framework share of an iteration's wall time, iterations after the first: **{share:.3f}%** "
-        f"(target under {TARGET:g}%: {'met' if data['met'] else 'NOT met'}). Iteration 0 also starts and loads the embedded "
-        "server, which is why its framework time is larger.",
+        f"- Framework share of the LLM iterations' wall time: **{share:.2f}%** over all of them (target under {TARGET:g}%: "
+        f"{'met' if data['met'] else 'NOT met'}); {steady_share:.3f}% after the first. Iteration 0 also starts the embedded "
+        "server and loads the model, which is most of its framework time.",
     ]
-    return Section("overhead", "4. Framework overhead", "\n".join(body), data)
+    targets = [("framework share of an iteration, D=782 < 2%", f"{share:.2f}% (after the first: {steady_share:.3f}%)", data["met"])]
+    return Section("overhead", "4. Framework overhead", "\n".join(body), data, targets=targets)

@@ -34,7 +34,8 @@ def run(ctx: Context) -> Section:
                 n = min(k, entries) if k else entries
                 chars, toks = len(text), count_tokens(client, text)
                 h_chars, h_toks = len(hist), count_tokens(client, hist)
-                data[f"K{k}_{style}"] = {"entries": n, "chars": chars, "tokens": toks, "history_chars_per_param": h_chars / (n * D),
+                data[f"K{k}_{style}"] = {"entries": n, "chars": chars, "tokens": toks, "history_chars": h_chars,
+                                         "history_chars_per_param": h_chars / (n * D),
                                          "history_tokens_per_param": h_toks / (n * D)}
                 rows.append([f"K={k or 'all'}", "list (default)" if style == "list" else "ProPS `params[i]: v`", n, f"{chars:,}",
                              f"{toks:,}", f"{h_chars / (n * D):.2f}", f"{h_toks / (n * D):.2f}"])
@@ -55,8 +56,19 @@ def run(ctx: Context) -> Section:
         f"{pct_less(ours['tokens'], props['tokens']):.1f}% fewer tokens "
         f"({ours['history_tokens_per_param']:.2f} against {props['history_tokens_per_param']:.2f} tokens per parameter).",
     ]
+    if not data["met"]:
+        fixed = ours["chars"] - data["K10_list"]["history_chars"]
+        body.append(f"- What limits it: the fixed sections (task description, parameters, feedback, interaction) take {fixed:,} "
+                    f"characters, {100 * fixed / ours['chars']:.0f}% of the prompt. The history itself is "
+                    f"{data['K10_list']['history_chars']:,} characters, {pct_less(ours['history_chars'], props['history_chars']):.1f}% "
+                    "less than in the ProPS form.")
+    ctx.cache["prompt_data"] = data
     quality = ctx.cache.get("quality_forms")
     if quality:
         body += ["- Search results of the two forms at an equal budget (CartPole, embedded model; from benchmark 6):", "",
                  table(["parameter form", "best return", "final-evaluation return"], quality)]
-    return Section("prompt", "1. Prompt compactness", "\n".join(body), data)
+    targets = [("final prompt, D=88, K=10 <= 11,000 chars (half the paper's)", f"{ours['chars']:,} chars", data["met"])]
+    if quality:
+        targets.append(("search results no worse than the ProPS form (CartPole, 5 seeds)",
+                        f"best {quality[0][1]} vs {quality[1][1]}; final {quality[0][2]} vs {quality[1][2]}", None))
+    return Section("prompt", "1. Prompt compactness", "\n".join(body), data, targets=targets)

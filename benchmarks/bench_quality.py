@@ -40,6 +40,7 @@ def run(ctx: Context) -> Section:
         results[(s["env"], arm)]["final"].append(s["final_eval"]["mean"])
         dirs[(s["env"], arm, s["seed"])] = run_dir
     ctx.cache["cache_cartpole_run"] = dirs.get(("CartPole", "pp", 0))
+    ctx.cache["cache_acrobot_run"] = dirs.get(("Acrobot", "pp", 0))
     rows, data = [], {}
     for task in ("CartPole", "Acrobot"):
         for arm, label in ARMS:
@@ -55,4 +56,7 @@ def run(ctx: Context) -> Section:
     n = sum(len(r["best"]) for r in results.values())
     body = [f"{n} runs from `ppprops experiment benchmarks/quality.toml` (2 jobs, one llama.cpp thread each); mean (std) over seeds:", "",
             table(["task", "method", "seeds", "best return", "final-evaluation return (20 episodes)"], rows)]
-    return Section("quality", "6. Search quality at an equal budget", "\n".join(body), data)
+    targets = [(f"{task}: PP-ProPS vs random vs CMA-ES, final-evaluation return",
+                " vs ".join(mean_std(results[(task, arm)]["final"]) for arm, _ in ARMS if (task, arm) in results), None)
+               for task in ("CartPole", "Acrobot")]
+    return Section("quality", "6. Search quality at an equal budget", "\n".join(body), data, targets=targets)

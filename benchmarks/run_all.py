@@ -25,7 +25,7 @@ import bench_history
 import bench_overhead
 import bench_prompt
 import bench_quality
-from _common import Context, Section, machine
+from _common import Context, Section, machine, table
 
 # Order matters: later benchmarks replay runs that earlier ones recorded (see Context.cache).
 SUITE = (("quality", bench_quality), ("prompt", bench_prompt), ("history", bench_history), ("cache", bench_cache),
@@ -46,6 +46,9 @@ def render(sections: list[Section], *, started: str, host: str, command: str, to
     ]
     if quick:
         head += ["", "**Quick mode: tiny budgets that only check the suite runs. These figures mean nothing.**"]
+    rows = [[s.title.split(". ", 1)[0], t, m, {True: "met", False: "**not met**", None: "(no target)"}[ok]]
+            for s in sections for t, m, ok in s.targets]
+    head += ["", "## Summary", "", table(["#", "target or comparison", "measured", ""], rows)]
     parts = ["\n".join(head)]
     for s in sections:
         parts.append(f"## {s.title}\n\n{s.body}\n\n_This benchmark took {s.seconds / 60:.1f} min._")
