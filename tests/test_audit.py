@@ -216,6 +216,15 @@ def test_the_audit_reads_the_props_params_form_and_either_layout(tmp_path: Path,
     assert audit_run(build_run(tmp_path, "vanilla", name="v", prompt_params="indexed")).exit_code() == 1
 
 
+def test_props_pairs_out_of_order_make_the_audit_unverified(tmp_path: Path) -> None:
+    run = build_run(tmp_path, "pp", prompt_params="indexed")
+    _, text = _last_request(run)
+    first = text.index("params[0]: ")
+    plant(run, text[first:text.index("params[2]: ", first)], text[first:text.index("params[1]: ", first)].replace("[0]", "[1]") + "params[0]: 1.00, ")
+    r = audit_run(run)
+    assert r.exit_code() == 1 and [f.detail for f in r.unverified] == ["history entry with unreadable parameters"], r.format()
+
+
 @pytest.mark.parametrize("method", ["vanilla", "df"])
 def test_vanilla_and_df_send_raw_values_by_design(tmp_path: Path, method: str) -> None:
     r = audit_run(build_run(tmp_path, method))

@@ -21,7 +21,7 @@ _INDEXED_PARAM = re.compile(r"params\[(\d+)\]: ([^,\n]+)")
 # The parameter field of each history-entry template (see wire.prompt.PARAMS_STYLES).
 _PARAMS_RX = {
     "history_entry": r"\[(?P<params>[^\]\n]*)\]",
-    "history_entry_indexed": r"(?P<indexed>params\[0\]: [^,\n]+(?:, params\[\d+\]: [^,\n]+)*)",
+    "history_entry_indexed": r"(?P<indexed>params\[\d+\]: [^,\n]+(?:, params\[\d+\]: [^,\n]+)*)",
 }
 
 
@@ -67,12 +67,15 @@ def _pairs(text: str | None) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
-def _indexed_params(text: str) -> tuple[str, ...] | None:
-    """Values of ``params[i]: v`` pairs by index. Indices out of order make it no entry at all,
-    so its numbers stay in the prose, where the audit checks every one of them."""
+UNREADABLE = "(indices out of order)"
+
+
+def _indexed_params(text: str) -> tuple[str, ...]:
+    """Values of ``params[i]: v`` pairs by index. Indices out of order give an entry whose
+    parameters cannot be read, which the audit reports as unverified rather than skipping."""
     pairs = _INDEXED_PARAM.findall(text)
     if [int(i) for i, _ in pairs] != list(range(len(pairs))):
-        return None
+        return (UNREADABLE,)
     return tuple(v.strip() for _, v in pairs)
 
 
@@ -85,10 +88,7 @@ def history_entries(text: str) -> list[ShownEntry]:
             if groups.get("params") is not None:
                 params = tuple(v.strip() for v in groups["params"].split(",") if v.strip())
             else:
-                indexed = _indexed_params(groups["indexed"])
-                if indexed is None:
-                    continue
-                params = indexed
+                params = _indexed_params(groups["indexed"])
             out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(m.group("components")),
                                   _pairs(m.group("diagnostics"))))
     out.sort(key=lambda e: e.start)
