@@ -29,7 +29,7 @@ from ppprops.llm.client import ChatClient
 from ppprops.methods import resolve
 from ppprops.proposers.llm import LLMProposer
 from ppprops.runner import chat_client, load_run, start
-from ppprops.store import open_store
+from ppprops.store import Candidate, open_store
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -127,10 +127,9 @@ def timings(response: str | None) -> dict[str, float]:
     return {k: float(v) for k, v in t.items() if isinstance(v, (int, float))}
 
 
-def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
-    """(iteration, prompt) for every LLM iteration of a recorded ProPS run, rebuilt from its store
-    and key with the prompt context changed by ``overrides`` (e.g. ``layout="history-first"``).
-    With no overrides the result must equal what the run sent; the caller can check that."""
+def _proposer(run_dir: Path, top_k: int | None = None, **overrides: Any) -> tuple[LLMProposer, list[Candidate]]:
+    """A ProPS proposer rebuilt from a recorded run's store and key (told nothing yet), and the
+    run's candidates. ``top_k`` and ``overrides`` change its history bound and prompt context."""
     store, cfg, secrets = load_run(run_dir)
     try:
         cands = store.candidates()
@@ -138,8 +137,16 @@ def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
         store.close()
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg)
-    ctx = replace(prompt_context(task, cfg, codec), **overrides)
-    prop = LLMProposer(chat=None, codec=codec, context=ctx, top_k=cfg.top_k, box=cfg.box, seed=cfg.seed)  # type: ignore[arg-type]
+    k = cfg.top_k if top_k is None else top_k
+    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, **overrides)
+    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, seed=cfg.seed), cands  # type: ignore[arg-type]
+
+
+def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
+    """(iteration, prompt) for every LLM iteration of a recorded ProPS run, rebuilt with the
+    prompt context changed by ``overrides`` (e.g. ``layout="history-first"``). With no overrides
+    the result must equal what the run sent; the caller can check that."""
+    prop, cands = _proposer(run_dir, **overrides)
     out = []
     for c in cands:
         if c.source in ("llm", "fallback"):
@@ -150,15 +157,7 @@ def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
 
 def prompt_after(run_dir: Path, *, top_k: int, **overrides: Any) -> str:
     """The prompt the run would send next, after all its recorded candidates, with K = ``top_k``."""
-    store, cfg, secrets = load_run(run_dir)
-    try:
-        cands = store.candidates()
-    finally:
-        store.close()
-    task = cfg.make_task()
-    codec = codec_for(secrets, task, cfg)
-    ctx = replace(prompt_context(task, cfg, codec), history_limit=top_k, **overrides)
-    prop = LLMProposer(chat=None, codec=codec, context=ctx, top_k=top_k, box=cfg.box, seed=cfg.seed)  # type: ignore[arg-type]
+    prop, cands = _proposer(run_dir, top_k, **overrides)
     for c in cands:
         prop.tell(c)
     return prop.prompt()
