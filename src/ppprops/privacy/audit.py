@@ -360,6 +360,13 @@ def _num(v: object) -> float:
         return math.nan
 
 
+def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
+    """The configuration of a prompted search run; anything else (an RL baseline) is a StoreError."""
+    if "mechanisms" not in stored:
+        raise StoreError(f"{run_dir} is not a prompted search run (no mechanisms in its configuration)")
+    return RunConfig.from_json(stored)
+
+
 def audit_run(run_dir: Path) -> AuditReport:
     """Audit every recorded outgoing request of a run against the raw values in its store."""
     run_dir = Path(run_dir)
@@ -367,10 +374,7 @@ def audit_run(run_dir: Path) -> AuditReport:
         raise StoreError(f"{run_dir} is not a directory")
     store = open_store(run_dir)
     try:
-        stored = store.config()
-        if "mechanisms" not in stored:
-            raise StoreError(f"{run_dir} is not a prompted search run (no mechanisms in its configuration); nothing to audit")
-        config = RunConfig.from_json(stored)
+        config = search_config(store.config(), run_dir)
         candidates = store.candidates()
     finally:
         store.close()

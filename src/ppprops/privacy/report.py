@@ -20,10 +20,10 @@ import numpy as np
 
 from ..client.secrets import Secrets
 from ..config import RunConfig
-from ..errors import ConfigError, StoreError
+from ..errors import ConfigError
 from ..store import DB_NAME, open_store
 from .attacks import ATTACKS, run_attacks
-from .audit import audit_run
+from .audit import audit_run, search_config
 from .transcript import load_requests
 
 SCHEMES = ("pp", "pp-hardened")
@@ -64,10 +64,7 @@ def analyse_run(run_dir: Path) -> RunAnalysis:
     run_dir = Path(run_dir)
     store = open_store(run_dir)
     try:
-        stored = store.config()
-        if "mechanisms" not in stored:
-            raise StoreError(f"{run_dir} is not a prompted search run")
-        config = RunConfig.from_json(stored)
+        config = search_config(store.config(), run_dir)
         task = config.make_task()
         secrets = Secrets.load(run_dir / "secrets.key", run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
         cands = store.candidates()
