@@ -129,8 +129,10 @@ class _State:
         return n, kind, sub, persona
 
     def answered(self, n: int, persona: str, reply: Reply) -> None:
+        """Log a reply; ``persona`` may also be the name of the bad-answer fault that made it."""
         with self.lock:
-            self.personas[persona] += 1
+            if persona in PERSONAS:
+                self.personas[persona] += 1
             if reply.answer is not None:
                 self.answers.append((n, persona, list(reply.answer)))
 
@@ -176,6 +178,10 @@ def _vector(rng: random.Random, D: int, span: float) -> list[float]:
 
 def _params_json(values: list[Any]) -> str:
     return '{"params": [' + ", ".join(str(v) for v in values) + "]}"
+
+
+# Bad answers a client can still use: the vector they carry (logged with the personas' answers).
+USABLE_BAD_ANSWERS = ("huge", "reasoning_only")
 
 
 def garble(kind: str, D: int, rng: random.Random, span: float) -> tuple[str | None, str | None]:
@@ -340,7 +346,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 self._error(400, "cannot tell the vector length D from the request")
                 return
             content, reasoning = garble(kind, D, rng, cfg.value_range)
-            self._send_json(200, _completion(content, reasoning, model, n))
+            data = json.dumps(_completion(content, reasoning, model, n)).encode()
+            vector = None
+            if kind in USABLE_BAD_ANSWERS:
+                text = content if kind == "huge" else (reasoning or "").split("I propose: ")[-1]
+                vector = [float(v) for v in json.loads(text or "{}")["params"]]
+            st.answered(n, kind, Reply(200, data, answer=vector))
+            self._send(200, data)
             return
         # pass (or "drop": a valid answer cut off mid-body): the upstream's answer, or a random vector
         drop = kind == "drop"
@@ -423,7 +435,8 @@ class FaultServer:
         return self._state.stats()
 
     def answers(self) -> list[tuple[int, str, list[float]]]:
-        """(request number, persona, vector) of every new vector a persona proposed, in order."""
+        """(request number, persona or fault kind, vector) of every new vector a reply proposed, in
+        order: the personas' and plain answers, and the usable bad answers (huge, reasoning_only)."""
         with self._state.lock:
             return list(self._state.answers)
 
@@ -462,6 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--personas", default="", help=f"all | comma-separated, from {', '.join(PERSONAS)}")
     p.add_argument("--v1-only", action="store_true", help="404 for any path but /v1/chat/completions")
     p.add_argument("--error-body-code", type=int, default=502, help="code inside an injected error_body fault")
+    p.add_argument("--answers-file", type=str, default=None, help="write the proposed vectors here as JSON when stopping")
     a = p.parse_args(argv)
     cfg = FaultConfig(
         fault_rate=a.fault_rate, kinds=_kinds(a.kinds), seed=a.seed, upstream=a.upstream, delay_max_s=a.delay_max,
@@ -482,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         pass
     server.stop()
+    if a.answers_file:
+        with open(a.answers_file, "w", encoding="utf-8") as f:
+            json.dump([{"request": n, "by": who, "params": v} for n, who, v in server.answers()], f)
     print(json.dumps(server.stats()), flush=True)
     return 0
 
