@@ -268,7 +268,11 @@ class ChatClient:
         """(the change made, or None; a hint for the error text when no change is possible)."""
         if not _REFUSES.search(err.message):
             return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
-        sent = {"seed", "temperature", self.token_param, "reasoning_effort", "response_format", "grammar"} - self.dropped
+        sent = {"seed", "temperature", self.token_param} - self.dropped  # what the last request carried
+        if self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
+            sent.add("reasoning_effort")
+        if self.structured in ("json_schema", "grammar"):
+            sent.add("response_format" if self.structured == "json_schema" else "grammar")
         named = [err.param] if err.param in _PARAM_NAMES else []
         if not named:
             low = err.message.lower()
