@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from ppprops.wire.parse import parse_answer
+from ppprops.wire.parse import final_text, parse_answer, read_answer
 
 D = 4
 GOOD = [
@@ -27,7 +29,7 @@ BAD = [
     ("", "empty"),
     (None, "empty"),
     ("   \n ", "empty"),
-    ("<think>I should propose something</think>", "empty"),
+    ("<think>I should propose something</think>", "reasoning_only"),
     ("I'm sorry, but I can't help with that.", "refusal"),
     ("The policy should push left more.", "no_numbers"),
     ('{"params": [1, 2, 3]}', "wrong_length"),
@@ -68,3 +70,55 @@ def test_round_trips_json_vectors(values: list[float]) -> None:
 
     r = parse_answer(json.dumps({"params": values}), D)
     assert r.ok and r.values == pytest.approx(tuple(values))
+
+
+# -- where the proposal comes from (the rule in ppprops.wire.parse) ------------------------------------
+H = "[9,9,9,9]"  # a quoted history entry, as the list form prints it
+READS = [  # (content, reasoning field, finish_reason) -> values, source
+    ('params[0]: 9, params[1]: 9, params[2]: 9, params[3]: 9\n{"params": [1, 2, 3, 4]}', None, "stop", (1, 2, 3, 4), "content"),
+    (f'best {H}, draft {{"params": [5, 5, 5, 5]}}\n</think>\n{{"params": [1, 2, 3, 4]}}', None, "stop", (1, 2, 3, 4), "content"),
+    (f'<think>best {H} {{"params": [5, 5, 5, 5]}}</think>{{"params": [1, 2, 3, 4]}}', None, "stop", (1, 2, 3, 4), "content"),
+    (f'<|channel|>analysis<|message|>best {H} {{"params": [5, 5, 5, 5]}}<|end|><|start|>assistant<|channel|>final'
+     f'<|message|>{{"params": [1, 2, 3, 4]}}<|return|>', None, "stop", (1, 2, 3, 4), "content"),
+    (f'<|channel|>analysis<|message|>best {H}<|end|>{{"params": [1, 2, 3, 4]}}', None, "stop", (1, 2, 3, 4), "content"),
+    (f'analysis best {H} {{"params": [5, 5, 5, 5]}} assistantfinal{{"params": [1, 2, 3, 4]}}', None, None, (1, 2, 3, 4), "content"),
+    (None, f'best {H}, draft {{"params": [5, 5, 5, 5]}}, final: {{"params": [1, 2, 3, 4]}}', "stop", (1, 2, 3, 4), "reasoning"),
+    ("", f"best {H}. My answer: [1, 2, 3, 4]", "stop", (1, 2, 3, 4), "reasoning"),
+    ('{"params": [1.5, \u22122.25, \u20133, 4]}', None, "stop", (1.5, -2.25, -3, 4), "content"),
+    ('{"params": [1, 2, 3, 4]}', f"best {H}", "stop", (1, 2, 3, 4), "content"),  # content first, whatever the reasoning
+]
+READ_FAILURES = [
+    (None, f'best {H}, so {{"params": [1, 2, 3, 4]}}', "length", "length"),  # cut off: never used
+    ('{"params": [1, 2, 3, 4]}', None, "length", "length"),
+    (None, f"The best so far is {H}. Let me vary a few.", "stop", "reasoning_only"),  # a quoted list is no answer
+    (f"<think>The best so far is {H}", None, "length", "length"),
+    (f"<think>The best so far is {H}", None, "stop", "reasoning_only"),
+    (f'<|channel|>analysis<|message|>best {H}<|end|>', None, "stop", "reasoning_only"),
+    (None, None, "stop", "empty"),
+    ('{"params": [1, 2, 3, 4]}', None, "content_filter", "refusal"),
+    ('{"params": [1, 2, 3, 4]} and {"params": [4, 3, 2, 1]}', None, "stop", "several_vectors"),
+]
+
+
+@pytest.mark.parametrize("content,reasoning,finish,values,source", READS)
+def test_the_answer_comes_from_the_final_content_first(content, reasoning, finish, values, source) -> None:  # type: ignore[no-untyped-def]
+    r = read_answer(content, reasoning, D, finish_reason=finish)
+    assert r.ok, r
+    assert r.values == pytest.approx(values) and r.source == source
+
+
+@pytest.mark.parametrize("content,reasoning,finish,kind", READ_FAILURES)
+def test_reasoning_and_cut_off_answers_are_never_the_source(content, reasoning, finish, kind) -> None:  # type: ignore[no-untyped-def]
+    r = read_answer(content, reasoning, D, finish_reason=finish)
+    assert not r.ok and r.error == kind, r
+    assert "<|" not in r.detail and "HTTP" not in r.detail
+
+
+MARKUP = st.sampled_from(["<|channel|>analysis<|message|>", "<|end|>", "<|start|>assistant", "<|channel|>final<|message|>",
+                          "<think>", "</think>", "<thinking>", "</reasoning>", "<|return|>", "<|channel|>commentary to=x<|constrain|>json<|message|>"])
+
+
+@given(st.lists(st.one_of(MARKUP, st.text(alphabet="abc {}[]0123456789,.:-\n", max_size=20)), max_size=12))
+def test_final_text_never_carries_markup(parts: list[str]) -> None:
+    text = final_text("".join(parts))
+    assert not re.search(r"<\|[a-z_]+\|>", text) and not re.search(r"</?(think|thinking|reasoning|thought)>", text)

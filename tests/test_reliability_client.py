@@ -38,7 +38,7 @@ def client_for(cfg: FaultConfig, **llm: object) -> Iterator[tuple[ChatClient, Fa
 @pytest.mark.parametrize(
     "kind,error_kind",
     [("http_429", "rate_limited"), ("http_500", "http_500"), ("http_503", "http_503"), ("drop", "dropped"),
-     ("reset", "dropped"), ("bad_json", "bad_response"), ("timeout", "timeout")],
+     ("reset", "dropped"), ("bad_json", "bad_response"), ("timeout", "timeout"), ("error_body", "http_502")],
 )
 def test_transient_fault_is_retried_to_the_bound_and_every_try_is_kept(kind: str, error_kind: str) -> None:
     cfg = FaultConfig(fault_rate=1.0, kinds=(kind,), timeout_s=1.0, retry_after_s=0.01)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import PROMPT_LAYOUTS, PROMPT_PARAMS, LLMConfig, RunConfig
+from .config import PROMPT_LAYOUTS, PROMPT_PARAMS, REASONING_EFFORTS, LLMConfig, RunConfig
 from .errors import PPPropsError
 from .methods import HARDENING, PRESETS, Mechanisms, resolve
 from .strategies import BLACK_BOX
@@ -80,13 +80,17 @@ def build_parser() -> argparse.ArgumentParser:
                  *(h.replace("_", "-") for h in HARDENING)):  # hardening switches: docs/threat-model.md
         g.add_argument(f"--{name}", type=_flag, default=None, metavar="on|off")
     llm = r.add_argument_group("LLM endpoint (default: the embedded Gemma 3 270M, offline)")
-    llm.add_argument("--base-url", default=None, help="OpenAI-compatible endpoint, e.g. http://localhost:11434/v1")
+    llm.add_argument("--base-url", default=None,
+                     help="OpenAI-compatible API root that /chat/completions is appended to, e.g. http://localhost:11434/v1")
     llm.add_argument("--model", default=None)
     llm.add_argument("--api-key-env", default=None, metavar="VAR", help="environment variable that holds the API key")
     llm.add_argument("--temperature", type=float, default=1.0)
-    llm.add_argument("--max-tokens", type=int, default=None)
+    llm.add_argument("--max-tokens", type=int, default=None,
+                     help="answer token budget; reasoning counts against it (default: room for D numbers, "
+                          "plus room for reasoning when --reasoning-effort is set or the endpoint reasons)")
     llm.add_argument("--timeout", type=float, default=300.0, help="seconds per request (default 300)")
-    llm.add_argument("--reasoning-effort", default=None, choices=["minimal", "low", "medium", "high"])
+    llm.add_argument("--reasoning-effort", default=None, choices=REASONING_EFFORTS,
+                     help="for reasoning models (gpt-oss, OpenAI o-series); none turns thinking off on Ollama's /v1")
     llm.add_argument("--structured", default="auto", choices=["auto", "json_schema", "grammar", "none"],
                      help="constrained output: auto = grammar for the embedded model, JSON schema otherwise")
     llm.add_argument("--context-size", type=int, default=16384, help="embedded model context (default 16384)")

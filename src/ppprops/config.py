@@ -24,6 +24,7 @@ MAX_DELAY_S = 3600.0
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
+REASONING_EFFORTS = ("none", "minimal", "low", "medium", "high")
 
 
 @dataclass(frozen=True)
@@ -34,9 +35,10 @@ class LLMConfig:
     model: str | None = None
     api_key_env: str | None = None  # name of the env var holding the key; the key itself is never stored
     temperature: float = 1.0
-    max_tokens: int | None = None  # None: enough for D numbers (see ppprops.llm.client)
+    max_tokens: int | None = None  # None: enough for D numbers, plus room for reasoning (ppprops.llm.client.default_max_tokens)
     timeout_s: float = 300.0
-    reasoning_effort: str | None = None  # for reasoning models such as gpt-oss ("low", "medium", "high")
+    # for reasoning models: gpt-oss and OpenAI's take minimal|low|medium|high; "none" turns thinking off on Ollama's /v1
+    reasoning_effort: str | None = None
     structured: str = "auto"  # auto | json_schema | grammar | none
     transport_retries: int = 4  # extra tries of one request after a timeout, dropped connection, 429 or 5xx
     context_size: int = 16384  # embedded server only
@@ -53,8 +55,8 @@ class LLMConfig:
             raise ConfigError(f"--timeout must be > 0, got {self.timeout_s}")
         if self.structured not in ("auto", "json_schema", "grammar", "none"):
             raise ConfigError(f"--structured must be auto, json_schema, grammar or none, got {self.structured!r}")
-        if self.reasoning_effort not in (None, "minimal", "low", "medium", "high"):
-            raise ConfigError(f"--reasoning-effort must be minimal, low, medium or high, got {self.reasoning_effort!r}")
+        if self.reasoning_effort not in (None, *REASONING_EFFORTS):
+            raise ConfigError(f"--reasoning-effort must be one of {', '.join(REASONING_EFFORTS)}, got {self.reasoning_effort!r}")
         if not (0 <= self.transport_retries <= MAX_TRANSPORT_RETRIES):
             raise ConfigError(f"--retries must be in [0, {MAX_TRANSPORT_RETRIES}], got {self.transport_retries}")
         for flag, v in (("--retry-base-delay", self.retry_base_s), ("--retry-max-delay", self.retry_max_s),

@@ -56,6 +56,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         config = RunConfig.from_json(store.config())
         cands = store.candidates()
         calls = store.llm_calls()
+        adaptations = store.llm_adaptations()
         fe = store.final_eval()
         best = best_candidate(cands) if cands else None
         return _finite({
@@ -78,8 +79,10 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                 "by_source": dict(Counter(c.source for c in cands)),
                 "clipped_candidates": sum(c.clipped > 0 for c in cands),
                 "llm_calls": len(calls),
+                "request_adaptations": len(adaptations),
                 **_fault_counts(cands, calls),
             },
+            "llm_adaptations": [{"iteration": a["iteration"], "change": a["change"]} for a in adaptations],
             "candidates": [
                 {
                     "index": c.index,
@@ -134,6 +137,10 @@ def format_summary(s: dict[str, Any]) -> str:
             "endpoint failed tries: " + ", ".join(f"{k} x{v}" for k, v in c["transport_failures"].items())
             + f"; {c['retries']} retries, {c['llm_unavailable']} iterations skipped as unavailable"
         )
+    for a in s.get("llm_adaptations", []):
+        lines.append(f"endpoint adapted at LLM iteration {a['iteration']}: {a['change']}")
+    if c.get("answer_failures", {}).get("length"):
+        lines.append("answers  cut off at the token limit: raise --max-tokens (or lower --reasoning-effort)")
     if c.get("fallback_reasons"):
         lines.append("fallback " + ", ".join(f"{k} x{v}" for k, v in c["fallback_reasons"].items()))
     if c.get("numerical_faults"):

@@ -8,7 +8,9 @@ an I/O error, a lock held too long) surfaces as a one-line ``StoreError``.
 
 Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``answer_source``
 (transport faults and answers taken from the reasoning text); 3 adds ``candidates.ask_s`` and
-``eval_s`` (where an iteration's time goes). Older stores are migrated in place.
+``eval_s`` (where an iteration's time goes). Older stores are migrated in place. Changes the LLM
+client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
+in the ``meta`` key ``llm_adaptations`` (a JSON list), so no schema change was needed for them.
 """
 
 from __future__ import annotations
@@ -291,9 +293,16 @@ class RunStore:
 
     # -- LLM exchanges --------------------------------------------------------------------
     def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None) -> None:
-        """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry and
-        answer_source are optional, so older exchange-like objects still record)."""
+        """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry,
+        answer_source and adaptation are optional, so older exchange-like objects still record).
+        An adaptation is appended to ``llm_adaptations`` in the same transaction."""
+        adaptation = getattr(ex, "adaptation", None)
         with self._tx() as db:
+            if adaptation:
+                row = db.execute("SELECT value FROM meta WHERE key = 'llm_adaptations'").fetchone()
+                log = json.loads(row[0]) if row else []
+                log.append({"iteration": iteration, "attempt": attempt, "change": adaptation, "created": time.time()})
+                db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
             db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, response, content, reasoning, prompt_chars,"
                 " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created, error_kind, retry,"
@@ -304,6 +313,11 @@ class RunStore:
                     getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)), getattr(ex, "answer_source", None),
                 ),
             )
+
+    def llm_adaptations(self) -> list[dict[str, Any]]:
+        """Changes the LLM client made to its requests, in order: {iteration, attempt, change, created}."""
+        raw = self._meta("llm_adaptations")
+        return list(json.loads(raw)) if raw else []
 
     def llm_calls(self) -> list[dict[str, Any]]:
         cur = self._read(

@@ -1,11 +1,25 @@
 """A thin chat-completions client over the official ``openai`` SDK that records every exchange.
 
-Only the request body is recorded (never headers, so never the API key). Transport faults
-(timeouts, refused or dropped connections, 429, 5xx, a garbled body) are retried here, not in the
-SDK (its ``max_retries`` is 0), so every try is counted and recorded: exponential backoff from
-``retry_base_s`` with jitter, capped at ``retry_max_s``; a 429's Retry-After is honoured up to
-``retry_after_cap_s``. Past ``transport_retries`` retries the request ends in ``LLMUnavailable``,
-carrying the failed tries so the caller can record them.
+Only the request body is recorded (never headers, so never the API key). Every HTTP try is an
+``Exchange``; ``complete`` returns one usable exchange or raises, so an HTTP error never reaches
+the model as if it were an answer.
+
+- **Transient faults** (timeouts, refused or dropped connections, 429, 5xx, a garbled body, a
+  200 whose body is an error with a transient code) are retried here, not in the SDK (its
+  ``max_retries`` is 0): exponential backoff from ``retry_base_s`` with jitter, capped at
+  ``retry_max_s``; a 429's Retry-After is honoured up to ``retry_after_cap_s``. Past
+  ``transport_retries`` retries the request ends in ``LLMUnavailable``.
+- **Deterministic failures** end at once in ``LLMRejected``, with the server's own message: 401,
+  403, 404 (with the URL tried and the likely fix), an exhausted quota, a 400/422 that names no
+  parameter this client can change, a 5xx whose body says the request itself is invalid.
+- **Request adaptation**: a 400/422 that says a parameter is unknown or unsupported changes that
+  parameter once, for the rest of the run: ``seed``, ``temperature`` and ``reasoning_effort`` are
+  dropped, ``max_tokens`` becomes ``max_completion_tokens`` when the server asks for it, the JSON
+  schema (``response_format``) or grammar is dropped under ``--structured auto``. Under
+  ``auto`` the schema is also dropped after ``SCHEMA_MISSES`` unusable answers in a row under it.
+  When the endpoint turns out to reason (a reasoning field, reasoning markup, reasoning tokens)
+  the default token budget grows to leave room for it. Each change is carried on the exchange
+  that caused it (``Exchange.adaptation``), which the store records in the run.
 """
 
 from __future__ import annotations
@@ -13,13 +27,16 @@ from __future__ import annotations
 import email.utils
 import json
 import random
+import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
+from urllib.parse import urlsplit
 
 from ..config import LLMConfig
 from ..errors import LLMError
+from ..wire.parse import read_answer, split_reasoning
 
 
 @dataclass(frozen=True)
@@ -28,7 +45,7 @@ class Exchange:
 
     request: str  # the JSON body sent
     response: str | None  # the raw JSON body received
-    content: str | None  # the assistant's final text
+    content: str | None  # the assistant's message content, as received
     reasoning: str | None  # reasoning text when the server returns it separately
     prompt_chars: int
     prompt_tokens: int | None
@@ -36,10 +53,15 @@ class Exchange:
     latency_s: float
     ok: bool
     error: str | None = None
-    error_kind: str | None = None  # timeout | refused | dropped | rate_limited | http_NNN | bad_response | bad_request
-    retry: int = 0  # 0 for the first try of a request, n for its n-th transport retry
+    # timeout | refused | dropped | rate_limited | quota_exhausted | bad_response | bad_request | invalid_request
+    # | endpoint_error | http_NNN
+    error_kind: str | None = None
+    retry: int = 0  # 0 for the first try of a request, n for its n-th retry (transient or adapted)
     answer_source: str | None = None  # set by the proposer: content | reasoning
-    failures: tuple[Exchange, ...] = ()  # failed tries before this one (transport retries)
+    failures: tuple[Exchange, ...] = ()  # failed tries before this one
+    finish_reason: str | None = None  # the choice's: stop | length | content_filter | ...
+    reasoning_tokens: int | None = None  # usage.completion_tokens_details.reasoning_tokens, when reported
+    adaptation: str | None = None  # a change to later requests this exchange caused (recorded in the run)
 
 
 class LLMUnavailable(LLMError):
@@ -55,11 +77,16 @@ class LLMUnavailable(LLMError):
 
 
 class LLMRejected(LLMUnavailable):
-    """The endpoint refused the request for good (401, 403, 404, ...): retrying or skipping cannot help."""
+    """The endpoint refused the request for good (401, 403, 404, an invalid request, an exhausted
+    quota, ...): retrying or skipping cannot help."""
 
 
 class Chat(Protocol):
-    """What a proposer needs from a model: one chat completion, recorded."""
+    """What a proposer needs from a model: one chat completion, recorded.
+
+    Returns an ``ok`` exchange or raises ``LLMUnavailable``/``LLMRejected``; callers pass only
+    ``messages``, ``D`` and ``seed``.
+    """
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
 
@@ -87,10 +114,63 @@ def params_grammar(D: int) -> str:
     )
 
 
-def default_max_tokens(D: int) -> int:
-    """Room for D numbers plus the JSON frame. Some tokenizers (Gemma's) spend one token per
-    digit, so "-12.99, " can take 7 tokens; 8 per number leaves a margin."""
-    return 24 + 8 * D
+# Tokens of reasoning room added to the answer budget: by --reasoning-effort, or when the endpoint
+# reasons without one being set. Reasoning counts against max_tokens on every server we know of.
+REASONING_ROOM = {"minimal": 1024, "low": 4096, "medium": 8192, "high": 16384}
+REASONING_ROOM_UNSET = 8192
+SCHEMA_MISSES = 2  # --structured auto drops the JSON schema after this many unusable answers in a row under it
+
+
+def default_max_tokens(D: int, reasoning_effort: str | None = None, *, reasoning: bool = False) -> int:
+    """Default token budget of one answer.
+
+    Room for D numbers plus the JSON frame: some tokenizers (Gemma's) spend one token per digit,
+    so "-12.99, " can take 7 tokens; 8 per number leaves a margin. With ``reasoning_effort`` set
+    (other than ``none``), or ``reasoning`` (the endpoint was seen to reason), ``REASONING_ROOM``
+    more, since reasoning tokens count against the same limit.
+    """
+    answer = 24 + 8 * D
+    if reasoning_effort in REASONING_ROOM:
+        return answer + REASONING_ROOM[reasoning_effort]
+    return answer + (REASONING_ROOM_UNSET if reasoning else 0)
+
+
+@dataclass(frozen=True)
+class ServerError:
+    """What an endpoint said when it refused: the HTTP status (or the code of an error body), its
+    own message, and the parameter it names when it says so in a field."""
+
+    status: int | None
+    message: str
+    param: str | None = None
+    code: str | None = None
+
+
+# What each parameter this client sends may be called in an error message.
+_PARAM_NAMES: dict[str, tuple[str, ...]] = {
+    "seed": ("seed",),
+    "temperature": ("temperature",),
+    "max_tokens": ("max_tokens",),
+    "max_completion_tokens": ("max_completion_tokens",),
+    "reasoning_effort": ("reasoning_effort",),
+    "response_format": ("response_format", "json_schema", "response_schema"),
+    "grammar": ("grammar",),
+}
+_REFUSES = re.compile(
+    r"unknown|unsupported|not supported|unrecogni[sz]ed|not permitted|extra (?:inputs|fields)|cannot find field"
+    r"|not allowed|does not support|unavailable|no longer supported|invalid type|unexpected (?:keyword|field|argument)"
+    r"|only the default|only \S+ is allowed|not a valid (?:field|parameter)",
+    re.IGNORECASE,
+)
+# A server error whose words say the request itself is at fault (e.g. llama.cpp's chat template
+# raising on a message): asking again cannot help.
+_INVALID_REQUEST = re.compile(
+    r"invalid[ _]request|you have passed|raise_exception|validation error|failed to (?:deserialize|parse|apply)"
+    r"|unsupported (?:parameter|value)",
+    re.IGNORECASE,
+)
+_QUOTA = re.compile(r"insufficient_quota|exceeded your current quota|check your plan and billing|insufficient balance",
+                    re.IGNORECASE)
 
 
 class ChatClient:
@@ -99,23 +179,38 @@ class ChatClient:
 
         self.config = config
         self.model = model
+        self.base_url = base_url
         self.structured = config.structured
         if self.structured == "auto":
             self.structured = "grammar" if grammar_ok else "json_schema"
         self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
         self.sleep: Callable[[float], None] = time.sleep
         self._jitter = random.Random()
+        self.dropped: set[str] = set()  # request parameters this endpoint refused
+        self.token_param = "max_tokens"  # or max_completion_tokens, when the endpoint asks for it
+        self.reasoning_seen = False
+        self.adaptations: list[str] = []
+        self._adapted: set[str] = set()
+        self._schema_misses = 0
+
+    @property
+    def url(self) -> str:
+        """The URL every request goes to."""
+        return self.base_url.rstrip("/") + "/chat/completions"
+
+    def max_tokens(self, D: int) -> int:
+        """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens``."""
+        return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen)
 
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
-        body: dict[str, Any] = {
-            "model": self.model,
-            "messages": messages,
-            "temperature": self.config.temperature,
-            "max_tokens": self.config.max_tokens or default_max_tokens(D),
-        }
-        if seed is not None:
+        body: dict[str, Any] = {"model": self.model, "messages": messages}
+        if "temperature" not in self.dropped:
+            body["temperature"] = self.config.temperature
+        if self.token_param not in self.dropped:
+            body[self.token_param] = self.max_tokens(D)
+        if seed is not None and "seed" not in self.dropped:
             body["seed"] = seed
-        if self.config.reasoning_effort:
+        if self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
             body["reasoning_effort"] = self.config.reasoning_effort
         if self.structured == "json_schema":
             body["response_format"] = {
@@ -127,33 +222,36 @@ class ChatClient:
         return body
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """One answer, after up to ``transport_retries`` retries of transient faults.
+        """One usable answer (``ok``), after adapting the request and retrying transient faults.
 
-        Returns an ``ok`` exchange (or a non-retryable 400, ``ok`` False, for the caller's
-        correction loop), with the failed tries in ``failures``. Raises ``LLMUnavailable``.
+        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
+        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
         """
         failures: list[Exchange] = []
-        retries = self.config.transport_retries
+        transient = 0
         retry = 0
         while True:
-            ex, retry_after = self._attempt(messages, D=D, seed=seed, retry=retry)
+            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
             if ex.ok:
-                return replace(ex, failures=tuple(failures))
-            if ex.error_kind == "bad_request":
-                if self.structured == "json_schema" and self.config.structured == "auto":
-                    # The endpoint does not take JSON-schema output: go on with plain answers.
-                    self.structured = "none"
-                    failures.append(ex)
+                return replace(self._after_answer(ex, D), failures=tuple(failures))
+            if err is not None and ex.error_kind in ("bad_request", "http_422"):
+                change, hint = self._adapt(err)
+                if change is not None:
+                    self.adaptations.append(change)
+                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
+                    retry += 1
                     continue
-                return replace(ex, failures=tuple(failures))
+                if hint:
+                    ex = replace(ex, error=f"{ex.error} ({hint})")
             failures.append(ex)
             if not _retryable(ex.error_kind):
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
-            if retry >= retries:
+            if transient >= self.config.transport_retries:
                 raise LLMUnavailable(
                     f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
                 )
-            self.sleep(self.backoff(retry, retry_after))
+            self.sleep(self.backoff(transient, retry_after))
+            transient += 1
             retry += 1
 
     def backoff(self, retry: int, retry_after: float | None) -> float:
@@ -165,66 +263,228 @@ class ChatClient:
         d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
         return d / 2 + self._jitter.uniform(0.0, d / 2)
 
-    def _attempt(self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int) -> tuple[Exchange, float | None]:
-        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds)."""
+    # -- adapting to the endpoint -------------------------------------------------------------
+    def _adapt(self, err: ServerError) -> tuple[str | None, str | None]:
+        """(the change made, or None; a hint for the error text when no change is possible)."""
+        if not _REFUSES.search(err.message):
+            return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
+        sent = {"seed", "temperature", self.token_param} - self.dropped  # what the last request carried
+        if self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
+            sent.add("reasoning_effort")
+        if self.structured in ("json_schema", "grammar"):
+            sent.add("response_format" if self.structured == "json_schema" else "grammar")
+        named = [err.param] if err.param in _PARAM_NAMES else []
+        if not named:
+            low = err.message.lower()
+            named = [p for p, aliases in _PARAM_NAMES.items()
+                     if any(re.search(rf"(?<![a-z_]){a}(?![a-z_])", low) for a in aliases)]
+        named = [p for p in named if p in sent]
+        if not named:
+            return None, None
+        changes = []
+        for p in named:
+            if p in self._adapted:
+                return None, f"{p} was already changed once"
+            if p in ("response_format", "grammar") and self.config.structured != "auto":
+                return None, f"--structured {self.config.structured} was asked for; use --structured auto or none"
+            self._adapted.add(p)
+            changes.append(self._apply(p, err.message))
+        status = f"HTTP {err.status}" if err.status is not None else "an error body"
+        return f"{'; '.join(changes)} (after {status}: {_clip(err.message, 160)})", None
+
+    def _apply(self, param: str, message: str) -> str:
+        if param in ("max_tokens", "max_completion_tokens"):
+            other = "max_completion_tokens" if param == "max_tokens" else "max_tokens"
+            if (other in message or param == "max_completion_tokens") and other not in self._adapted:
+                self.token_param = other
+                return f"sent {other} instead of {param}"
+            self.dropped.add(param)
+            return f"dropped {param}"
+        if param in ("response_format", "grammar"):
+            self.structured = "none"
+            return "dropped the JSON schema (plain answers)" if param == "response_format" else "dropped the grammar"
+        self.dropped.add(param)
+        return f"dropped {param}"
+
+    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
+        """Learn from a usable exchange: room for reasoning, and schema answers that keep failing."""
+        notes = []
+        saw = bool((ex.reasoning or "").strip()) or bool(ex.reasoning_tokens) or bool(split_reasoning(ex.content).reasoning)
+        if saw and not self.reasoning_seen:
+            before = self.max_tokens(D)
+            self.reasoning_seen = True
+            if self.max_tokens(D) != before:
+                notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
+        if self.structured == "json_schema" and self.config.structured == "auto" and ex.finish_reason != "length":
+            usable = read_answer(ex.content, ex.reasoning, D, finish_reason=ex.finish_reason).ok
+            self._schema_misses = 0 if usable else self._schema_misses + 1
+            if self._schema_misses >= SCHEMA_MISSES:
+                self.structured = "none"
+                notes.append(f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable")
+        if not notes:
+            return ex
+        self.adaptations += notes
+        return replace(ex, adaptation="; ".join(notes))
+
+    # -- one HTTP round trip ------------------------------------------------------------------
+    def _attempt(
+        self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int
+    ) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds,
+        what the server said when it refused)."""
         import openai
 
         body = self.body(messages, D=D, seed=seed)
         request = json.dumps(body)
         prompt_chars = sum(len(m["content"]) for m in messages)
-        sdk_args = {k: v for k, v in body.items() if k != "grammar"}
-        extra = {"grammar": body["grammar"]} if "grammar" in body else None
+        sdk_args = {k: v for k, v in body.items() if k in _SDK_ARGS}
+        extra = {k: v for k, v in body.items() if k not in _SDK_ARGS} or None
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:
             return Exchange(request, response, None, None, prompt_chars, None, None, time.perf_counter() - t0, False,
                             error, error_kind=kind, retry=retry)
 
+        def refused(err: ServerError, response: str | None, shown: int) -> Exchange:
+            kind = _kind(err)
+            where = f"HTTP {shown}" if shown == err.status else f"HTTP {shown} with an error body (code {err.code})"
+            text = f"{kind}: {where} from {self.url}: {err.message}"
+            if err.status == 404:
+                text += f"; {_url_hint(self.base_url, self.model)}"
+            return failed(kind, text, response)
+
         try:
             raw = self._client.chat.completions.with_raw_response.create(**sdk_args, extra_body=extra)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
-            completion = raw.parse()
-            choices = completion.choices  # a garbled body may parse into something without them
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s"), None
+            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {self.url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
-            return failed(kind, f"{kind}: {_cause(e)}"), None
+            return failed(kind, f"{kind}: {_cause(e)} at {self.url}"), None, None
         except openai.APIStatusError as e:
-            code = e.status_code
-            kind = "bad_request" if code == 400 else "rate_limited" if code == 429 else f"http_{code}"
+            text = _body_text(e)
+            err = server_error(e.status_code, text)
             after = _retry_after(e)
-            note = f" (Retry-After {after:g} s)" if after is not None else ""
-            return failed(kind, f"{kind}: HTTP {code}{note}: {_short(e)}", _body_text(e)), after
-        except Exception as e:  # a 200 whose body is not a chat completion (garbled, cut, not JSON)
-            return failed("bad_response", f"bad_response: {e.__class__.__name__}: {_short(e)}"), None
-        choice = choices[0] if choices else None
-        message = choice.message if choice else None
-        content = message.content if message else None
-        extra_fields = (message.model_extra or {}) if message else {}
-        reasoning = extra_fields.get("reasoning_content") or extra_fields.get("reasoning")
+            ex = refused(err, text, e.status_code)
+            if after is not None:
+                ex = replace(ex, error=f"{ex.error} (Retry-After {after:g} s)")
+            return ex, after, err
+        try:
+            doc = json.loads(text)
+        except ValueError as e:
+            return failed("bad_response", f"bad_response: the body is not JSON ({_short(e)})", text), None, None
+        if isinstance(doc, dict) and doc.get("error") and not doc.get("choices"):
+            err = server_error(None, text)  # an error delivered with HTTP 200 (OpenRouter does this)
+            return refused(err, text, 200), None, err
+        try:
+            completion = raw.parse()
+            choice = completion.choices[0]
+            message = choice.message
+        except Exception as e:  # a 200 whose body is not a chat completion (no choices, cut, wrong shape)
+            return failed("bad_response", f"bad_response: not a chat completion ({e.__class__.__name__}: {_short(e)})",
+                          text), None, None
+        finish = choice.finish_reason
+        if finish == "error":
+            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({self.url})",
+                          text), None, None
+        extra_fields = message.model_extra or {}
+        reasoning = next((v for k in ("reasoning_content", "reasoning")
+                          if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
         usage = completion.usage
+        details = getattr(usage, "completion_tokens_details", None) if usage else None
         return Exchange(
             request=request,
             response=text,
-            content=content,
-            reasoning=reasoning if isinstance(reasoning, str) else None,
+            content=message.content,
+            reasoning=reasoning,
             prompt_chars=prompt_chars,
             prompt_tokens=usage.prompt_tokens if usage else None,
             completion_tokens=usage.completion_tokens if usage else None,
             latency_s=latency,
             ok=True,
             retry=retry,
-        ), None
+            finish_reason=finish,
+            reasoning_tokens=getattr(details, "reasoning_tokens", None),
+        ), None, None
 
     def close(self) -> None:
         self._client.close()
 
 
+# Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
+_SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
+                       "reasoning_effort", "response_format"})
+
+
+def server_error(status: int | None, text: str | None) -> ServerError:
+    """Read an error body in any of the shapes servers use: OpenAI's ``{"error": {...}}``, Google's
+    list-wrapped one, FastAPI's ``{"detail": [...]}``, vLLM's ``{"object": "error", ...}``, a bare
+    ``{"error": "text"}``, or plain text. ``status`` None takes the code from the body."""
+    raw = (text or "").strip()
+    try:
+        doc: Any = json.loads(raw) if raw else None
+    except ValueError:
+        doc = None
+    if isinstance(doc, list) and doc:
+        doc = doc[0]
+    message, param, code = raw, None, None
+    if isinstance(doc, dict):
+        err = doc.get("error", doc)
+        if isinstance(err, dict):
+            message = str(err.get("message") or err.get("msg") or err.get("status") or raw)
+            param = err.get("param") if isinstance(err.get("param"), str) else None
+            code = err.get("code") if err.get("code") is not None else err.get("type")
+        elif isinstance(err, str):
+            message = err
+        if isinstance(doc.get("detail"), list):  # FastAPI / pydantic validation errors
+            parts = [f"{'.'.join(map(str, d.get('loc', [])))}: {d.get('msg', '')}" for d in doc["detail"] if isinstance(d, dict)]
+            message = "; ".join(parts) or message
+        elif isinstance(doc.get("detail"), str):
+            message = doc["detail"]
+    if status is None:
+        try:
+            status = int(str(code))
+        except (TypeError, ValueError):
+            status = None
+        status = status if status is not None and 100 <= status <= 599 else None
+    message = " ".join(message.split()) or "(no message)"
+    return ServerError(status=status, message=_clip(message, 400), param=param,
+                       code=None if code is None else str(code))
+
+
+def _kind(err: ServerError) -> str:
+    s = err.status
+    if s is None:
+        return "endpoint_error"
+    if s == 400:
+        return "bad_request"
+    if s == 429:
+        return "quota_exhausted" if _QUOTA.search(f"{err.code} {err.message}") else "rate_limited"
+    if s >= 500 and _INVALID_REQUEST.search(err.message):
+        return "invalid_request"
+    return f"http_{s}"
+
+
+def _url_hint(base_url: str, model: str) -> str:
+    """The likely fix for a 404: a --base-url that includes /chat/completions or lacks /v1."""
+    base = base_url.rstrip("/")
+    path = urlsplit(base).path
+    if path.endswith("/chat/completions"):
+        return f"--base-url must stop before /chat/completions (ppprops adds it): try --base-url {base[: -len('/chat/completions')]}"
+    if not re.search(r"/v\d", path):
+        return f"OpenAI-compatible APIs usually live under /v1: try --base-url {base}/v1"
+    return f"check --base-url and that the server serves --model {model}"
+
+
+def _clip(text: str, n: int) -> str:
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
 def _retryable(kind: str | None) -> bool:
-    """Transient faults only: a 401, 403 or 404 will not heal by asking again."""
-    if kind in ("timeout", "refused", "dropped", "rate_limited", "bad_response"):
+    """Transient faults only: a 401, 403 or 404, a refused or invalid request or an exhausted quota
+    will not heal by asking again."""
+    if kind in ("timeout", "refused", "dropped", "rate_limited", "bad_response", "endpoint_error"):
         return True
     if kind is not None and kind.startswith("http_"):
         code = int(kind[5:])

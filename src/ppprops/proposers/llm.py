@@ -1,15 +1,21 @@
 """The ProPS proposer: encoded top-K history -> prompt -> LLM -> parse -> decode -> clip.
 
 It straddles the trust boundary on purpose: it holds the codec (client side) and hands the
-wire side only ``EncodedEntry`` values. Parse failures get a bounded number of corrections;
-after that the candidate is a documented fallback: the best policy so far plus Gaussian noise
-with standard deviation 5% of the box width, clipped to the box, recorded with source
-``fallback``. An answer whose content is empty but whose separate reasoning text holds exactly
-one valid vector (gpt-oss behind some servers) is used as a last resort and recorded as such.
+wire side only ``EncodedEntry`` values. Where the proposal comes from is ``wire.parse``'s rule
+(the requested answer object in the final content; reasoning only when the content is empty and
+the reasoning holds an explicit final answer, recorded ``answer_source = reasoning``; never an
+answer cut off at the token limit). A proposal equal to an entry of the history just shown, at
+the precision the prompt printed it, is not a new proposal: it is counted (``repeats_history``)
+and asked again. Unusable answers get a bounded number of corrections; after that the candidate
+is a documented fallback: the best policy so far plus Gaussian noise with standard deviation 5%
+of the box width, clipped to the box, recorded with source ``fallback``.
 
-An endpoint that stays down past the client's retry bound either stops the run (``stop``,
-resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``. Every HTTP
-try, failed ones included, goes to ``on_exchange``.
+A correction repeats the model's final text (never its reasoning or markup) and says what was
+wrong; an HTTP error never reaches the model (the client adapts, retries or raises). An
+endpoint that stays down past the client's retry bound either stops the run (``stop``,
+resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``; a request
+the endpoint rejects for good always stops the run. Every HTTP try, failed ones included, goes
+to ``on_exchange``.
 
 Numerical faults never reach the prompt: a candidate with a non-finite return is left out of
 the history (and never becomes the best), non-finite components are dropped and non-finite
@@ -29,11 +35,20 @@ from .. import seeding
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
 from ..store import Candidate
-from ..wire import EncodedEntry, PromptContext, build_correction, build_prompt, parse_answer, top_k
+from ..wire import EncodedEntry, ParseResult, PromptContext, build_correction, build_prompt, top_k
+from ..wire.parse import final_text, read_answer
+from ..wire.prompt import params_text
 from .base import Proposal, clip_to_box
 
 ExchangeHook = Callable[[int, int, Exchange, str | None], None]
 FALLBACK_SIGMA = 0.05  # of the box width
+ECHO_CHARS = 2000  # longest final text repeated back to the model in a correction
+# What the user can do about an answer failure, in the fallback note ("after KIND (HINT)").
+HINTS = {
+    "length": "answers were cut off at the token limit: raise --max-tokens or lower --reasoning-effort",
+    "reasoning_only": "answers held only reasoning: raise --max-tokens or lower --reasoning-effort",
+    "repeats_history": "answers repeated policies from the history",
+}
 
 
 class LLMProposer:
@@ -88,10 +103,20 @@ class LLMProposer:
             self.best = candidate
 
     def prompt(self) -> str:
-        return build_prompt(self.ctx, top_k(self.entries, self.k))
+        return build_prompt(self.ctx, self.shown())
+
+    def shown(self) -> list[EncodedEntry]:
+        """The history entries the prompt shows (top-K, best last)."""
+        return top_k(self.entries, self.k)
+
+    def repeats_history(self, values: tuple[float, ...]) -> bool:
+        """True if ``values`` equal an entry of the shown history as the prompt printed it."""
+        printed = params_text(self.ctx, values)
+        return any(printed == params_text(self.ctx, e.params) for e in self.shown())
 
     def ask(self, iteration: int) -> Proposal:
-        messages = [{"role": "user", "content": self.prompt()}]
+        prompt = self.prompt()
+        messages = [{"role": "user", "content": prompt}]
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
             seed = seeding.llm_seed(self.seed, iteration, attempt)
@@ -104,34 +129,48 @@ class LLMProposer:
                 self.failures["llm_unavailable"] += 1
                 return self._fallback(iteration, f"llm_unavailable ({e.kind})")
             self._record(iteration, attempt, ex.failures)
+            if not ex.ok:  # a Chat must raise instead; an HTTP error is never an answer to correct
+                self._record(iteration, attempt, (ex,))
+                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", (ex,))
             self.last_latency = ex.latency_s
-            result = parse_answer(ex.content, self.D) if ex.ok else None
-            if ex.ok:
-                ex = replace(ex, answer_source="content")
-            if result is not None and result.error == "empty" and ex.reasoning:
-                from_reasoning = parse_answer(ex.reasoning, self.D)
-                if from_reasoning.ok:  # last resort: the vector only in the reasoning text
-                    result = from_reasoning
-                    ex = replace(ex, answer_source="reasoning")
-            error = result.error if result is not None else None
+            result = self._read(ex)
+            ex = replace(ex, answer_source=result.source if result.ok else "content")
             if self.on_exchange is not None:
-                self.on_exchange(iteration, attempt, ex, error)
-            if result is not None and result.values is not None:
+                self.on_exchange(iteration, attempt, ex, result.error)
+            if result.values is not None:
                 with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box
                     theta = self.codec.decode(np.asarray(result.values))
                 theta, clipped = clip_to_box(theta, self.box)
-                note = "answer taken from the reasoning text" if ex.answer_source == "reasoning" else ""
+                note = "answer taken from the reasoning text" if result.source == "reasoning" else ""
                 return Proposal(theta=theta, source="llm", clipped=clipped, note=note)
-            kind = error or ex.error_kind or "http_error"
+            kind = result.error or "unknown"
             self.failures[kind] += 1
-            last_error = kind
-            detail = result.detail if result is not None else (ex.error or "the request failed")
-            messages = [
-                messages[0],
-                {"role": "assistant", "content": ex.content or "(empty)"},
-                {"role": "user", "content": build_correction(detail, self.D)},
-            ]
+            last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
+            messages = self._correction(prompt, ex, result)
         return self._fallback(iteration, last_error)
+
+    def _read(self, ex: Exchange) -> ParseResult:
+        """The proposal in an answer (``wire.parse.read_answer``), refused if it repeats the history."""
+        result = read_answer(ex.content, ex.reasoning, self.D, finish_reason=ex.finish_reason)
+        if result.values is not None and self.repeats_history(result.values):
+            return ParseResult(None, "repeats_history",
+                               "those params are a policy already in the history; propose a new one", result.source)
+        return result
+
+    def _correction(self, prompt: str, ex: Exchange, result: ParseResult) -> list[dict[str, str]]:
+        """The next request: the prompt, the model's final text (no reasoning, no markup; a
+        chat template may refuse markup in an assistant turn) and what was wrong with it. With no
+        final text to repeat, the correction follows the prompt in the one user turn (templates
+        such as Gemma's refuse two user turns in a row)."""
+        correction = build_correction(result.detail, self.D)
+        echo = final_text(ex.content)[:ECHO_CHARS].strip()
+        if not echo:
+            return [{"role": "user", "content": f"{prompt}\n\n{correction}"}]
+        return [
+            {"role": "user", "content": prompt},
+            {"role": "assistant", "content": echo},
+            {"role": "user", "content": correction},
+        ]
 
     def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:
         if self.on_exchange is not None:

@@ -8,11 +8,19 @@ transport faults
     ``delay`` (a slow but valid answer), ``timeout`` (stalls, then drops the connection),
     ``http_429`` (with Retry-After), ``http_500``, ``http_503``, ``drop`` (headers and half the
     body, then the connection closes), ``reset`` (the connection closes with no answer),
-    ``bad_json`` (a 200 whose body is not JSON)
+    ``bad_json`` (a 200 whose body is not JSON), ``error_body`` (a 200 whose body is an error
+    object with code ``error_body_code`` and no choices, as OpenRouter sends when a provider
+    fails after the status line went out: openrouter.ai/docs/api-reference/errors)
 bad answers (HTTP 200, well-formed envelope)
     ``empty``, ``truncated``, ``wrong_length``, ``nan``, ``inf``, ``huge``, ``prose``,
     ``several_vectors``, ``reasoning_only`` (empty content, the vector in ``reasoning_content``),
     ``refusal``
+
+Requests that get no fault are answered by a persona (``personas``, drawn per request; see
+``ppprops.testing.personas``: vLLM, Ollama and llama.cpp serving gpt-oss, harmony markup, R1
+think tags, DeepSeek, OpenAI reasoning models, Gemini, ...), or passed upstream, or answered
+with a plain random vector. ``answers()`` lists the new vectors the personas meant to propose.
+``v1_only`` answers 404 for any path but ``/v1/chat/completions``, as Ollama does.
 
 The vector length D is read from the request: the JSON schema's ``minItems``, the llama.cpp
 grammar's repetition count, or the prompt's "with D numbers" / "exactly D ... numbers".
@@ -23,6 +31,7 @@ fault sequence for the same seed. The server stops by itself after ``max_request
 Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
 
     python -m ppprops.testing.fault_server --port 0 --fault-rate 0.3 --synthetic
+    python -m ppprops.testing.fault_server --port 0 --fault-rate 0 --personas harmony_markup,r1_open_think
     python -m ppprops.testing.fault_server --upstream http://127.0.0.1:8080/v1 --kinds http_429,drop
 """
 
@@ -44,7 +53,9 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-TRANSPORT_KINDS = ("delay", "timeout", "http_429", "http_500", "http_503", "drop", "reset", "bad_json")
+from .personas import PERSONAS, Reply, read_turn
+
+TRANSPORT_KINDS = ("delay", "timeout", "http_429", "http_500", "http_503", "drop", "reset", "bad_json", "error_body")
 ANSWER_KINDS = (
     "empty", "truncated", "wrong_length", "nan", "inf", "huge", "prose", "several_vectors", "reasoning_only", "refusal",
 )
@@ -66,6 +77,9 @@ class FaultConfig:
     max_seconds: float = 600.0
     value_range: float = 3.0  # synthetic answers draw uniform(-value_range, value_range)
     default_dim: int | None = None  # D when the request does not tell
+    personas: tuple[str, ...] = ()  # answer healthy requests as one of these (drawn per request); () = plain vectors
+    v1_only: bool = False  # 404 for any path but /v1/chat/completions
+    error_body_code: int = 502  # the code inside an "error_body" fault
 
     def validate(self) -> None:
         if not (0.0 <= self.fault_rate <= 1.0):
@@ -73,6 +87,11 @@ class FaultConfig:
         unknown = [k for k in self.kinds if k not in ALL_KINDS]
         if unknown or not self.kinds:
             raise ValueError(f"unknown fault kinds {unknown}; choose from {', '.join(ALL_KINDS)}")
+        bad = [p for p in self.personas if p not in PERSONAS]
+        if bad:
+            raise ValueError(f"unknown personas {bad}; choose from {', '.join(PERSONAS)}")
+        if self.personas and self.upstream is not None:
+            raise ValueError("personas answer by themselves; they do not go with an upstream")
         if self.upstream is not None and not self.upstream.startswith("http://"):
             raise ValueError(f"upstream must be an http:// URL, got {self.upstream!r}")
         if self.max_requests is not None and self.max_requests < 1:
@@ -91,9 +110,12 @@ class _State:
     injected: Counter[str] = field(default_factory=Counter)
     passed: int = 0
     started: float = field(default_factory=time.monotonic)
+    personas: Counter[str] = field(default_factory=Counter)
+    answers: list[tuple[int, str, list[float]]] = field(default_factory=list)  # (request, persona, new vector)
 
-    def draw(self) -> tuple[int, str | None, random.Random]:
-        """Request number, fault kind (None = pass), and a generator for this request's values."""
+    def draw(self) -> tuple[int, str | None, random.Random, str]:
+        """Request number, fault kind (None = pass), a generator for this request's values, and
+        the persona that answers if it passes."""
         with self.lock:
             self.requests += 1
             n = self.requests
@@ -103,7 +125,16 @@ class _State:
             else:
                 self.injected[kind] += 1
             sub = random.Random(self.rng.getrandbits(64))
-        return n, kind, sub
+            persona = self.rng.choice(self.config.personas) if self.config.personas else "plain"
+        return n, kind, sub, persona
+
+    def answered(self, n: int, persona: str, reply: Reply) -> None:
+        """Log a reply; ``persona`` may also be the name of the bad-answer fault that made it."""
+        with self.lock:
+            if persona in PERSONAS:
+                self.personas[persona] += 1
+            if reply.answer is not None:
+                self.answers.append((n, persona, list(reply.answer)))
 
     def stats(self) -> dict[str, Any]:
         with self.lock:
@@ -112,6 +143,7 @@ class _State:
                 "passed": self.passed,
                 "injected": dict(sorted(self.injected.items())),
                 "injected_total": sum(self.injected.values()),
+                "personas": dict(sorted(self.personas.items())),
                 "elapsed_s": round(time.monotonic() - self.started, 3),
             }
 
@@ -146,6 +178,10 @@ def _vector(rng: random.Random, D: int, span: float) -> list[float]:
 
 def _params_json(values: list[Any]) -> str:
     return '{"params": [' + ", ".join(str(v) for v in values) + "]}"
+
+
+# Bad answers a client can still use: the vector they carry (logged with the personas' answers).
+USABLE_BAD_ANSWERS = ("huge", "reasoning_only")
 
 
 def garble(kind: str, D: int, rng: random.Random, span: float) -> tuple[str | None, str | None]:
@@ -210,9 +246,10 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             pass  # the socket was hung up on purpose
 
     # -- responses ------------------------------------------------------------------------
-    def _send(self, status: int, data: bytes, headers: dict[str, str] | None = None, *, partial: bool = False) -> None:
+    def _send(self, status: int, data: bytes, headers: dict[str, str] | None = None, *, partial: bool = False,
+              content_type: str = "application/json") -> None:
         self.send_response(status)
-        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(data)))
         for k, v in (headers or {}).items():
             self.send_header(k, v)
@@ -251,12 +288,16 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     def do_POST(self) -> None:  # noqa: N802
         length = int(self.headers.get("Content-Length") or 0)
         raw = self.rfile.read(length) if length else b""
-        if self.path.split("?")[0].rstrip("/") not in ("/v1/chat/completions", "/chat/completions"):
-            self._error(404, f"no route {self.path}")
-            return
         st = self.state
         cfg = st.config
-        n, kind, rng = st.draw()
+        path = self.path.split("?")[0].rstrip("/")
+        if cfg.v1_only and path != "/v1/chat/completions":
+            self._send(404, b"404 page not found", content_type="text/plain")  # Go's default, as Ollama answers
+            return
+        if path not in ("/v1/chat/completions", "/chat/completions"):
+            self._error(404, f"no route {self.path}")
+            return
+        n, kind, rng, persona = st.draw()
         if cfg.max_requests is not None and n > cfg.max_requests:
             self._error(503, "the fault server's request budget is spent")
             st.stop.set()
@@ -270,11 +311,12 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             return
         model = str(body.get("model") or "fault-synthetic")
         try:
-            self._answer(body, raw, model, n, kind, rng)
+            self._answer(body, raw, model, n, kind, rng, persona)
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up first (it timed out): nothing to do
 
-    def _answer(self, body: dict[str, Any], raw: bytes, model: str, n: int, kind: str | None, rng: random.Random) -> None:
+    def _answer(self, body: dict[str, Any], raw: bytes, model: str, n: int, kind: str | None, rng: random.Random,
+                persona: str = "plain") -> None:
         st, cfg = self.state, self.state.config
         if kind == "timeout":
             st.stop.wait(cfg.timeout_s)
@@ -292,6 +334,10 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if kind == "bad_json":
             self._send(200, b'{"id": "chatcmpl-garbled", "choices": [{"message": <<not json>>')
             return
+        if kind == "error_body":
+            self._send_json(200, {"error": {"message": "Provider returned error (injected)", "code": cfg.error_body_code},
+                                  "user_id": "user_fault"})
+            return
         if kind == "delay":
             st.stop.wait(rng.uniform(0.0, cfg.delay_max_s))
         D = requested_dim(body, cfg.default_dim)
@@ -300,7 +346,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                 self._error(400, "cannot tell the vector length D from the request")
                 return
             content, reasoning = garble(kind, D, rng, cfg.value_range)
-            self._send_json(200, _completion(content, reasoning, model, n))
+            data = json.dumps(_completion(content, reasoning, model, n)).encode()
+            vector = None
+            if kind in USABLE_BAD_ANSWERS:
+                text = content if kind == "huge" else (reasoning or "").split("I propose: ")[-1]
+                vector = [float(v) for v in json.loads(text or "{}")["params"]]
+            st.answered(n, kind, Reply(200, data, answer=vector))
+            self._send(200, data)
             return
         # pass (or "drop": a valid answer cut off mid-body): the upstream's answer, or a random vector
         drop = kind == "drop"
@@ -311,8 +363,10 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if D is None:
             self._error(400, "cannot tell the vector length D from the request")
             return
-        data = json.dumps(_completion(_params_json(_vector(rng, D, cfg.value_range)), None, model, n)).encode()
-        self._send(200, data, partial=drop)
+        turn = read_turn(body, D, _vector(rng, D, cfg.value_range), rng, n)
+        reply = PERSONAS[persona](turn)
+        st.answered(n, persona, reply if not drop else Reply(reply.status, reply.body))  # a dropped answer proposes nothing
+        self._send(reply.status, reply.body, partial=drop, content_type=reply.content_type)
 
     def _forward(self, raw: bytes) -> tuple[int, bytes]:
         assert self.state.config.upstream is not None
@@ -380,6 +434,12 @@ class FaultServer:
     def stats(self) -> dict[str, Any]:
         return self._state.stats()
 
+    def answers(self) -> list[tuple[int, str, list[float]]]:
+        """(request number, persona or fault kind, vector) of every new vector a reply proposed, in
+        order: the personas' and plain answers, and the usable bad answers (huge, reasoning_only)."""
+        with self._state.lock:
+            return list(self._state.answers)
+
     def __enter__(self) -> FaultServer:
         return self.start()
 
@@ -412,11 +472,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dim", type=int, default=None, help="D when a request does not tell")
     p.add_argument("--max-requests", type=int, default=None)
     p.add_argument("--max-seconds", type=float, default=600.0)
+    p.add_argument("--personas", default="", help=f"all | comma-separated, from {', '.join(PERSONAS)}")
+    p.add_argument("--v1-only", action="store_true", help="404 for any path but /v1/chat/completions")
+    p.add_argument("--error-body-code", type=int, default=502, help="code inside an injected error_body fault")
+    p.add_argument("--answers-file", type=str, default=None, help="write the proposed vectors here as JSON when stopping")
     a = p.parse_args(argv)
     cfg = FaultConfig(
         fault_rate=a.fault_rate, kinds=_kinds(a.kinds), seed=a.seed, upstream=a.upstream, delay_max_s=a.delay_max,
         timeout_s=a.timeout_delay, retry_after_s=a.retry_after, max_requests=a.max_requests, max_seconds=a.max_seconds,
-        default_dim=a.dim,
+        default_dim=a.dim, v1_only=a.v1_only, error_body_code=a.error_body_code,
+        personas=tuple(PERSONAS) if a.personas == "all" else tuple(x.strip() for x in a.personas.split(",") if x.strip()),
     )
     try:
         server = FaultServer(cfg, port=a.port)
@@ -431,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         pass
     server.stop()
+    if a.answers_file:
+        with open(a.answers_file, "w", encoding="utf-8") as f:
+            json.dump([{"request": n, "by": who, "params": v} for n, who, v in server.answers()], f)
     print(json.dumps(server.stats()), flush=True)
     return 0
 

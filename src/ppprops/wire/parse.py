@@ -1,8 +1,26 @@
 """Turns an LLM answer into exactly D finite numbers, or says precisely why it cannot.
 
-Accepted forms: a JSON object with a "params" list, a bare JSON list, or ``params[i]: value``
-lines; reasoning blocks (<think>...</think>) and code fences are stripped first, exponents are
-accepted. The parser never raises on model output: failures come back as a typed result.
+Where the proposal comes from (one rule, for every server and model):
+
+1. An answer the endpoint cut off at its token limit (``finish_reason`` ``length``) is never
+   used, whatever it holds.
+2. The content is split into reasoning and final text. Reasoning is every known reasoning
+   syntax: ``<think>``/``<thinking>``/``<reasoning>``/``<thought>`` blocks, closed or not, the
+   text before a lone closing tag (R1-style templates open the tag in the prompt), and gpt-oss
+   harmony channels (``<|channel|>analysis<|message|>...``; only the ``final`` channel is final
+   text). Code fences are dropped.
+3. If the final text is not empty it is the only source: the requested answer object
+   ``{"params": [...]}`` wins over any other form in it (a restated ``params[i]: v`` list or a
+   quoted history list); without one, a bare JSON list, ``parameters``/``theta`` keys,
+   ``params[i]: value`` lines or a bracketed list are read.
+4. Only when the final text is empty is reasoning (the content's own and the server's separate
+   ``reasoning_content``/``reasoning`` field) read, and then only for an explicit final answer:
+   the last ``{"params": [...]}`` object in it, or else the last list of D numbers that follows
+   an answer cue ("answer", "propose", "final", ...) on its line. Quoted lists are not answers.
+
+Typographic minus signs (U+2212, en and figure dashes) before a number read as ``-``; exponents
+are accepted. The parser never raises on model output: failures come back as a typed result.
+Whether a proposal merely repeats a history entry is the proposer's check (it knows what it showed).
 """
 
 from __future__ import annotations
@@ -13,29 +31,99 @@ import re
 from dataclasses import dataclass
 
 _NUM = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf(?:inity)?)"
-_REASONING = re.compile(r"<(think|thinking|reasoning)>.*?(</\1>|$)", re.DOTALL | re.IGNORECASE)
+_TAGS = "think|thinking|reasoning|thought"
+_BLOCK = re.compile(rf"<({_TAGS})>.*?(?:</\1>|$)", re.DOTALL | re.IGNORECASE)
+_CLOSE = re.compile(rf"</({_TAGS})>", re.IGNORECASE)
+_STRAY_TAG = re.compile(rf"</?(?:{_TAGS})>", re.IGNORECASE)
+# gpt-oss harmony: <|start|>assistant<|channel|>NAME [to=...] [<|constrain|>json]<|message|>TEXT<|end|>
+_HARMONY_HEAD = re.compile(
+    r"(?:<\|start\|>[^<]*)?<\|channel\|>\s*(?P<channel>[A-Za-z_]+)[^<]*(?:<\|constrain\|>[^<]*)?<\|message\|>"
+)
+_HARMONY_STOP = re.compile(r"<\|(?:end|return|call|start|channel)\|>")
+_SPECIAL = re.compile(r"<\|[a-z_]+\|>")
+# the same markup with its special tokens decoded to nothing ("analysis...assistantfinal{...}")
+_HARMONY_FLAT = re.compile(r"^\s*analysis.*assistantfinal", re.DOTALL)
 _FENCE = re.compile(r"```[a-zA-Z0-9_-]*\n?|```")
+_MINUS = re.compile(r"[\u2212\u2012\u2013\ufe63\uff0d](?=\s*[\d.])")
 _INDEXED = re.compile(r"params?\s*\[\s*(\d+)\s*\]\s*[:=]\s*(" + _NUM + ")", re.IGNORECASE)
 _BRACKETS = re.compile(r"\[([^\[\]]*)\]")
 _REFUSAL = re.compile(r"\b(i can(?:no|')t|i cannot|i'm sorry|i am sorry|unable to|as an ai)\b", re.IGNORECASE)
-
-ERROR_KINDS = ("empty", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite", "several_vectors")
+_CUE = re.compile(r"\b(answer|propos\w*|final|output|submit|respond|go with|choose|my pick)\b", re.IGNORECASE)
 _OPEN_TAIL = re.compile(r"\[([^\[\]]*)$")
+
+ERROR_KINDS = (
+    "empty", "reasoning_only", "length", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite",
+    "several_vectors",
+)
 
 
 @dataclass(frozen=True)
 class ParseResult:
     values: tuple[float, ...] | None
     error: str | None = None  # one of ERROR_KINDS when values is None
-    detail: str = ""
+    detail: str = ""  # why, in words that may be shown to the model (no markup, no HTTP text)
+    source: str = "content"  # where the values came from: content | reasoning
 
     @property
     def ok(self) -> bool:
         return self.values is not None
 
 
+@dataclass(frozen=True)
+class Split:
+    """An answer's content cut into its final text and the reasoning found inside it."""
+
+    final: str
+    reasoning: str
+
+
 def _fail(kind: str, detail: str) -> ParseResult:
     return ParseResult(values=None, error=kind, detail=detail)
+
+
+def _harmony(text: str) -> Split:
+    """Final text = the ``final`` channel plus anything outside a channel; other channels are reasoning."""
+    final: list[str] = []
+    reasoning: list[str] = []
+    pos = 0
+    for head in _HARMONY_HEAD.finditer(text):
+        if head.start() < pos:
+            continue
+        final.append(text[pos:head.start()])
+        stop = _HARMONY_STOP.search(text, head.end())
+        end = stop.start() if stop else len(text)
+        (final if head.group("channel").lower() == "final" else reasoning).append(text[head.end():end])
+        pos = end
+    final.append(text[pos:])
+    return Split(_SPECIAL.sub(" ", "".join(final)), "\n".join(reasoning))
+
+
+def split_reasoning(content: str | None) -> Split:
+    """Cut ``content`` into final text and reasoning (rule 2 of the module docstring)."""
+    text = content or ""
+    reasoning: list[str] = []
+    if "<|" in text:
+        h = _harmony(text)
+        text, reasoning = h.final, [h.reasoning]
+    elif _HARMONY_FLAT.match(text):
+        cut = text.rindex("assistantfinal")
+        reasoning, text = [text[:cut]], text[cut + len("assistantfinal"):]
+    close = _CLOSE.search(text)
+    if close and not re.search(rf"<{re.escape(close.group(1))}>", text[: close.start()], re.IGNORECASE):
+        reasoning.append(text[: close.start()])  # a lone closing tag: the template opened it in the prompt
+        text = text[close.end():]
+    reasoning += [m.group(0) for m in _BLOCK.finditer(text)]
+    text = _STRAY_TAG.sub(" ", _BLOCK.sub(" ", text))
+    return Split(_FENCE.sub(" ", text).strip(), "\n".join(r for r in reasoning if r.strip()))
+
+
+def final_text(content: str | None) -> str:
+    """The final text of an answer, without reasoning or markup: what may be echoed back to the model."""
+    return split_reasoning(content).final
+
+
+def _normalise(text: str) -> str:
+    return _MINUS.sub("-", text)
 
 
 def _to_floats(items: list[object]) -> list[float] | None:
@@ -50,9 +138,9 @@ def _to_floats(items: list[object]) -> list[float] | None:
     return out
 
 
-def _json_vectors(text: str) -> list[list[float]]:
-    """Every JSON value in the text that is a number list or an object with a 'params' number list."""
-    found: list[list[float]] = []
+def _json_values(text: str) -> list[tuple[int, object]]:
+    """(offset, value) of every JSON object or list that decodes at some position of the text."""
+    found: list[tuple[int, object]] = []
     dec = json.JSONDecoder()
     i = 0
     while i < len(text):
@@ -62,19 +150,37 @@ def _json_vectors(text: str) -> list[list[float]]:
             except ValueError:
                 i += 1
                 continue
-            vec = None
-            if isinstance(obj, dict):
-                for key in ("params", "parameters", "theta"):
-                    if isinstance(obj.get(key), list):
-                        vec = _to_floats(obj[key])
-                        break
-            elif isinstance(obj, list):
-                vec = _to_floats(obj)
-            if vec:
-                found.append(vec)
+            found.append((i, obj))
             i = end
         else:
             i += 1
+    return found
+
+
+def _params_objects(values: list[tuple[int, object]]) -> list[tuple[int, list[float]]]:
+    """The requested answer objects: {"params": [numbers]}."""
+    out = []
+    for at, obj in values:
+        if isinstance(obj, dict) and isinstance(obj.get("params"), list):
+            vec = _to_floats(obj["params"])
+            if vec:
+                out.append((at, vec))
+    return out
+
+
+def _other_json_vectors(values: list[tuple[int, object]]) -> list[list[float]]:
+    found: list[list[float]] = []
+    for _, obj in values:
+        vec = None
+        if isinstance(obj, dict):
+            for key in ("parameters", "theta"):
+                if isinstance(obj.get(key), list):
+                    vec = _to_floats(obj[key])
+                    break
+        elif isinstance(obj, list):
+            vec = _to_floats(obj)
+        if vec:
+            found.append(vec)
     return found
 
 
@@ -89,13 +195,14 @@ def _indexed_vector(text: str) -> list[float] | None:
     return [by_index[k] for k in sorted(by_index)]
 
 
-def _bracket_vectors(text: str) -> list[list[float]]:
-    out: list[list[float]] = []
-    for body in _BRACKETS.findall(text):
+def _bracket_vectors(text: str) -> list[tuple[int, list[float]]]:
+    out: list[tuple[int, list[float]]] = []
+    for m in _BRACKETS.finditer(text):
+        body = m.group(1)
         nums = re.findall(_NUM, body, flags=re.IGNORECASE)
         rest = re.sub(_NUM, "", body, flags=re.IGNORECASE)
         if nums and re.fullmatch(r"[\s,;]*", rest):
-            out.append([float(v) for v in nums])
+            out.append((m.start(), [float(v) for v in nums]))
     return out
 
 
@@ -107,21 +214,31 @@ def _distinct(vectors: list[list[float]]) -> list[list[float]]:
     return seen
 
 
-def clean(text: str) -> str:
-    text = _REASONING.sub(" ", text)
-    return _FENCE.sub(" ", text).strip()
+def _one(vectors: list[list[float]], D: int) -> ParseResult:
+    right = _distinct([v for v in vectors if len(v) == D])
+    if not right:
+        lengths = sorted({len(v) for v in vectors})
+        return _fail("wrong_length", f"expected {D} numbers, got {', '.join(map(str, lengths))}")
+    if len(right) > 1:
+        return _fail("several_vectors", f"the answer held {len(right)} different vectors of {D} numbers")
+    return _finite(right[0])
 
 
-def parse_answer(text: str | None, D: int) -> ParseResult:
-    """Extract exactly D finite numbers from an answer."""
-    if text is None or not text.strip():
-        return _fail("empty", "the answer was empty")
-    body = clean(text)
-    if not body:
-        return _fail("empty", "the answer held only reasoning, no final content")
-    # The indexed form goes first: its "[0]" pieces would otherwise read as one-element JSON lists.
+def _finite(vec: list[float], source: str = "content") -> ParseResult:
+    if not all(math.isfinite(v) for v in vec):
+        return _fail("non_finite", "the vector held NaN or infinite values")
+    return ParseResult(values=tuple(vec), source=source)
+
+
+def _parse_final(body: str, D: int) -> ParseResult:
+    body = _normalise(body)
+    values = _json_values(body)
+    requested = _params_objects(values)
+    if requested:  # the object the prompt asks for wins over restated or quoted vectors
+        return _one([v for _, v in requested], D)
+    # The indexed form goes before bare lists: its "[0]" pieces would otherwise read as one-element lists.
     indexed = _indexed_vector(body)
-    vectors = [indexed] if indexed else (_json_vectors(body) or _bracket_vectors(body))
+    vectors = [indexed] if indexed else (_other_json_vectors(values) or [v for _, v in _bracket_vectors(body)])
     if not vectors:
         tail = _OPEN_TAIL.search(body)
         if tail and re.search(_NUM, tail.group(1), flags=re.IGNORECASE):
@@ -130,13 +247,46 @@ def parse_answer(text: str | None, D: int) -> ParseResult:
         if _REFUSAL.search(body):
             return _fail("refusal", "the answer declined to propose parameters")
         return _fail("no_numbers", "no parameter vector was found in the answer")
-    right = _distinct([v for v in vectors if len(v) == D])
-    if not right:
-        lengths = sorted({len(v) for v in vectors})
-        return _fail("wrong_length", f"expected {D} numbers, got {', '.join(map(str, lengths))}")
-    if len(right) > 1:
-        return _fail("several_vectors", f"the answer held {len(right)} different vectors of {D} numbers")
-    vec = right[0]
-    if not all(math.isfinite(v) for v in vec):
-        return _fail("non_finite", "the vector held NaN or infinite values")
-    return ParseResult(values=tuple(vec))
+    return _one(vectors, D)
+
+
+def _explicit_answer(reasoning: str, D: int) -> ParseResult | None:
+    """Rule 4: the last {"params": [...]} of D numbers, else the last D-list after an answer cue."""
+    text = _normalise(reasoning)
+    objects = [v for _, v in _params_objects(_json_values(text)) if len(v) == D]
+    if objects:
+        return _finite(objects[-1], "reasoning")
+    cued = []
+    for at, vec in _bracket_vectors(text):
+        line_start = text.rfind("\n", 0, at) + 1
+        if len(vec) == D and _CUE.search(text[line_start:at]):
+            cued.append(vec)
+    return _finite(cued[-1], "reasoning") if cued else None
+
+
+def read_answer(content: str | None, reasoning: str | None, D: int, *, finish_reason: str | None = None) -> ParseResult:
+    """The proposal in one chat answer, by the rule of the module docstring.
+
+    ``content`` is the message content, ``reasoning`` the server's separate reasoning field (or
+    None), ``finish_reason`` the choice's. Returns a ``ParseResult`` whose ``source`` says where
+    the values came from; never raises.
+    """
+    if finish_reason == "length":
+        return _fail("length", "the answer was cut off at the token limit before it was complete; answer at once")
+    if finish_reason == "content_filter":
+        return _fail("refusal", "the answer was withheld by a content filter")
+    split = split_reasoning(content)
+    if split.final:
+        return _parse_final(split.final, D)
+    thoughts = "\n".join(t for t in (split.reasoning, reasoning or "") if t and t.strip())
+    if not thoughts:
+        return _fail("empty", "the answer was empty")
+    found = _explicit_answer(thoughts, D)
+    if found is None:
+        return _fail("reasoning_only", "the answer held only reasoning and no final answer")
+    return found
+
+
+def parse_answer(text: str | None, D: int) -> ParseResult:
+    """Extract exactly D finite numbers from an answer's content (no separate reasoning field)."""
+    return read_answer(text, None, D)

@@ -1,0 +1,332 @@
+"""Server-and-model personas for the fault server: answers in the shapes real endpoints produce.
+
+Each persona answers one chat-completions request the way a given server and model are publicly
+documented or reported to answer it: where the reasoning goes (a ``reasoning`` or
+``reasoning_content`` field, ``<think>`` tags, a lone ``</think>``, gpt-oss harmony markup),
+what happens when ``max_tokens`` runs out while reasoning (``finish_reason: "length"``), and
+which request parameters it refuses, with which status and body. The comment on each persona
+says what it is modelled on. Reasoning text quotes the best history entry of the prompt (as
+printed), which is exactly what must never be taken as the proposal.
+
+A persona returns a ``Reply``; ``Reply.answer`` is the new vector it meant to propose (None when
+the reply holds none: an error, a cut-off answer, junk, a repeated history entry). Tests and the
+soak compare what the run evaluated against these.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..wire.transcript import history_entries
+
+REASONING_TOKENS = 300  # what a persona's reasoning costs out of the token budget
+
+
+@dataclass(frozen=True)
+class Reply:
+    status: int
+    body: bytes
+    content_type: str = "application/json"
+    answer: list[float] | None = None
+
+
+@dataclass
+class Turn:
+    """One request as a persona sees it."""
+
+    body: dict[str, Any]
+    D: int
+    answer: list[float]  # the new vector this persona would propose
+    rng: random.Random
+    n: int  # the server's request number
+    best: tuple[str, ...] | None = None  # the best history entry, as the prompt printed it
+    indexed: bool = False  # the prompt prints parameters as params[i]: v
+    corrected: bool = False  # the conversation already holds a correction
+    model: str = "fault-synthetic"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def budget(self) -> int | None:
+        """The answer's token limit, under whichever name the client sent it."""
+        for key in ("max_completion_tokens", "max_tokens"):
+            v = self.body.get(key)
+            if isinstance(v, int):
+                return v
+        return None
+
+    @property
+    def schema(self) -> bool:
+        rf = self.body.get("response_format")
+        return isinstance(rf, dict) and rf.get("type") == "json_schema"
+
+
+def read_turn(body: dict[str, Any], D: int, answer: list[float], rng: random.Random, n: int) -> Turn:
+    messages = [m for m in body.get("messages") or [] if isinstance(m, dict)]
+    prompt = str(messages[0].get("content") or "") if messages else ""
+    entries = [e for e in history_entries(prompt) if len(e.params) == D]
+    corrected = len(messages) > 1 or "could not be used" in prompt
+    return Turn(body=body, D=D, answer=answer, rng=rng, n=n, best=entries[-1].params if entries else None,
+                indexed="params[0]: " in prompt, corrected=corrected, model=str(body.get("model") or "fault-synthetic"))
+
+
+# -- building blocks ------------------------------------------------------------------------------
+def params_json(values: list[Any]) -> str:
+    return '{"params": [' + ", ".join(str(v) for v in values) + "]}"
+
+
+def quote(turn: Turn) -> str:
+    """The best history entry as the prompt printed it (a random stand-in without history)."""
+    vals = turn.best or tuple(f"{turn.rng.uniform(-3, 3):.2f}" for _ in range(turn.D))
+    if turn.indexed:
+        return ", ".join(f"params[{i}]: {v}" for i, v in enumerate(vals))
+    return "[" + ",".join(vals) + "]"
+
+
+def analysis(turn: Turn) -> str:
+    """gpt-oss-like reasoning: quotes the best history entry, drafts an answer object, then moves on."""
+    draft = params_json([round(turn.rng.uniform(-3, 3), 2) for _ in range(turn.D)])
+    return (f"We need to output new params. The history is sorted by return. The best so far is {quote(turn)}, "
+            f"with the highest return. The pole angle weights look too small. Draft: {draft}. Hmm, too far; "
+            "change a few weights moderately and keep the rest.")
+
+
+def cut(text: str) -> str:
+    """Reasoning stopped by the token limit: a little past the quoted entry."""
+    at = text.find("]") if "]" in text else len(text) // 2
+    return text[: at + 40]
+
+
+def short_of_budget(turn: Turn, answer_text: str) -> bool:
+    budget = turn.budget
+    return budget is not None and budget < REASONING_TOKENS + len(answer_text) // 4 + 1
+
+
+def completion(turn: Turn, content: str | None, *, message: dict[str, Any] | None = None, finish: str = "stop",
+               reasoning_tokens: int | None = None, answer: list[float] | None = None) -> Reply:
+    msg: dict[str, Any] = {"role": "assistant", "content": content}
+    msg.update(message or {})
+    visible = len(content or "") + sum(len(v) for v in (message or {}).values() if isinstance(v, str))
+    tokens = visible // 4 + 1 + (reasoning_tokens or 0)
+    usage: dict[str, Any] = {"prompt_tokens": 0, "completion_tokens": tokens, "total_tokens": tokens}
+    if reasoning_tokens is not None:
+        usage["completion_tokens_details"] = {"reasoning_tokens": reasoning_tokens}
+    doc = {
+        "id": f"chatcmpl-persona-{turn.n}",
+        "object": "chat.completion",
+        "created": int(time.time()),
+        "model": turn.model,
+        "choices": [{"index": 0, "message": msg, "finish_reason": finish}],
+        "usage": usage,
+    }
+    return Reply(200, json.dumps(doc).encode(), answer=answer)
+
+
+def error(status: int, doc: Any) -> Reply:
+    return Reply(status, json.dumps(doc).encode())
+
+
+# -- personas -------------------------------------------------------------------------------------
+def plain(turn: Turn) -> Reply:
+    """Any non-reasoning model: the requested JSON object and nothing else."""
+    return completion(turn, params_json(turn.answer), answer=turn.answer)
+
+
+def vllm_gpt_oss(turn: Turn) -> Reply:
+    # vLLM serving gpt-oss with --reasoning-parser openai_gptoss: the analysis channel in
+    # message.reasoning (vLLM renamed reasoning_content to reasoning, vllm-project/vllm#27752,
+    # docs.vllm.ai features/reasoning_outputs), the final channel in content, plus vLLM's empty
+    # refusal/tool_calls fields. Out of max_tokens while reasoning: content null, finish "length".
+    ans = params_json(turn.answer)
+    fields: dict[str, Any] = {"refusal": None, "annotations": None, "tool_calls": []}
+    if short_of_budget(turn, ans):
+        return completion(turn, None, message={**fields, "reasoning": cut(analysis(turn))}, finish="length")
+    return completion(turn, ans, message={**fields, "reasoning": analysis(turn)}, answer=turn.answer)
+
+
+def vllm_gpt_oss_final_in_reasoning(turn: Turn) -> Reply:
+    # vLLM gpt-oss when the parser files the final channel under reasoning (vllm-project/vllm#23694):
+    # content null, the reasoning holds the analysis (quoting the history) and then the final JSON.
+    ans = params_json(turn.answer)
+    if short_of_budget(turn, ans):
+        return completion(turn, None, message={"reasoning": cut(analysis(turn))}, finish="length")
+    return completion(turn, None, message={"reasoning": analysis(turn) + "\n" + ans}, answer=turn.answer)
+
+
+OLLAMA_SCHEMA_JUNK = 'The user says "\n\n    \t}\n       \t\t \t\t    '
+
+
+def ollama_gpt_oss(turn: Turn) -> Reply:
+    # Ollama's OpenAI-compatible /v1 with gpt-oss: thinking in message.reasoning and the answer in
+    # content (ollama/ollama#15288); reasoning_effort "none" turns thinking off (ollama#12004 as
+    # cited in aictrl-dev/cli#75); under a json_schema response_format gpt-oss returns junk content
+    # (ollama/ollama#11691, the junk quoted from it); out of tokens while thinking: content "",
+    # finish "length".
+    thinking = turn.body.get("reasoning_effort") != "none"
+    ans = params_json(turn.answer)
+    if thinking and short_of_budget(turn, ans):
+        return completion(turn, "", message={"reasoning": cut(analysis(turn))}, finish="length")
+    if turn.schema:
+        return completion(turn, OLLAMA_SCHEMA_JUNK, message={"reasoning": analysis(turn)} if thinking else None)
+    return completion(turn, ans, message={"reasoning": analysis(turn)} if thinking else None, answer=turn.answer)
+
+
+def llamacpp_gpt_oss(turn: Turn) -> Reply:
+    # llama.cpp llama-server --jinja with the default --reasoning-format (auto): harmony parsed into
+    # reasoning_content and content (ggml-org/llama.cpp#15181); out of tokens: content "", "length".
+    ans = params_json(turn.answer)
+    if short_of_budget(turn, ans):
+        return completion(turn, "", message={"reasoning_content": cut(analysis(turn))}, finish="length")
+    return completion(turn, ans, message={"reasoning_content": analysis(turn)}, answer=turn.answer)
+
+
+HARMONY_TEMPLATE_ERROR = (
+    "You have passed a message containing <|channel|> tags in the content field. Instead of doing this, you should "
+    "pass analysis messages (the string between '<|message|>' and '<|end|>') in the 'thinking' field, and final "
+    "messages (the string between '<|message|>' and '<|end|>') in the 'content' field."
+)
+
+
+def harmony_markup(turn: Turn) -> Reply:
+    # llama.cpp with --reasoning-format none (or a build before harmony parsing): the raw harmony
+    # markup in content, "<|channel|>analysis<|message|>...<|end|><|start|>assistant<|channel|>final
+    # <|message|>..." (ggml-org/llama.cpp#15181). Its gpt-oss chat template raises on an assistant
+    # turn holding <|channel|> tags, and llama-server answers HTTP 500 with that message
+    # (reported in ggml-org/llama.cpp#15091).
+    for m in turn.body.get("messages") or []:
+        if isinstance(m, dict) and m.get("role") == "assistant" and "<|channel|>" in str(m.get("content")):
+            return error(500, {"error": {"code": 500, "message": HARMONY_TEMPLATE_ERROR, "type": "server_error"}})
+    ans = params_json(turn.answer)
+    if short_of_budget(turn, ans):
+        return completion(turn, "<|channel|>analysis<|message|>" + cut(analysis(turn)), finish="length")
+    content = ("<|channel|>analysis<|message|>" + analysis(turn) + "<|end|><|start|>assistant<|channel|>final<|message|>"
+               + ans)
+    return completion(turn, content, answer=turn.answer)
+
+
+def harmony_markup_repeats_once(turn: Turn) -> Reply:
+    # The harmony_markup server, with a final channel that first repeats the best history entry
+    # (so the client must correct it, and an assistant turn that echoed the markup would get the 500).
+    if turn.best is not None and not turn.corrected:
+        reply = harmony_markup(turn)
+        if reply.answer is None:  # the template error, or an answer cut off at the token limit
+            return reply
+        repeated = '{"params": [' + ", ".join(turn.best) + "]}"
+        content = ("<|channel|>analysis<|message|>" + analysis(turn) + "<|end|><|start|>assistant<|channel|>final"
+                   "<|message|>" + repeated)
+        return completion(turn, content)
+    return harmony_markup(turn)
+
+
+def r1_thought(turn: Turn) -> str:
+    """R1-style thinking: quotes the best entry, drafts an answer object, then revises it."""
+    draft = params_json([round(turn.rng.uniform(-3, 3), 2) for _ in range(turn.D)])
+    return (f"Okay, let me look at the history. The best entry is {quote(turn)}. I should move away from it a "
+            f"little. Maybe {draft}? Wait, that changes too much. Let me adjust fewer weights.\n")
+
+
+def r1_open_think(turn: Turn) -> Reply:
+    # DeepSeek-R1 distills behind a server that does not split reasoning (llama.cpp
+    # --reasoning-format none, vLLM without --reasoning-parser): the chat template opens <think> in
+    # the prompt, so the content is reasoning, a lone "</think>", then the answer.
+    content = r1_thought(turn) + "</think>\n\n" + params_json(turn.answer)
+    return completion(turn, content, answer=turn.answer)
+
+
+def r1_think_tags(turn: Turn) -> Reply:
+    # R1-style models served with the reasoning left in content, <think>...</think> then the answer
+    # (Ollama before it split thinking out, ollama/ollama#9137).
+    content = "<think>\n" + r1_thought(turn) + "</think>\n\n" + params_json(turn.answer)
+    return completion(turn, content, answer=turn.answer)
+
+
+def deepseek_reasoner(turn: Turn) -> Reply:
+    # DeepSeek's API with deepseek-reasoner: reasoning_content and content (api-docs.deepseek.com,
+    # reasoning model guide). Its JSON output takes {"type": "json_object"} only; a json_schema
+    # response_format gets HTTP 422 with a plain-text body (quoted in browser-use/browser-use#215
+    # and dzhng/deep-research#22).
+    if turn.schema:
+        text = ("Failed to deserialize the JSON body into the target type: response_format: response_format.type "
+                f"`json_schema` is unavailable now at line 1 column {len(json.dumps(turn.body))}")
+        return Reply(422, text.encode(), "text/plain; charset=utf-8")
+    return completion(turn, params_json(turn.answer), message={"reasoning_content": r1_thought(turn)},
+                      answer=turn.answer)
+
+
+def openai_reasoning(turn: Turn) -> Reply:
+    # OpenAI's reasoning models (o-series, gpt-5) on chat completions: max_tokens is refused in
+    # favour of max_completion_tokens, a temperature other than 1 is refused (error bodies as quoted
+    # in microsoft/vscode-copilot-release#8065 and holoviz/lumen#1087); the reasoning is hidden but
+    # counted in usage.completion_tokens_details.reasoning_tokens and against max_completion_tokens;
+    # out of budget: content "" and finish "length".
+    if "max_tokens" in turn.body:
+        return error(400, {"error": {
+            "message": "Unsupported parameter: 'max_tokens' is not supported with this model. "
+                       "Use 'max_completion_tokens' instead.",
+            "type": "invalid_request_error", "param": "max_tokens", "code": "unsupported_parameter"}})
+    t = turn.body.get("temperature")
+    if t is not None and t != 1:
+        return error(400, {"error": {
+            "message": f"Unsupported value: 'temperature' does not support {t} with this model. "
+                       "Only the default (1) value is supported.",
+            "type": "invalid_request_error", "param": "temperature", "code": "unsupported_value"}})
+    ans = params_json(turn.answer)
+    if short_of_budget(turn, ans):
+        return completion(turn, "", finish="length", reasoning_tokens=turn.budget)
+    return completion(turn, ans, reasoning_tokens=REASONING_TOKENS, answer=turn.answer)
+
+
+def gemini_openai(turn: Turn) -> Reply:
+    # Gemini's OpenAI-compatible endpoint refusing a field it does not know: HTTP 400 with a
+    # list-wrapped google.rpc error, 'Invalid JSON payload received. Unknown name "seed": Cannot
+    # find field.' (the shape quoted in MinLL/SkyrimNet-GamePlugin#77 and Alishahryar1/free-claude-code#542).
+    if "seed" in turn.body:
+        msg = 'Invalid JSON payload received. Unknown name "seed": Cannot find field.'
+        return error(400, [{"error": {"code": 400, "message": msg, "status": "INVALID_ARGUMENT", "details": [
+            {"@type": "type.googleapis.com/google.rpc.BadRequest", "fieldViolations": [{"description": msg}]}]}}])
+    return completion(turn, params_json(turn.answer), answer=turn.answer)
+
+
+def restates_history(turn: Turn) -> Reply:
+    # A chatty instruct model that restates the best entry in the ProPS form (params[i]: v, the
+    # form of the ProPS paper's prompts) before giving the JSON object the prompt asks for.
+    vals = turn.best or tuple(f"{v:.2f}" for v in turn.answer)
+    restated = ", ".join(f"params[{i}]: {v}" for i, v in enumerate(vals))
+    content = f"The best policy so far is {restated}.\nI will change a few of them:\n{params_json(turn.answer)}"
+    return completion(turn, content, answer=turn.answer)
+
+
+def unicode_minus(turn: Turn) -> Reply:
+    # Answers typeset with U+2212 minus signs or en dashes, as models trained on typeset text write them.
+    text = ", ".join(str(v).replace("-", turn.rng.choice(["\u2212", "\u2013"])) for v in turn.answer)
+    return completion(turn, '{"params": [' + text + "]}", answer=turn.answer)
+
+
+def repeats_history_once(turn: Turn) -> Reply:
+    # A model that first proposes the best history entry again, as printed, and a new policy once told.
+    if turn.best is not None and not turn.corrected:
+        return completion(turn, '{"params": [' + ", ".join(turn.best) + "]}")
+    return completion(turn, params_json(turn.answer), answer=turn.answer)
+
+
+PERSONAS: dict[str, Callable[[Turn], Reply]] = {
+    "plain": plain,
+    "vllm_gpt_oss": vllm_gpt_oss,
+    "vllm_gpt_oss_final_in_reasoning": vllm_gpt_oss_final_in_reasoning,
+    "ollama_gpt_oss": ollama_gpt_oss,
+    "llamacpp_gpt_oss": llamacpp_gpt_oss,
+    "harmony_markup": harmony_markup,
+    "harmony_markup_repeats_once": harmony_markup_repeats_once,
+    "r1_open_think": r1_open_think,
+    "r1_think_tags": r1_think_tags,
+    "deepseek_reasoner": deepseek_reasoner,
+    "openai_reasoning": openai_reasoning,
+    "gemini_openai": gemini_openai,
+    "restates_history": restates_history,
+    "unicode_minus": unicode_minus,
+    "repeats_history_once": repeats_history_once,
+}
