@@ -237,8 +237,8 @@ def test_generic_task_reports_declared_info_keys() -> None:
     assert isinstance(ep.diagnostics["x_position"], float)
 
 
-def test_dict_observation_needs_an_explicit_adapter() -> None:
-    with pytest.raises(ConfigError, match="adapter"):
+def test_dict_observation_needs_chosen_keys() -> None:
+    with pytest.raises(ConfigError, match=r"Dict observation \(achieved_goal, desired_goal, observation\); choose .* --obs-keys"):
         get_task("FetchReach-v4")  # the sparse Fetch env: registered by the plugin, not a ppprops task
 
 
