@@ -24,15 +24,25 @@ from .base import EpisodeFeedback, EpisodeRecorder, Selection, Task, TaskText
 from .envs import EnvRecipe, TaskImportError, import_module, known_ids, registered_id
 from .feedback import FeedbackKeyError
 from .paper import PRESET_FILES, TASK_FILES
-from .spec import Declared, TaskFileError, TaskSpec, build_task, read_task_file, resolve, spec_for_env, task_from_json
+from .spec import (
+    Declared,
+    TaskFileError,
+    TaskSpec,
+    build_task,
+    read_task_file,
+    resolve,
+    spec_for_env,
+    spec_from_table,
+    task_from_json,
+)
 
 _REGISTRY: dict[str, Task] = {}
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
 _BUILTIN: set[str] = set()  # the paper's tasks: always known by name, in every process
 
 
-def register(task: Task | TaskSpec | str | os.PathLike[str], *, by_env_id: bool = True) -> Task:
-    """Add a task (a Task, a TaskSpec, or a task file path) so ``get_task`` finds it by name.
+def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str], *, by_env_id: bool = True) -> Task:
+    """Add a task (a Task, a TaskSpec, a task-file table as a dict, or a task file path) so ``get_task`` finds it by name.
 
     The name must not clash with a task already registered, unless it is the same declaration.
     ``by_env_id=False`` keeps ``get_task(env_id)`` pointing at the main task of that env.
@@ -43,8 +53,7 @@ def register(task: Task | TaskSpec | str | os.PathLike[str], *, by_env_id: bool 
         ValueError (ConfigError): the name is taken by another declaration.
     """
     if not isinstance(task, Task):
-        spec = task if isinstance(task, TaskSpec) else read_task_file(Path(task))
-        task = build_task(resolve(spec))
+        task = load_task(task)
     key = task.name.lower()
     old = _REGISTRY.get(key)
     if old is not None:
@@ -105,8 +114,8 @@ def get_task(name: str) -> Task:
     if _is_task_file(name):
         return register(name)
     found = registered_id(name)
-    if found is not None:
-        return generic_task(found)
+    if found is not None or ":" in name:  # module:attr: an env class or factory (checked when built)
+        return generic_task(found or name)
     names = [t.name for t in _REGISTRY.values()]
     candidates = names + [t.env_id for t in _REGISTRY.values()] + known_ids()
     close = difflib.get_close_matches(name, list(dict.fromkeys(candidates)), n=3, cutoff=0.5)
@@ -130,13 +139,13 @@ def generic_task(
 @cache
 def _generic(name: str, components: tuple[str, ...], diagnostics: tuple[str, ...]) -> Task:
     found = registered_id(name)
-    if found is None:
+    if found is None and ":" not in name:
         raise UnknownTaskError(f"unknown task {name!r}: not a registered Gymnasium id")
-    spec = spec_for_env(found).with_options(components=components, diagnostics=diagnostics)
+    spec = spec_for_env(found or name).with_options(components=components, diagnostics=diagnostics)
     return build_task(resolve(spec))
 
 
-TaskSource = str | os.PathLike[str] | Callable[..., Any] | TaskSpec | Task
+TaskSource = str | os.PathLike[str] | Callable[..., Any] | Mapping[str, Any] | TaskSpec | Task
 
 
 def load_task(
@@ -154,7 +163,8 @@ def load_task(
 
     ``source`` is a paper task name (``"Ant-Ultra"``), a Gymnasium id (``"Pendulum-v1"``), a
     ``module:EnvId`` or ``module:attr`` string (an Env class or a function returning an env), a path
-    to a task file (``.toml``), an env factory callable, a ``TaskSpec``, or a ``Task``;
+    to a task file (``.toml``), a dict with a task file's keys (``{"name": ..., "env": ...,
+    "observation": {"indices": [...]}}``), an env factory callable, a ``TaskSpec``, or a ``Task``;
     ``task_file`` names a task file instead. The options are those of ``ppprops run``
     (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``, ``--obs-keys``, ``--component``,
     ``--diagnostic``) and win over the declaration. A task that is not a paper task is checked
@@ -181,6 +191,8 @@ def load_task(
         return source
     if isinstance(source, TaskSpec):
         spec = source
+    elif isinstance(source, Mapping):
+        spec = spec_from_table(dict(source), where=f"task {source.get('name', '?')!r}")
     elif isinstance(source, os.PathLike) or (isinstance(source, str) and _is_task_file(source)):
         spec = read_task_file(Path(source))
     elif isinstance(source, str):

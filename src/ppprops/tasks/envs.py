@@ -16,6 +16,7 @@ import contextlib
 import importlib
 import io
 import json
+import os
 import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -40,6 +41,10 @@ def import_module(name: str, why: str = "") -> Any:
             return importlib.import_module(name)
     except ModuleNotFoundError as e:
         missing = e.name or str(e)
+        cwd = os.getcwd()
+        if (name == missing or name.startswith(f"{missing}.")) and cwd not in sys.path and "" not in sys.path:
+            sys.path.append(cwd)  # as `python -m` would: a module in the current folder (the console script lacks it)
+            return import_module(name, why)
         if name == missing or name.startswith(f"{missing}."):
             raise TaskImportError(f"cannot import module {name!r}{where}: no such module on the Python path "
                                   "(install it, or run from the folder that holds it)") from None
@@ -98,7 +103,26 @@ def entry_point_of(fn: Callable[..., Any]) -> tuple[str, tuple[str, ...]] | None
             return None
     except ConfigError:
         return None
-    return f"{module}:{qualname}", ()
+    root = import_root(module)
+    return f"{module}:{qualname}", (() if root is None else (root,))
+
+
+def import_root(module: str) -> str | None:
+    """The folder a user's module was imported from (its top package's parent), so another process can
+    import it too; None for installed packages and the standard library, which every process finds."""
+    import sysconfig
+
+    mod = sys.modules.get(module)
+    file = getattr(mod, "__file__", None)
+    if not file:
+        return None
+    path = Path(file).resolve()
+    depth = module.count(".") + (1 if path.name == "__init__.py" else 0)
+    root = path.parents[depth]
+    installed = {Path(p).resolve() for k, p in sysconfig.get_paths().items() if k in ("stdlib", "platstdlib", "purelib", "platlib")}
+    if any(root == p or p in root.parents for p in installed):
+        return None
+    return str(root)
 
 
 def _import_plugin(module: str) -> bool:
@@ -234,8 +258,9 @@ class EnvRecipe:
             if "mujoco" in str(e).lower():
                 raise MissingExtraError("mujoco", self.id) from e
             raise ConfigError(f"{self.id} needs a package that is not installed: {e}") from None
-        except TypeError as e:  # most often a keyword the env's constructor does not take
-            raise ConfigError(f"making {self.id} failed: {e} (check env_kwargs)") from None
+        except TypeError as e:  # most often a keyword the env's constructor lacks or does not take
+            cause = str(e).split(" was raised from the environment creator")[0]  # gymnasium's wrapping
+            raise ConfigError(f"making {self.id} failed: {cause} (check env_kwargs)") from None
         except (ConfigError, MissingExtraError):
             raise
         except Exception as e:
@@ -259,7 +284,10 @@ class EnvRecipe:
         kwargs = {**reg.kwargs, **dict(self.kwargs)}
         steps = self.max_episode_steps if self.max_episode_steps is not None else reg.max_episode_steps
         if isinstance(reg.entry_point, str):
-            return replace(self, entry_point=reg.entry_point, kwargs=kwargs, max_episode_steps=steps)
+            load_attr(reg.entry_point, self.id)  # imported here, so its folder is known
+            root = import_root(reg.entry_point.split(":")[0])
+            paths = self.paths if root is None else tuple(dict.fromkeys((*self.paths, root)))
+            return replace(self, entry_point=reg.entry_point, kwargs=kwargs, max_episode_steps=steps, paths=paths)
         found = entry_point_of(reg.entry_point)
         if found is None:
             return self
@@ -276,6 +304,16 @@ class EnvRecipe:
         return cls(id=str(d["id"]), entry_point=d.get("entry_point"), kwargs=dict(d.get("kwargs") or {}),
                    max_episode_steps=d.get("max_episode_steps"), imports=tuple(d.get("imports") or ()),
                    paths=tuple(d.get("paths") or ()), setup=d.get("setup"))  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Prepare:
+    """``Task.setup`` of a declared task: ``recipe.prepare()`` as a value (equal recipes, equal setups)."""
+
+    recipe: EnvRecipe
+
+    def __call__(self) -> None:
+        self.recipe.prepare()
 
 
 def _label(text: str) -> str:

@@ -51,7 +51,17 @@ import numpy as np
 
 from ..errors import ConfigError, UnknownTaskError
 from .base import Selection, Task, TaskText
-from .envs import EnvRecipe, TaskImportError, check_json_kwargs, entry_point_of, has_time_limit, import_module, load_attr
+from .envs import (
+    EnvRecipe,
+    Prepare,
+    TaskImportError,
+    check_json_kwargs,
+    entry_point_of,
+    has_time_limit,
+    import_module,
+    import_root,
+    load_attr,
+)
 from .feedback import MISSING, REDUCE, RESERVED, FeedbackKeyError, InfoFeedback, InfoKey, check_value, lookup, missing_key
 
 FORMAT = "ppprops.task/1"
@@ -265,6 +275,10 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
     """A TaskSpec from a task file's table (after ``extends``); ``builtin`` marks the paper's own files."""
     name = _str(raw, "name", where, required=True)
     env_text = raw.get("env")
+    factory = None
+    if callable(env_text) and not builtin:  # a dict from Python may hold the env factory itself
+        factory = spec_for_env(env_text, name=name).env
+        env_text = factory.id
     if not isinstance(env_text, str) or not env_text:
         raise TaskFileError(f"{where}: env is required (a Gymnasium id, module:EnvId, or module:attr)")
     imports = _strings(raw, "imports", where)
@@ -276,7 +290,9 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
         raise TaskFileError(f"{where}: max_episode_steps must be a positive integer, got {steps!r}")
     recipe = EnvRecipe(id=env_text, kwargs=check_json_kwargs(kwargs, where), max_episode_steps=steps, imports=imports, paths=paths,
                        setup=_str(raw, "setup", where))  # fmt: skip
-    if not builtin:
+    if factory is not None:
+        recipe = replace(recipe, entry_point=factory.entry_point, paths=tuple(dict.fromkeys(paths + factory.paths)))
+    elif not builtin:
         recipe = _entry_point_recipe(recipe, where)
     obs = raw.get("observation", {})
     if not isinstance(obs, Mapping):
@@ -395,6 +411,9 @@ def _entry_point_recipe(recipe: EnvRecipe, where: str) -> EnvRecipe:
 
     add_paths(recipe.paths)
     mod = import_module(module, where)
+    root = import_root(module)
+    if root is not None:
+        recipe = replace(recipe, paths=tuple(dict.fromkeys((*recipe.paths, root))))
     if attr in gym.registry:
         return recipe  # the Gymnasium form module:EnvId
     if not callable(getattr(mod, attr.split(".")[0], None)):
@@ -708,7 +727,7 @@ def build_task(spec: TaskSpec) -> Task:
         diagnostics=diag_names,
         env_kwargs=dict(spec.env.kwargs),
         optimal_return=spec.optimal_return,
-        setup=spec.env.prepare,
+        setup=Prepare(spec.env),
         spec=spec,
     )
 
