@@ -86,6 +86,12 @@ MODULES = {
                     info["pos"] = np.array([self.x, self.x])
                 return obs, r, term, trunc, info
     ''',
+    "byor_parent_only.py": '''
+        import multiprocessing
+        if multiprocessing.parent_process() is not None:
+            raise RuntimeError("the robot driver is held by the parent process")
+        from byor_robots import Robot
+    ''',
     "byor_registers.py": '''
         import gymnasium as gym
         gym.register("ByorReg-v0", entry_point="byor_robots:Robot", kwargs={"mass": 1.0}, max_episode_steps=20)
@@ -175,6 +181,20 @@ def test_an_env_that_breaks_its_keys_mid_run_stops_it_cleanly(capsys, tmp_path: 
     try:
         assert store.status() == f"stopped: {line}"
         assert len(store.candidates()) == 3  # episodes 1-3 of the evaluator's env were fine and are kept
+    finally:
+        store.close()
+
+
+def test_a_worker_that_cannot_make_the_env_is_one_line_and_a_stopped_run(capsys, tmp_path: Path, user_dir: Path) -> None:  # type: ignore[no-untyped-def]
+    out = tmp_path / "run"
+    code, _, err = _run(capsys, ["run", "--env", "byor_parent_only:Robot", "--env-kwargs", '{"mass": 1.0}', "--workers", "2",
+                                 *QUICK, "--out", str(out)])  # fmt: skip
+    line = ("a worker process cannot make the env of task byor_parent_only:Robot: making byor_parent_only:Robot failed: "
+            "RuntimeError: the robot driver is held by the parent process")  # fmt: skip
+    assert code == 2 and _one_line(err) == line
+    store = open_store(out)
+    try:
+        assert store.status() == f"stopped: {line}" and store.candidates() == []
     finally:
         store.close()
 

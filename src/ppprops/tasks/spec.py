@@ -41,7 +41,7 @@ import difflib
 import json
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -127,7 +127,6 @@ class TaskSpec:
     hints: str = ""
     optimal_return: float | None = None
     complete: bool = False  # every count known and checked against the env (or a paper task)
-    select: tuple[str, ...] | None = field(default=None, compare=False)  # file form, before resolution
 
     def to_json(self) -> dict[str, Any]:
         """The declaration as JSON values (what a run and a policy file store)."""
@@ -200,7 +199,7 @@ class TaskSpec:
             env = replace(env, imports=tuple(dict.fromkeys((*env.imports, *gym_packages))))
         spec = replace(self, env=env)
         if obs_keys is not None:
-            spec = replace(spec, keys=tuple(obs_keys), indices=None, select=None, names=(), descriptions=(), one_hot=None)
+            spec = replace(spec, keys=tuple(obs_keys), indices=None, names=(), descriptions=(), one_hot=None)
         if components or diagnostics:
             comps = self.components + tuple(Declared(k, info=k, reduce="sum") for k in components)
             diags = self.diagnostics + tuple(Declared(k, info=k) for k in diagnostics)
@@ -617,9 +616,9 @@ def _probe(spec: TaskSpec, env: Any) -> TaskSpec:
     """One zero-policy episode: expand ``KEY.*``, check every declared info key (see ``resolve``)."""
     from ..policy import LinearPolicy
 
-    if spec.recorder is not None:
-        return spec  # the recorder's own code reads the info; nothing declared to check
     _check_names(spec)
+    # a recorder reads the info itself: nothing declared to check, but the episode must still end
+    declared = spec.recorder is None
     adapter = Selection(names=spec.names, indices=spec.indices, keys=spec.keys, one_hot=spec.one_hot)
     n_s, n_a = len(spec.names), len(spec.actions)
     space = env.action_space
@@ -630,9 +629,9 @@ def _probe(spec: TaskSpec, env: Any) -> TaskSpec:
     s = adapter(obs)
     if s.shape != (n_s,):
         raise TaskFileError(f"task {spec.name}: the observation adapter gives {s.shape[0]} values, not {n_s}")
-    components = list(spec.components)
-    computed = [d for d in spec.diagnostics if d.info is None]  # episode_length: ppprops counts it
-    diagnostics = [d for d in spec.diagnostics if d.info is not None]
+    components = list(spec.components) if declared else []
+    computed = [d for d in spec.diagnostics if d.info is None or not declared]  # episode_length: ppprops counts it
+    diagnostics = [d for d in spec.diagnostics if d.info is not None and declared]
     seen: set[str] = set()
     step = 0
     ended = False
@@ -663,6 +662,8 @@ def _probe(spec: TaskSpec, env: Any) -> TaskSpec:
         d = unseen[0]
         assert d.info is not None
         raise missing_key(spec.name, "diagnostic", InfoKey(d.name, d.info), info, where="at any step of an episode")
+    if not declared:
+        return spec
     return replace(spec, components=tuple(components), diagnostics=(*computed, *diagnostics))
 
 
