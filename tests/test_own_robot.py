@@ -597,9 +597,23 @@ def test_guide_error_example_is_the_real_line(capsys, tmp_path: Path) -> None:  
     assert code == 2 and err.strip() == shown.group(1).replace("reward_dst = ", "")
 
 
-def test_register_by_task_file_and_name(tmp_path: Path) -> None:
+def test_register_by_task_file_and_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ppprops.tasks
+
+    monkeypatch.setattr(ppprops.tasks, "_REGISTRY", dict(ppprops.tasks._REGISTRY))  # registered for this test only
     task = register(EXAMPLE / "point_robot.toml")
     assert get_task("PointRobot") is task and task.n_s == 6 and task.components == ("reward_distance", "reward_effort")
     assert task.diagnostics == ("episode_length", "distance", "reached")
     with pytest.raises(ConfigError, match="already registered"):
         register({"name": "PointRobot", "env": "CartPole-v1"})
+
+
+def test_api_errors_and_a_light_import(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"^unknown method 'ppp'; choose one of vanilla, pe, df, pp, pp-hardened, r2po, random, cmaes$"):
+        ppprops.search("CartPole", method="ppp", out=tmp_path / "r")
+    with pytest.raises(ConfigError, match=r"^unknown task 'CartPol-v1'; did you mean CartPole-v1"):
+        ppprops.search("CartPol-v1", method="random", out=tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+    res = subprocess.run([sys.executable, "-c", "import sys, ppprops; print('numpy' in sys.modules, callable(ppprops.search))"],
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert res.stdout.split() == ["False", "True"], res.stderr

@@ -200,17 +200,18 @@ def search(
     """
     from .tasks import is_builtin, load_task
 
-    t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
-                  obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
     overrides = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
                      disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
                      secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
                      hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup)  # fmt: skip
+    mechanisms = _mechanisms(method, overrides)  # a bad method fails before the env is made
+    t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
+                  obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
     config = RunConfig(
         task=t.name,
         task_spec=None if is_builtin(t) or t.spec is None else t.spec.to_json(),
         method=method,
-        mechanisms=_mechanisms(method, overrides),
+        mechanisms=mechanisms,
         warmup=warmup,
         iterations=iterations,
         top_k=top_k,

@@ -80,6 +80,7 @@ _load_paper()
 
 
 def list_tasks() -> list[Task]:
+    """Every registered task: the paper's ten and its presets first, then any registered in this process."""
     return list(_REGISTRY.values())
 
 
@@ -241,6 +242,7 @@ def task_ref(task: Task) -> TaskRef:
 
 
 def resolve_task(ref: TaskRef) -> Task:
+    """The task a ``task_ref`` handle stands for (in any process)."""
     if isinstance(ref, str):
         return get_task(ref)
     if isinstance(ref, dict):
