@@ -120,3 +120,24 @@ def test_policy_file_records_env_adapter_and_action_rule(tmp_path: Path, name: s
         np.testing.assert_array_equal(pol(obs), want)
     finally:
         env.close()
+
+
+def test_a_format_1_policy_file_still_evaluates_and_loads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Files written before format 2 name only the task; the task registry completes them."""
+    task = get_task("CartPole")
+    theta = np.array([0.1, -0.2, 0.3, 0.5, -1.0, 2.0, 0.4, -0.7, 0.0, 0.0])
+    W = theta[:8].reshape(4, 2)
+    doc = {"format": "ppprops.linear_policy/1", "task": "CartPole", "env_id": "CartPole-v1", "n_s": 4, "n_a": 2,
+           "action_type": "discrete", "observation": list(task.observation.names), "W": W.tolist(), "b": [0.0, 0.0],
+           "theta": theta.tolist(), "search": {}, "final_eval": None}  # fmt: skip
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    new = tmp_path / "new" / "best_policy.json"
+    new.parent.mkdir()
+    write_json_atomic(new, policy_document(task, theta, env=None, search={}, final_eval=None))
+    results = []
+    for path in (tmp_path / "old.json", new):
+        assert main(["policy", "eval", str(path), "--episodes", "3", "--seed", "1", "--json"]) == 0
+        results.append(json.loads(capsys.readouterr().out)["returns"])
+    assert results[0] == results[1]
+    obs = np.array([0.01, -0.02, 0.03, 0.2])
+    assert load_policy(tmp_path / "old.json")(obs) == load_policy(new)(obs) == int(np.argmax(obs @ W))
