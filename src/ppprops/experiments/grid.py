@@ -120,6 +120,7 @@ def derive_secrets(master_key: bytes, name: str, config: Any) -> Any:
 # -- run state and locks ---------------------------------------------------------------------
 def run_state(run_dir: Path, kind: str) -> str:
     """done (finished, or stopped on purpose), partial (resumable), or pending (nothing usable)."""
+    from ..status import RunKind, is_complete
     from ..store import DB_NAME, open_store
 
     if not (Path(run_dir) / DB_NAME).exists():
@@ -132,9 +133,9 @@ def run_state(run_dir: Path, kind: str) -> str:
         status = store.status()
     finally:
         store.close()
-    if status == "finished" or (kind != RL and status.startswith("stopped")):
+    if is_complete(status, RunKind(kind)):
         return DONE
-    return PARTIAL if kind != RL else PENDING
+    return PARTIAL if kind != RL else PENDING  # an RL baseline cannot be continued: trained again
 
 
 @contextmanager
