@@ -121,6 +121,9 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(ref: Any) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent decides
     from .tasks import resolve_task
 
     task = resolve_task(ref)
