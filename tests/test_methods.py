@@ -133,3 +133,15 @@ def test_old_configs_read_back_with_every_switch(tmp_path: Path) -> None:
     del old["mechanisms"]["describe_task"], old["mechanisms"]["encoded_warmup"]  # written before these switches existed
     back = RunConfig.from_json(old)
     assert back.mechanisms.describe_task is True and back.mechanisms.encoded_warmup is False
+
+
+def test_a_grid_started_before_a_switch_existed_still_matches() -> None:
+    from ppprops.experiments.grid import _same_config
+
+    planned = build_spec(flags_table(["CartPole"], ["pp"], 1)).runs[0].config
+    old = RunConfig.from_json(planned).to_json()
+    del old["mechanisms"]["describe_task"]  # grid.json and run.sqlite written before --describe-task
+    assert _same_config(old, planned)
+    changed = RunConfig.from_json(planned).to_json()
+    changed["mechanisms"]["describe_task"] = False
+    assert not _same_config(changed, planned)

@@ -183,8 +183,20 @@ class Outcome:
 
 
 def _same_config(stored: dict[str, Any], planned: dict[str, Any]) -> bool:
-    """A stored config matches when every planned key has the planned value (RL stores extra keys)."""
+    """A stored config matches when every planned key has the planned value (RL stores extra keys).
+
+    A search config is first read back through ``RunConfig.from_json``, so one written before a
+    setting existed (e.g. ``describe_task``) compares with that setting's default."""
+    from ..config import RunConfig
+    from ..status import RunKind
+
+    if RunKind.of_config(stored) is RunKind.SEARCH:
+        try:
+            stored = RunConfig.from_json(stored).to_json()
+        except (KeyError, TypeError, ValueError):
+            pass  # not a config this version reads: compare as it is
     norm = json.loads(json.dumps(planned))
+    stored = json.loads(json.dumps(stored))
     return all(stored.get(k) == v for k, v in norm.items())
 
 

@@ -134,9 +134,10 @@ def _serve(argv: list[str] | None = None) -> int:
     server = _start(a.model, a.context_size, a.threads)
     sys.stdout.write(READY + str(server.listening_address) + "\n")
     sys.stdout.flush()
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())  # nobody reads the pipe any more: a log line must never block the server
     while sys.stdin.buffer.read(4096):  # until the parent closes it, or dies
         pass
-    sys.stdout.flush()
     os._exit(0)
 
 
