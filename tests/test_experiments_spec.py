@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppprops.cli import _run_config, build_parser
+from ppprops.cli import build_parser, run_config
 from ppprops.client.secrets import LOG_HIGH, LOG_LOW, Secrets
 from ppprops.config import RunConfig
 from ppprops.errors import ConfigError
@@ -28,7 +28,7 @@ TEN = ["Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joint
 
 
 def _cli_config(*argv: str) -> RunConfig:
-    return _run_config(build_parser().parse_args(["run", *argv]))
+    return run_config(build_parser().parse_args(["run", *argv]))
 
 
 def test_main_results_spec_is_the_papers_grid() -> None:

@@ -57,4 +57,5 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         param_encoding=param_words,
         reward_encoding=reward_words,
         warmup_range=warmup_box(config) if (m.encoded_warmup and m.encode_params) else None,
+        describe_task=m.describe_task,
     )

@@ -120,6 +120,7 @@ def derive_secrets(master_key: bytes, name: str, config: Any) -> Any:
 # -- run state and locks ---------------------------------------------------------------------
 def run_state(run_dir: Path, kind: str) -> str:
     """done (finished, or stopped on purpose), partial (resumable), or pending (nothing usable)."""
+    from ..status import RunKind, is_complete
     from ..store import DB_NAME, open_store
 
     if not (Path(run_dir) / DB_NAME).exists():
@@ -132,9 +133,9 @@ def run_state(run_dir: Path, kind: str) -> str:
         status = store.status()
     finally:
         store.close()
-    if status == "finished" or (kind != RL and status.startswith("stopped")):
+    if is_complete(status, RunKind(kind)):
         return DONE
-    return PARTIAL if kind != RL else PENDING
+    return PARTIAL if kind != RL else PENDING  # an RL baseline cannot be continued: trained again
 
 
 @contextmanager
@@ -182,8 +183,20 @@ class Outcome:
 
 
 def _same_config(stored: dict[str, Any], planned: dict[str, Any]) -> bool:
-    """A stored config matches when every planned key has the planned value (RL stores extra keys)."""
+    """A stored config matches when every planned key has the planned value (RL stores extra keys).
+
+    A search config is first read back through ``RunConfig.from_json``, so one written before a
+    setting existed (e.g. ``describe_task``) compares with that setting's default."""
+    from ..config import RunConfig
+    from ..status import RunKind
+
+    if RunKind.of_config(stored) is RunKind.SEARCH:
+        try:
+            stored = RunConfig.from_json(stored).to_json()
+        except (KeyError, TypeError, ValueError):
+            pass  # not a config this version reads: compare as it is
     norm = json.loads(json.dumps(planned))
+    stored = json.loads(json.dumps(stored))
     return all(stored.get(k) == v for k, v in norm.items())
 
 
