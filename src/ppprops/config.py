@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import ConfigError
-from .methods import Mechanisms
+from .methods import Mechanisms, check_method
 
 # Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
 MAX_WARMUP = 10_000
@@ -127,6 +127,7 @@ class RunConfig:
         lo, hi = self.box
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
+        check_method(self.method, self.mechanisms)  # e.g. r2po with encoded parameters (issue 16)
         self.llm.validate()
 
     def to_json(self) -> dict[str, Any]:

@@ -81,6 +81,30 @@ PRESETS: dict[str, Mechanisms] = {
 }
 
 
+# Methods whose prompts show the provider raw trajectory evidence: R2PO's critic reads raw states and
+# the actions the policy took in them. For a linear policy u = W^T s + b a least-squares fit of those
+# actions on those states gives the raw W and b (so every a_j, coordinate by coordinate, against the
+# encoded parameters beside them), and the public dynamics and reward definition give the raw return
+# from the rollout (CartPole: its number of steps). Encoding states and actions with secrets of their
+# own would not hold either: public dynamics pin a diagonal state scale (initial-state range,
+# termination thresholds, x' = x + tau x_dot). So no privacy mechanism is offered with them.
+RAW_EVIDENCE_METHODS = ("r2po",)
+PRIVACY_SWITCHES = ("encode_params", "scale_rewards", *HARDENING)
+
+
+def check_method(method: str, mech: Mechanisms) -> None:
+    """Refuse a privacy mechanism for a method whose prompts would undo it (docs/threat-model.md)."""
+    if method in RAW_EVIDENCE_METHODS:
+        on = [k for k in PRIVACY_SWITCHES if getattr(mech, k)]
+        if on:
+            flags = ", ".join("--" + k.replace("_", "-") + " on" for k in on)
+            raise ConfigError(
+                f"--method {method} shows the critic raw states and actions, from which a least-squares fit gives the raw "
+                f"policy (hence A) and the rollout gives the raw return, so it cannot run with {flags}; "
+                "use --method pp or pp-hardened for a private search"
+            )
+
+
 def resolve(method: str, **overrides: bool | None) -> Mechanisms:
     """A preset, with any mechanism switched on or off individually."""
     if method not in PRESETS:
