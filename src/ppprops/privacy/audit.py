@@ -43,7 +43,7 @@ from . import reconstruct as rc
 from .exposure import exposures
 from .knowledge import facts_for
 from .tokens import renders, token_value
-from .transcript import Request, parse_request
+from .transcript import Request, message_text, parse_request
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
@@ -392,9 +392,11 @@ class _Auditor:
             self.free(value, "", at)  # not verifiable without the key file: still read for raw values
 
     def messages(self, value: object, row: dict[str, Any], req: Request) -> None:
+        """The client sends [prompt] or [prompt, the provider's answer, a correction], as plain strings."""
         if not isinstance(value, list):
             self.free(value, "messages that are not a list", f"{req.where}, messages")
             return
+        users = 0
         answer = None
         for i, m in enumerate(value):
             at = f"{req.where}, message {i + 1}"
@@ -405,16 +407,21 @@ class _Auditor:
             for k, v in m.items():
                 if k not in ("role", "content"):
                     self.free(v, f"message field {k}, which the client never sends", at)
-            if not isinstance(content, str):
-                self.free(content, "message content that is not a string (the client sends plain strings)", at)
+            if isinstance(content, list):
+                self.finding("unverified", "request", "message content sent as a list of parts (the client sends strings)", at)
+                content = message_text(content)
+            elif not isinstance(content, str):
+                self.free(content, "message content that is not a string", at)
                 continue
-            if role == "assistant":
-                answer = content
-                if i != 1 or content not in self._answers(req):
-                    self.free(content, "an assistant message that is not the provider's answer", at)
-            elif role == "user" and i == 0:
+            if role == "user" and users == 0:
+                users += 1
                 self.prompt(content, req)
-            elif role == "user" and i == 2:
+            elif role == "assistant" and users == 1 and answer is None:
+                answer = content
+                if content not in self._answers(req):
+                    self.free(content, "an assistant message that is not the provider's own answer", at)
+            elif role == "user" and users == 1 and answer is not None:
+                users += 1
                 errors = [str(c.get("error") or "") for c in self.calls if c["iteration"] == req.iteration]
                 if content not in rc.expected_correction(answer, self.task.D, errors):
                     self.free(content, "a correction the client's template does not produce", at)

@@ -285,11 +285,13 @@ def survive_length(v: View) -> Estimate:
     for e in v.entries:
         y, n = _component(e.components, f.survive), _steps(v, e.diagnostics)
         if y is not None and n is not None:
-            ratios.append(y / (f.healthy_reward * n))
+            healthy = n - 1 if same_marker(e.diagnostics.get("termination"), "unhealthy") else n  # the last step pays 0
+            if healthy > 0:
+                ratios.append(y / (f.healthy_reward * healthy))
     if not ratios:
         return Estimate("survive-length", "c", None, "the survive component or the episode length is not shown")
     med = float(np.median(ratios))
-    if med <= 0 or (len(ratios) >= 2 and (max(ratios) - min(ratios)) > 0.01 * med):
+    if med <= 0 or (len(ratios) >= 2 and (max(ratios) - min(ratios)) > 0.001 * med):
         return Estimate("survive-length", "c", None, "printed survive / length is not constant")
     return Estimate("survive-length", "c", med, f"survive = {f.healthy_reward:g} x length on {len(ratios)} entries")
 

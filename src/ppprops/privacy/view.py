@@ -22,6 +22,7 @@ class Shown:
     ret_tol: float
     diagnostics: dict[str, str]
     first_call: int
+    components: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,7 @@ def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) ->
             key = (e.params, e.ret)
             if key not in seen:
                 seen[key] = Shown(np.array([p[0] for p in parsed if p]), np.array([p[1] for p in parsed if p]),
-                                  ret[0], ret[1], dict(e.diagnostics), k)
+                                  ret[0], ret[1], dict(e.diagnostics), k, tuple(e.components))
             if k == 0:
                 first.append(seen[key])
     entries = tuple(s for s in seen.values() if len(s.params) == D)
