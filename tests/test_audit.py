@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppprops import seeding
 from ppprops.cli import main
 from ppprops.client.codec import encode_feedback
 from ppprops.client.context import prompt_context

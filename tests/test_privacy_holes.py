@@ -28,7 +28,6 @@ from ppprops.privacy.simulate import EchoOptimizer, offline_llm
 from ppprops.privacy.transcript import load_requests
 from ppprops.runner import LazyChat, start
 from ppprops.store import open_store
-from ppprops.tasks import get_task
 from ppprops.wire.numbers import fmt
 
 from support import make_config

@@ -1,25 +1,29 @@
 """``ppprops audit DIR``: does any recorded request hold a raw value the preset promises to hide?
 
-How it decides (docs/privacy.md, "The audit"): each history entry of each request is matched to
-the candidate it shows through its printed parameters, then every printed field is compared with
-the raw and the encoded value of the same quantity, at the precision it was printed with (any
-number of decimals, trailing zeros dropped, exponent form, integers):
+How it decides (docs/privacy.md, "The audit"). Every byte of every recorded request body is
+accounted for:
 
-- printed value = raw value, but not the encoded one: a **leak** (raw value sent);
-- printed value = raw value = encoded value (zero, or a factor that rounds to 1): a coincidence,
-  counted, not a leak, since the provider cannot tell it apart from any encoded value;
-- printed value = encoded value only: as designed;
-- neither: **unverified** (the audit cannot account for what was sent).
-Fields a preset sends raw by design (vanilla, df) are leaks too, marked "by design". The prose
-around the history is searched for the optimal return at every rendering and for raw returns and
-components printed with at least two decimals. Known side channels of the scheme (a diagnostic
-that equals or determines the raw return, clipped candidates at the box edge, warm-up spread,
-the run seed, integer-return lattices, known caps) are reported as **channels**.
+- every top-level field must be what the client sets (model, sampling settings, the structured
+  output, the key-derived seed); any other field or value is **unverified**, and every number in
+  it, at any precision, integers included, is compared with every raw value (a match: **leak**);
+- every message of any role: the client sends [prompt] or [prompt, the provider's own answer, a
+  correction] as plain strings; anything else is read the same way;
+- the prompt is rebuilt from the public context and the stored encoded values of the candidates
+  it shows (``privacy.reconstruct``), so every stretch the templates do not produce is read;
+- each history entry is matched to the candidate it shows and each printed field compared with
+  the raw and the encoded value of the same quantity at its printed precision: raw but not
+  encoded is a leak, both a counted coincidence, neither unverified. Fields a preset sends raw
+  by design (vanilla, df, R2PO's critic evidence) are leaks marked "by design".
 
-Exit code: 0 when nothing leaked and everything was verified (channels are warnings), 1 with
-the locations otherwise; ``--strict`` also fails on channels.
+Then every transcript-only attack of ``privacy.attacks`` runs on the requests: one that recovers
+a hidden secret within 1% (scored against the key file, or the store for pure scales) makes the
+run **exposed**, marked when the channel is one the paper's scheme keeps. Known side channels
+without such a recovery are reported as **channels** (warnings).
+
+Exit code: 0 when nothing leaked, everything was accounted for and nothing is exposed; 1 with
+the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
+checked (named in every report).
 """
-
 from __future__ import annotations
 
 import itertools
