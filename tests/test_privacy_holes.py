@@ -274,3 +274,25 @@ def test_r2po_estimates_prompt_tokens_from_the_usage_of_its_answers() -> None:
     assert p.prompt_tokens("y" * 1000) == 1000  # before any answer: the runner's estimate (here len)
     p._observe(0, 0, Exchange("{}", None, "{}", None, 2000, 500, 10, 0.1, True), None)  # 1 token per 4 characters
     assert p.prompt_tokens("y" * 1000) == 263 + 32
+
+
+def test_the_audit_rebuilds_the_r2po_critic_prompt_and_reads_what_differs(tmp_path: Path) -> None:
+    cfg = replace(make_config("CartPole", "vanilla", warmup=3, iterations=2, episodes=2, final_episodes=0), method="r2po")
+    with offline_llm():
+        start(cfg, tmp_path / "r")
+    r = audit_run(tmp_path / "r")
+    assert not r.unverified and any(f.kind == "raw_trajectory" and f.by_design for f in r.leaks), r.format()
+    assert all(f.by_design for f in r.leaks)  # everything R2PO shows raw is by design of that baseline
+    store = open_store(tmp_path / "r")
+    c = max(store.candidates(), key=lambda c: c.ret)
+    store.close()
+
+    def plant(d: dict[str, Any]) -> None:
+        text = d["messages"][0]["content"]
+        assert text.startswith("You are a critic")
+        d["messages"][0]["content"] = text.replace("Per-episode diagnostics", f"Best so far: {c.ret:.1f}. Per-episode diagnostics", 1)
+
+    _edit_last(tmp_path / "r", plant)
+    r = audit_run(tmp_path / "r")
+    assert any(f.kind == "raw_return" and not f.by_design for f in r.leaks), r.format()
+    assert "by design" not in r.verdict()
