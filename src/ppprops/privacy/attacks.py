@@ -23,6 +23,7 @@ public width, replayed from the run seed or measured by its spread).
 
 from __future__ import annotations
 
+import functools
 import re
 import warnings
 from collections.abc import Callable, Sequence
@@ -39,6 +40,7 @@ from .view import Estimate, Shown, View, same_marker, view_of
 SEED_SEARCH = 1 << 16  # run seeds tried against the request's sampling seed
 SEED_SEARCH_BLIND = 2048  # run seeds tried when no sampling seed was sent (matched on signs)
 WARMUP_REPLAY = 32  # warm-up samples replayed per seed
+BLIND_SAMPLES = 12  # warm-up samples per seed compared when searching blind (warm-ups are rarely longer)
 
 
 # -- reward scale ----------------------------------------------------------------------------
@@ -193,25 +195,42 @@ def find_run_seed(v: View) -> tuple[int | None, str]:
     return v.memo["run_seed"]  # type: ignore[return-value]
 
 
+@functools.cache
+def _seed_field_table() -> dict[int, int]:
+    """``llm_seed(s, 0, 0) -> s`` for every run seed searched (built once per process)."""
+    return {seeding.llm_seed(s, 0, 0): s for s in range(SEED_SEARCH)}
+
+
+@functools.cache
+def _warmup_draws(D: int, lo: float, hi: float) -> np.ndarray:
+    """The first BLIND_SAMPLES warm-up draws of every run seed searched blind, shape (seeds, samples, D)."""
+    return np.array([[seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=D) for m in range(BLIND_SAMPLES)]
+                     for s in range(SEED_SEARCH_BLIND)])
+
+
 def _find_run_seed(v: View) -> tuple[int | None, str]:
     first = v.requests[0] if v.requests else None
     if first is not None and first.seed is not None:
-        found = next((s for s in range(SEED_SEARCH) if seeding.llm_seed(s, first.iteration, first.attempt) == first.seed), None)
+        if (first.iteration, first.attempt) == (0, 0):
+            found = _seed_field_table().get(first.seed)
+        else:
+            found = next((s for s in range(SEED_SEARCH) if seeding.llm_seed(s, first.iteration, first.attempt) == first.seed), None)
         if found is not None:
             return found, f"run seed {found} recovered from the request's sampling seed"
     if not v.warmup:
         return None, "no warm-up entries"
     lo, hi = v.box
-    W = np.array([e.params for e in v.warmup])
-    tol = np.array([e.tols for e in v.warmup])
-    for s in range(SEED_SEARCH_BLIND):
-        raw = np.array([seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(min(WARMUP_REPLAY, len(W) + 2))])
-        hits = 0
-        for i, w in enumerate(W[:3]):
-            live = np.abs(w) > tol[i]
-            hits += any(np.all(np.sign(r[live]) == np.sign(w[live])) for r in raw)
-        if hits == min(3, len(W)):
-            return s, f"run seed {s} found by trying seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs"
+    W = np.array([e.params for e in v.warmup])[:3]
+    tol = np.array([e.tols for e in v.warmup])[:3]
+    signs = np.sign(_warmup_draws(v.D, lo, hi))  # (seeds, samples, D)
+    ok = np.ones(SEED_SEARCH_BLIND, dtype=bool)
+    for i, w in enumerate(W):
+        live = np.abs(w) > tol[i]
+        ok &= np.any(np.all(signs[:, :, live] == np.sign(w[live]), axis=2), axis=1)
+    hits = np.flatnonzero(ok)
+    if len(hits):
+        s = int(hits[0])
+        return s, f"run seed {s} found by trying seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs"
     return None, f"tried run seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs: none matches"
 
 

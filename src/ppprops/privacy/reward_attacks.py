@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -53,19 +54,14 @@ def warped_lattice(v: View) -> Estimate:
         rest = [y for y in ys if y < y_a - tol]
         if len(rest) < 5:
             return Estimate(name, "c", None, "too few returns below the anchored cap")
-        q1 = np.arange(1, qmax)
-        q1, q2 = np.meshgrid(q1, q1, indexing="ij")
-        keep = q1 < q2
+        a, b = _pairs(qmax)
         refs = (rest[0], rest[1], y_a)
-        triples = (q1[keep].astype(float), q2[keep].astype(float), np.full(int(keep.sum()), float(q_a)))
+        triples = (a, b, np.full(len(a), float(q_a)))
         how = f"anchored at the public cap {q_a:g}"
     else:
         span = max(2, int(round((MAX_HYPOTHESES * 6) ** (1 / 3))))
-        g = np.arange(1, span + 1)
-        a, b, c = np.meshgrid(g, g, g, indexing="ij")
-        keep = (a < b) & (b < c)
         refs = (ys[0], ys[1], ys[2])
-        triples = (a[keep].astype(float), b[keep].astype(float), c[keep].astype(float))
+        triples = _triples(span)
         how = f"the three lowest returns tried as integers up to {span}"
     fits = _lattice_fits(Y, refs, triples, tol)
     n_hyp = len(triples[0])
@@ -81,6 +77,24 @@ def warped_lattice(v: View) -> Estimate:
     s_est = -s_est if flip else s_est
     return Estimate(name, "c", c_est, f"{len(Y)} distinct returns decode to integers with p={p_est:.4g} ({how})",
                     extras={"s": s_est, "p": p_est})
+
+
+@functools.cache
+def _triples(span: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every integer triple 1 <= a < b < c <= span (built once per process)."""
+    g = np.arange(1, span + 1)
+    a, b, c = np.meshgrid(g, g, g, indexing="ij")
+    keep = (a < b) & (b < c)
+    return a[keep].astype(float), b[keep].astype(float), c[keep].astype(float)
+
+
+@functools.cache
+def _pairs(qmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every integer pair 1 <= a < b < qmax."""
+    g = np.arange(1, qmax)
+    a, b = np.meshgrid(g, g, indexing="ij")
+    keep = a < b
+    return a[keep].astype(float), b[keep].astype(float)
 
 
 def _cap_anchor(v: View, flip: bool) -> tuple[float, float] | None:
@@ -131,7 +145,7 @@ def _lattice_fits(Y: np.ndarray, refs: tuple[float, float, float],
         best += [(start + int(i), float(score[i])) for i in good]
     best.sort(key=lambda t: t[1])
     fits = []
-    for i, _ in best[:60]:
+    for i, _ in best[:20]:
         fit = _refit(Y, alpha[i], beta[i], p[i], tol)
         if fit is not None:
             fits.append(fit)
@@ -149,12 +163,14 @@ def _refit(Y: np.ndarray, alpha: float, beta: float, p0: float, tol: float) -> t
 
     def fit(lp: float) -> tuple[float, float, float]:
         x = n ** math.exp(lp)
-        A, B = np.polyfit(x, Y, 1)
-        return float(np.max(np.abs(A * x + B - Y))), float(A), float(B)
+        xm, ym = x.mean(), Y.mean()
+        A = float(((x - xm) * (Y - ym)).sum() / ((x - xm) ** 2).sum())
+        B = float(ym - A * xm)
+        return float(np.max(np.abs(A * x + B - Y))), A, B
 
     a, b = math.log(p0) - 0.1, math.log(p0) + 0.1
     g = (math.sqrt(5) - 1) / 2
-    for _ in range(80):  # golden-section search on the worst residual
+    for _ in range(50):  # golden-section search on the worst residual
         c1, c2 = b - g * (b - a), a + g * (b - a)
         if fit(c1)[0] < fit(c2)[0]:
             b = c2
