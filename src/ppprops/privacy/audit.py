@@ -279,8 +279,8 @@ class _Auditor:
     def prose(self, req: Request) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
-        raw_rewards = [(c.index, "return", c.ret) for c in self.cands]
-        raw_rewards += [(c.index, f"component {k}", v) for c in self.cands for k, v in c.feedback.components.items()]
+        # raw returns and components outside the entries are found by the rebuild (``spans``): text the
+        # templates produce is public, and comparing it with raw values would only find coincidences
         for offset, text in outside_entries(req.text, list(req.entries)):
             for pos, tok in number_tokens(text):
                 parsed = token_value(tok)
@@ -290,12 +290,6 @@ class _Auditor:
                 where = f"{req.where}, prose at character {offset + pos}"
                 if optimum is not None and renders(optimum, v, tol) and abs(optimum) >= 1:
                     self.finding("leak", "optimum", f"the optimal return {optimum:g} (printed {tok})", where, by_design=by_design)
-                if "." in tok and len(tok.split(".")[1].split("e")[0].split("E")[0]) >= 2:
-                    for idx, label, raw in raw_rewards:
-                        if abs(raw) >= 0.01 and renders(raw, v, tol):
-                            self.finding("leak", "raw_return" if label == "return" else "raw_component",
-                                         f"raw {label} of candidate {idx} in the prose", where, by_design=not self.mech.scale_rewards)
-                            break
 
     # -- run-level channels -------------------------------------------------------------------
     def channels(self) -> None:
