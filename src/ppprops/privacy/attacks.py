@@ -265,12 +265,11 @@ def seed_replay(v: View) -> Estimate:
 def fallback_spread(v: View) -> Estimate:
     """a_j from fallback candidates: the best shown policy plus noise of a public width (5% of the box).
 
-    Fallbacks are the entries the provider never proposed (not in the warm-up, not one of its own
-    answers). Drawn in raw space, their encoded offsets from the best are a_j times the noise: with the
+    Fallbacks are the entries that follow an iteration whose last answer was unusable (the provider
+    knows: it gave that answer). Drawn in raw space, their encoded offsets from the best are a_j times the noise: with the
     run seed the noise itself is replayed (seeding.FALLBACK), else its spread gives a_j. Drawn in the
     encoded space, both give the public width back, i.e. a_j = 1 whatever a_j is.
     """
-    answers: list[np.ndarray] = []
     shown_before: list[Shown] = []
     offsets, iters = [], []
     warm = {id(e) for e in v.warmup}
@@ -278,18 +277,17 @@ def fallback_spread(v: View) -> Estimate:
     for e in v.entries:
         by_call.setdefault(e.first_call, []).append(e)
     for k, r in enumerate(v.requests):
+        # the candidate new in request k came from the iteration before: the provider's own answer
+        # unless its last answer there was unusable (then the client sent a fallback)
+        before = [q for q in v.requests[:k] if q.iteration == r.iteration - 1]
+        fallback = bool(before) and _answer_vector(before[-1].answer, v.D) is None
         for e in by_call.get(k, []):
-            if id(e) in warm or not shown_before:
+            if id(e) in warm or not shown_before or not fallback:
                 continue
-            if any(len(a) == len(e.params) and np.mean(np.abs(a - e.params) <= e.tols + 1e-9) >= 0.5 for a in answers):
-                continue  # its own answer (clipping may have changed a few coordinates)
             best = max(shown_before, key=lambda x: x.ret)
             offsets.append(e.params - best.params)
-            iters.append(v.requests[k - 1].iteration if k else 0)
+            iters.append(r.iteration - 1)
         shown_before += by_call.get(k, [])
-        vals = _answer_vector(r.answer, v.D)
-        if vals is not None:
-            answers.append(vals)
     if not offsets:
         return Estimate("fallback-spread", "a", None, "no fallback candidate in the history")
     lo, hi = v.box
@@ -310,12 +308,11 @@ def fallback_spread(v: View) -> Estimate:
 
 
 def _answer_vector(answer: str | None, D: int) -> np.ndarray | None:
-    if not answer:
-        return None
-    nums = re.findall(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?", answer)
-    if len(nums) != D:
-        return None
-    return np.array([float(x) for x in nums])
+    """The vector an answer gives, read as the client reads it (``wire.parse_answer``), or None."""
+    from ..wire import parse_answer
+
+    result = parse_answer(answer or "", D)
+    return None if result.values is None else np.array(result.values)
 
 
 ATTACKS: dict[str, Callable[[View], Estimate]] = {
