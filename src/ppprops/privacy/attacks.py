@@ -103,7 +103,7 @@ def lattice(v: View) -> Estimate:
             # how likely a step this large fits every difference by chance, over the steps tried so far
             chance = (4 * tol / c_est) ** (len(vals) - 2) * tried
             if chance < 0.01:
-                return Estimate("lattice", "c", c_est, f"{len(vals)} distinct returns on a lattice of step {c_est:.6g}")
+                return Estimate("lattice", "c", c_est, f"{len(vals)} distinct returns on one lattice")
     return Estimate("lattice", "c", None, "the printed returns lie on no lattice")
 
 

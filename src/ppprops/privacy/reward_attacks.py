@@ -75,7 +75,7 @@ def warped_lattice(v: View) -> Estimate:
     if chance >= 0.01:
         return Estimate(name, "c", None, f"a fit exists but could be chance (expected {chance:.2g} by chance; {how})")
     s_est = -s_est if flip else s_est
-    return Estimate(name, "c", c_est, f"{len(Y)} distinct returns decode to integers with p={p_est:.4g} ({how})",
+    return Estimate(name, "c", c_est, f"{len(Y)} distinct returns decode to integers under one warp ({how})",
                     extras={"s": s_est, "p": p_est})
 
 
@@ -239,7 +239,7 @@ def additivity(v: View) -> Estimate:
                                np.array([100.0, 0.1]))
     if oval <= tol_rel:
         return Estimate(name, "c", None, "the components add up under many maps (c is not determined)")
-    return Estimate(name, "c", math.exp(lc), f"{len(rows)} entries add up with p={p:.4g}"
+    return Estimate(name, "c", math.exp(lc), f"{len(rows)} entries add up under one map"
                     + (" (survive anchored at the time limit)" if target is not None else ""), extras={"s": s, "p": p})
 
 
