@@ -110,6 +110,22 @@ def switch_flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+# Switches that hide something from the provider. A method whose prompts show raw trajectory
+# evidence (R2PO's critic reads raw states and the actions the policy took in them) refuses them:
+# for a linear policy u = W^T s + b a least-squares fit of those actions on those states gives the
+# raw W and b (so every a_j, coordinate by coordinate, against the encoded parameters beside them),
+# and the public dynamics and reward definition give the raw return from the rollout (CartPole: its
+# number of steps). Encoding states and actions with secrets of their own would not hold either:
+# public dynamics pin a diagonal state scale (initial-state range, termination thresholds,
+# x' = x + tau x_dot). See docs/threat-model.md.
+PRIVACY_SWITCHES = ("encode_params", "scale_rewards", *HARDENING)
+
+
+def check_method(method: str, mech: Mechanisms) -> None:
+    """Refuse mechanisms ``method`` cannot run with (``Method.check_mechanisms``), as one ConfigError line."""
+    get_method(method).check_mechanisms(mech)
+
+
 def resolve(method: str, **overrides: bool | None) -> Mechanisms:
     """The mechanisms of a search method (a preset, R2PO's, or a black-box method's), with any
     switch turned on or off individually: ``get_method(method).mechanisms(**overrides)``.
@@ -155,6 +171,7 @@ class Method:
     iteration_unit: str = "LLM iterations"
     phase: str | None = None  # the builder in ppprops.strategies (None: an RL baseline)
     top_k_prompt: bool = False  # one LLM call per iteration over a top-K history (history-cost figures)
+    raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
 
     @property
@@ -202,11 +219,25 @@ class Method:
         """Settings this method refuses, each as one ConfigError line (``RunConfig.validate`` calls it)."""
         if self.kind is MethodKind.RL:
             raise ConfigError(f"{self.name} is an RL baseline: train it with 'ppprops baseline rl --algo {self.algo}'")
-        config.mechanisms.check()
+        self.check_mechanisms(config.mechanisms)
+
+    def check_mechanisms(self, m: Mechanisms) -> None:
+        """Mechanisms this method cannot run with, each as one ConfigError line: a combination that
+        reveals what it hides, prompt switches for a black box, privacy switches for a method whose
+        prompts show raw evidence (``raw_evidence``)."""
+        m.check()
         if self.kind is MethodKind.BLACK_BOX:
-            m = config.mechanisms
             if m.detailed_feedback or m.disclose_optimum or m.disclose_reward_structure or m.hardened:
                 raise ConfigError(f"--method {self.name} sends no prompt: only --encode-params applies to it")
+        if self.raw_evidence:
+            on = [k for k in PRIVACY_SWITCHES if getattr(m, k)]
+            if on:
+                flags = ", ".join(switch_flag(k) + " on" for k in on)
+                raise ConfigError(
+                    f"--method {self.name} shows the critic raw states and actions, from which a least-squares fit gives the raw "
+                    f"policy (hence A) and the rollout gives the raw return, so it cannot run with {flags}; "
+                    "use --method pp or pp-hardened for a private search"
+                )
 
     def search_phase(self, setup: SearchSetup) -> Phase:
         """The phase that follows the warm-up (``config.iterations`` asks), built by ``strategies``."""
@@ -235,7 +266,8 @@ METHODS: dict[str, Method] = {
     for m in (
         _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
         Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
-               default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase"),
+               default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
+               raw_evidence=True),
         _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
         _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
         _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),

@@ -12,12 +12,10 @@ After that every step is a committed store row or an atomic file rename, so ``re
 from __future__ import annotations
 
 import errno
-import json
 import math
 import os
 import shutil
 import time
-import urllib.request
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing, contextmanager, nullcontext
@@ -358,17 +356,10 @@ class LazyChat:
             return client.complete(messages, D=D, seed=seed)
 
     def count_tokens(self, text: str) -> int:
-        """Exact with a llama.cpp server (its /tokenize endpoint); otherwise a conservative
-        estimate of one token per two characters (digit-heavy prompts tokenize densely)."""
-        client = self._get()
-        root = str(client._client.base_url).rstrip("/").removesuffix("/v1")
-        try:
-            req = urllib.request.Request(root + "/tokenize", data=json.dumps({"content": text}).encode(),
-                                         headers={"Content-Type": "application/json"}, method="POST")
-            with urllib.request.urlopen(req, timeout=30) as resp:
-                return len(json.loads(resp.read())["tokens"]) + CHAT_TEMPLATE_MARGIN
-        except (OSError, ValueError, KeyError):
-            return len(text) // 2 + CHAT_TEMPLATE_MARGIN
+        """A local estimate, nothing sent: one token per two characters (digit-heavy prompts tokenize
+        densely; no tokenizer of the endpoint's model is known here). Every byte that leaves goes
+        through the recording ``ChatClient``; R2PO refines this with the usage counts of its answers."""
+        return len(text) // 2 + CHAT_TEMPLATE_MARGIN
 
     def close(self) -> None:
         self._stack.close()

@@ -26,6 +26,7 @@ class EchoOptimizer:
     def __init__(self, config: Any = None, *, spread: float = 0.5) -> None:
         self.spread = spread
         self.calls = 0
+        self.config = config
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         self.calls += 1
@@ -38,10 +39,25 @@ class EchoOptimizer:
             best = np.zeros(D)
         proposal = best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
         content = json.dumps({"params": [round(float(v), 2) for v in proposal]})
-        body = {"model": "echo-optimizer", "messages": messages, "seed": seed}
+        body = self._body(messages, D, seed)
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None,
                         prompt_chars=sum(len(m["content"]) for m in messages), prompt_tokens=None, completion_tokens=None,
                         latency_s=0.0, ok=True)
+
+    def _body(self, messages: list[dict[str, str]], D: int, seed: int | None) -> dict[str, Any]:
+        """The body the real client would send to the embedded model (so the audit reads a real one)."""
+        if self.config is None:
+            return {"model": "echo-optimizer", "messages": messages, "seed": seed}
+        from ..llm.client import ChatClient
+        from ..llm.embedded import MODEL_ALIAS
+
+        llm = self.config.llm
+        client = ChatClient(llm, base_url="http://127.0.0.1:9/v1", model=llm.model if llm.base_url else MODEL_ALIAS,
+                            api_key="not-needed", grammar_ok=llm.base_url is None)
+        try:
+            return client.body(messages, D=D, seed=seed)
+        finally:
+            client.close()
 
     def count_tokens(self, text: str) -> int:
         return len(text) // 4
@@ -55,5 +71,5 @@ def offline_llm(spread: float = 0.5) -> Iterator[None]:
     """Within the block, every run started by ``ppprops.runner`` talks to an ``EchoOptimizer``."""
     from ..runner import use_chat
 
-    with use_chat(lambda config: EchoOptimizer(spread=spread)):
+    with use_chat(lambda config: EchoOptimizer(config, spread=spread)):
         yield

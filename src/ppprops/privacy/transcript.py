@@ -21,21 +21,33 @@ class Request:
     text: str  # every non-assistant message, joined (assistant messages are the provider's own words)
     seed: int | None
     entries: tuple[ShownEntry, ...]
+    answer: str | None = None  # the provider's own answer to it (it knows what it said)
+    body: str = ""  # the request body as sent
 
     @property
     def where(self) -> str:
         return f"call {self.call_id} (iteration {self.iteration}, attempt {self.attempt})"
 
 
-def parse_request(call_id: int, iteration: int, attempt: int, body: str) -> Request:
+def message_text(content: object) -> str:
+    """A message's text: a string, or the text of every part of a list of parts, joined."""
+    if isinstance(content, str):
+        return content
+    if isinstance(content, list):
+        return "\n\n".join(str(p.get("text", "")) if isinstance(p, dict) else str(p) for p in content)
+    return "" if content is None else str(content)
+
+
+def parse_request(call_id: int, iteration: int, attempt: int, body: str, answer: str | None = None) -> Request:
     try:
         doc = json.loads(body)
         messages = doc.get("messages", [])
-        text = "\n\n".join(str(m.get("content", "")) for m in messages if m.get("role") != "assistant")
+        text = "\n\n".join(message_text(m.get("content")) for m in messages if m.get("role") != "assistant")
         seed = doc.get("seed")
     except (json.JSONDecodeError, AttributeError):
         text, seed = body, None  # not JSON: audit the bytes as text
-    return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None, tuple(history_entries(text)))
+    return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None, tuple(history_entries(text)),
+                   answer, body)
 
 
 def load_requests(run_dir: Path) -> list[Request]:
@@ -47,4 +59,5 @@ def load_requests(run_dir: Path) -> list[Request]:
         calls = store.llm_calls()
     finally:
         store.close()
-    return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"])) for c in calls]
+    return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"))
+            for c in calls]
