@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import LLMConfig, RunConfig
+from .config import RunConfig
 from .errors import ConfigError
 from .policy_file import Policy, load_policy
-from .store import Candidate
+from .values import Candidate
 
 Pathish = str | os.PathLike[str]
 TaskLike = Any  # str | os.PathLike | Callable[..., gymnasium.Env] | TaskSpec | Task (see ppprops.tasks.load_task)
@@ -220,41 +220,29 @@ def search(
         StoreError: the run directory cannot be written.
     """
     from .methods import get_method
-    from .tasks import is_builtin, load_task
+    from .settings import build_config
+    from .tasks import load_task
 
-    overrides = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
-                     disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
-                     secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
-                     hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
-                     describe_task=describe_task)  # fmt: skip
+    switches = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
+                    disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
+                    secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
+                    hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
+                    describe_task=describe_task)  # fmt: skip
     entry = get_method(method)  # a bad method fails before the env is made
-    mechanisms = entry.mechanisms(**overrides)
+    entry.mechanisms(**switches)
+    values: dict[str, Any] = dict(
+        method=method, warmup=warmup, iterations=iterations, top_k=top_k, final_episodes=final_episodes, seed=seed,
+        box=tuple(box), decimals=decimals, workers=workers, prompt_params=prompt_params, param_digits=param_digits,
+        prompt_layout=prompt_layout, parse_retries=parse_retries, on_llm_failure=on_llm_failure, base_url=base_url, model=model,
+        api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens, timeout=timeout,
+        reasoning_effort=reasoning_effort, structured=structured, context_size=context_size, retries=retries,
+        **{k: v for k, v in switches.items() if v is not None},
+    )  # fmt: skip
+    if episodes is not None:
+        values["episodes"] = episodes
     t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
                   obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
-    config = RunConfig(
-        task=t.name,
-        task_spec=None if is_builtin(t) or t.spec is None else t.spec.to_json(),
-        method=method,
-        mechanisms=mechanisms,
-        warmup=warmup,
-        iterations=iterations,
-        top_k=top_k,
-        episodes=episodes if episodes is not None else entry.default_episodes,
-        final_episodes=final_episodes,
-        seed=seed,
-        box=(float(box[0]), float(box[1])),
-        decimals=decimals,
-        workers=workers,
-        prompt_params=prompt_params,
-        param_digits=param_digits,
-        prompt_layout=prompt_layout,
-        parse_retries=parse_retries,
-        on_llm_failure=on_llm_failure,
-        llm=LLMConfig(base_url=base_url, model=model, api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens,
-                      timeout_s=timeout, reasoning_effort=reasoning_effort, structured=structured, context_size=context_size,
-                      transport_retries=retries),  # fmt: skip
-    )
-    config.validate()
+    config = build_config(values, task=t)
     run_dir = Path(out) if out is not None else _default_out(t.name, method, seed)
     from .runner import start
 
@@ -308,14 +296,11 @@ def load_run(run_dir: Pathish) -> SearchResult:
     from .store import open_store
 
     run_dir = Path(run_dir)
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         config = RunConfig.from_json(store.config())
         history = tuple(store.candidates())
         fe = store.final_eval()
         status = store.status()
-    finally:
-        store.close()
     best = best_candidate(list(history)) if history else None
     final = None
     if fe is not None and fe.returns:

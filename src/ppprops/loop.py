@@ -15,21 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .client.codec import Codec, encode_feedback
-from .evaluation import Feedback
 from .proposers.base import Proposer
-from .store import Candidate, RunStore
+from .store import RunStore
+from .values import Candidate, Feedback
 
 Evaluate = Callable[[np.ndarray, int], tuple[Feedback, Sequence[int]]]
 OnCandidate = Callable[[Candidate], None]
-
-
-class StopSearch(Exception):
-    """Raised by a proposer that cannot go on (e.g. its prompt no longer fits the context
-    window). The run stops there and reports the best policy found before it."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
 
 
 @dataclass(frozen=True)

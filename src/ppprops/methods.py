@@ -105,6 +105,22 @@ PRESETS: dict[str, Mechanisms] = {
 SWITCHES: tuple[str, ...] = tuple(f.name for f in fields(Mechanisms))
 
 
+# The help text of each switch's `--<name> on|off` flag.
+SWITCH_HELP: dict[str, str] = {
+    "encode_params": "parameters shown as A theta (Sec. II-B)",
+    "scale_rewards": "returns and reward components shown as c r (Sec. II-C)",
+    "detailed_feedback": "reward components and diagnostics in the history",
+    "disclose_optimum": "state the optimal return as a target (Vanilla ProPS)",
+    "disclose_reward_structure": "state the numeric reward definition",
+    "describe_task": "task description in the prompt: on = ProPS+, off = ProPS (policy structure only)",
+    "secret_offsets": "hardening: secret raw origins, A (theta - m) and c (r - s)",
+    "warp_params": "hardening: the box mapped onto the real line before A",
+    "warp_rewards": "hardening: a secret increasing power warp of the rewards",
+    "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
+    "encoded_warmup": "hardening: warm-up drawn in the encoded space",
+}
+
+
 def switch_flag(name: str) -> str:
     """The command-line flag of a mechanism switch: ``encode_params`` -> ``--encode-params``."""
     return "--" + name.replace("_", "-")

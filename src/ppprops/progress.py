@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from .runner import RunEvents
-from .store import Candidate, FinalEval
+from .values import Candidate, FinalEval
 
 
 class ProgressEvents:

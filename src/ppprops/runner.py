@@ -31,18 +31,20 @@ from .client.hardening import codec_for, generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
-from .evaluation import EpisodeLimitError, Evaluator, Feedback, WorkerError, check_parallel
+from .evaluation import EpisodeLimitError, Evaluator, WorkerError, check_parallel
+from .fileio import write_json_atomic
 from .llm.client import ChatClient, Exchange
-from .loop import Phase, StopSearch, best_candidate, run_loop
+from .loop import Phase, best_candidate, run_loop
 from .methods import get_method
-from .policy_file import policy_document, write_json_atomic
+from .policy_file import policy_document
+from .proposers.base import StopSearch
 from .proposers.uniform import warmup_sampler
 from .status import RunStatus
-from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
+from .store import DB_NAME, KEY_NAME, RunStore, open_store
 from .strategies import SearchSetup
 from .tasks import FeedbackKeyError, Task
+from .values import Candidate, Feedback, FinalEval
 
-KEY_NAME = "secrets.key"
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 CHAT_TEMPLATE_MARGIN = 32  # tokens the chat template adds around a single user message
@@ -143,11 +145,8 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
             secrets.save(tmp / KEY_NAME)
         except OSError as e:
             raise StoreError(f"cannot write the key file in {run_dir}: {e.strerror}") from None
-        store = RunStore(tmp / DB_NAME)
-        try:
+        with RunStore(tmp / DB_NAME) as store:  # closed (the WAL checkpointed) before the directory moves
             store.init_run(run_id, config.to_json(), secrets.fingerprint())
-        finally:
-            store.close()  # the last connection checkpoints the WAL, so the directory can move
         try:
             os.rename(tmp, run_dir)  # onto a missing or empty directory, atomically
         except OSError as e:
@@ -161,10 +160,22 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
 
 
 def load_run(run_dir: Path) -> tuple[RunStore, RunConfig, Secrets]:
+    """The open store, config and secrets of a run directory; the caller closes the store
+    (``with store:``). Nothing stays open when this raises.
+
+    Raises:
+        StoreError: not a run directory, or a damaged store.
+        KeyFileError: the key file is missing, damaged, or belongs to another run.
+        ConfigError: the stored config names a task that cannot be made here.
+    """
     store = open_store(run_dir)
-    config = RunConfig.from_json(store.config())
-    task = config.make_task()
-    secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
+    try:
+        config = RunConfig.from_json(store.config())
+        task = config.make_task()
+        secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
+    except BaseException:
+        store.close()
+        raise
     return store, config, secrets
 
 
@@ -377,11 +388,9 @@ def start(
     """Create the run directory and run it. ``llm_gate`` (e.g. a shared semaphore) is held around
     every LLM request of the run; ``chat`` replaces the configured LLM (see ``execute``)."""
     store, secrets = create_run(config, run_dir, secrets)
-    try:
+    with store:
         stored = RunConfig.from_json(store.config())  # with the task's declaration
         return execute(run_dir, store, stored, secrets, events, llm_gate=llm_gate, chat=chat)
-    finally:
-        store.close()
 
 
 @dataclass(frozen=True)
@@ -442,9 +451,7 @@ def resume(
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
-    try:
+    with store:
         if endpoint is not None and endpoint.given:
             config = change_endpoint(store, config, endpoint)
         return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate, chat=chat)
-    finally:
-        store.close()

@@ -19,8 +19,9 @@ from .config import RunConfig
 from .loop import Phase
 from .proposers.base import Proposal, Proposer
 from .proposers.uniform import UniformSampler
-from .store import Candidate, RunStore
+from .store import RunStore
 from .tasks.base import Task
+from .values import Candidate
 
 if TYPE_CHECKING:
     from .evaluation import Evaluator

@@ -31,7 +31,7 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from ..evaluation import Feedback
+from ..values import Feedback
 from ..wire.encoded import EncodedEntry
 from .secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 

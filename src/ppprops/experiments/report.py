@@ -100,17 +100,6 @@ def _task_key(task: str) -> tuple[int, str]:
 
 
 # -- reading ---------------------------------------------------------------------------------
-def find_runs(root: Path) -> list[Path]:
-    """Run directories under a grid (``DIR/runs/*``) or any folder of runs (``DIR/*``, ``DIR`` itself)."""
-    from ..store import DB_NAME
-
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"{root} is not a directory")
-    found = {p.parent for pattern in (DB_NAME, f"*/{DB_NAME}", f"runs/*/{DB_NAME}") for p in root.glob(pattern)}
-    return sorted(p for p in found if not p.name.startswith("."))
-
-
 def read_run(path: Path) -> RunRecord:
     from ..report import run_summary
 
@@ -385,6 +374,7 @@ def require_matplotlib() -> None:
 def write_report(root: Path, out: Path | None = None) -> Path:
     """Read every run under ``root``, write the report into ``out`` (default ``root/report``)."""
     require_matplotlib()
+    from ..store import find_runs
     from . import html as html_page
     from . import plots
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..client.secrets import Secrets
 from ..methods import Mechanisms
-from ..store import Candidate
+from ..values import Candidate
 from .attacks import TARGET, run_attacks
 from .transcript import Request
 

@@ -23,8 +23,8 @@ from ..client.hardening import codec_for
 from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..llm.client import default_max_tokens, params_grammar, params_schema
-from ..store import Candidate
 from ..tasks.base import Task
+from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, build_prompt
 from ..wire.prompt import build_correction, history_entry, template
 from ..wire.r2po import Evidence, build_critic_prompt

@@ -21,7 +21,7 @@ import numpy as np
 from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import ConfigError
-from ..store import DB_NAME, open_store
+from ..store import open_store
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
 from .transcript import load_requests
@@ -115,17 +115,6 @@ def _model_of(run_dir: Path) -> str:
         return str(json.loads(calls[0]["request"]).get("model", ""))
     except (ValueError, IndexError, AttributeError):
         return ""
-
-
-def find_runs(root: Path) -> list[Path]:
-    """Run directories under ``root`` (itself included) that hold a store and a key file."""
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"{root} is not a directory")
-    found = [p.parent for p in sorted(root.rglob(DB_NAME)) if (p.parent / "secrets.key").exists()]
-    if not found:
-        raise ConfigError(f"no run directories (with {DB_NAME} and secrets.key) under {root}")
-    return found
 
 
 def run_matrix(

@@ -1,4 +1,4 @@
-"""The ask/tell protocol every proposer implements."""
+"""The ask/tell protocol every proposer implements, and how a proposer stops a search."""
 
 from __future__ import annotations
 
@@ -8,7 +8,17 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from ..store import Candidate
+    from ..values import Candidate
+
+
+class StopSearch(Exception):
+    """Raised by a proposer's ``ask`` when it cannot go on (e.g. its prompt no longer fits the
+    context window). The run stops there (status ``stopped: <reason>``) and reports the best
+    policy found before it; ``reason`` is that one line."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..client.codec import Codec
 from ..errors import MissingExtraError
-from ..store import Candidate
+from ..values import Candidate
 from .base import Proposal, clip_to_box
 
 Space = Literal["raw", "encoded"]

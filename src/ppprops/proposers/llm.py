@@ -34,7 +34,7 @@ import numpy as np
 from .. import seeding
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
-from ..store import Candidate
+from ..values import Candidate
 from ..wire import EncodedEntry, ParseResult, PromptContext, build_correction, build_prompt, top_k
 from ..wire.parse import final_text, read_answer
 from ..wire.prompt import params_text

@@ -26,11 +26,10 @@ import numpy as np
 
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange
-from ..loop import StopSearch
-from ..store import Candidate
+from ..values import Candidate
 from ..wire import PromptContext
 from ..wire.r2po import Evidence, build_critic_prompt
-from .base import Proposal
+from .base import Proposal, StopSearch
 from .llm import ExchangeHook, LLMProposer
 
 Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import seeding
-from ..store import Candidate
+from ..values import Candidate
 from .base import Proposal
 
 if TYPE_CHECKING:

@@ -14,9 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..policy import param_count
+from ..values import Diagnostic
 
 ActionType = Literal["continuous", "discrete"]
-Diagnostic = float | str
 
 
 @dataclass(frozen=True)
