@@ -18,18 +18,20 @@ def template(name: str) -> Template:
     return Template(text.rstrip("\n"))
 
 
-def _render(name: str, **values: object) -> str:
+def render(name: str, **values: object) -> str:
+    """Template ``name`` (a file in ``wire/templates``) with ``values`` substituted; KeyError if one is missing."""
     return template(name).substitute(**values)
+
 
 
 def task_section(ctx: PromptContext) -> str:
     """The task description (ProPS+), or with ``describe_task`` off only the policy's structure (ProPS)."""
-    action_rule = _render("action_discrete" if ctx.discrete else "action_continuous")
+    action_rule = render("action_discrete" if ctx.discrete else "action_continuous")
     if not ctx.describe_task:
-        return _render("task_withheld", n_s=ctx.n_s, n_a=ctx.n_a, action_rule=action_rule)
+        return render("task_withheld", n_s=ctx.n_s, n_a=ctx.n_a, action_rule=action_rule)
     obs = "\n".join(f"- s[{i}] {name}: {meaning}" for i, (name, meaning) in enumerate(ctx.observations))
     acts = "\n".join(f"- u[{j}]: {meaning}" for j, meaning in enumerate(ctx.actions))
-    return _render(
+    return render(
         "task",
         summary=ctx.summary,
         n_s=ctx.n_s,
@@ -51,32 +53,32 @@ def parameters_section(ctx: PromptContext) -> str:
     if ctx.encoded_params:
         if ctx.param_encoding not in _PARAM_TEMPLATES:
             raise ValueError(f"unknown parameter encoding {ctx.param_encoding!r}")
-        text = _render(_PARAM_TEMPLATES[ctx.param_encoding], layout=desc)
+        text = render(_PARAM_TEMPLATES[ctx.param_encoding], layout=desc)
         if ctx.warmup_range is not None:
             low, high = ctx.warmup_range
-            text += "\n" + _render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+            text += "\n" + render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
         return text
     if ctx.param_range is None:
         raise ValueError("unencoded parameters need a public range")
     low, high = ctx.param_range
-    return _render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+    return render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
 
 
 def feedback_section(ctx: PromptContext) -> str:
     if ctx.scaled_rewards and ctx.reward_encoding not in _REWARD_NOTES:
         raise ValueError(f"unknown reward encoding {ctx.reward_encoding!r}")
-    scale = _render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
-    optimum = _render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
+    scale = render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
+    optimum = render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
     if not ctx.detailed_feedback:
-        return _render("feedback_scalar", scale_note=scale, optimum_note=optimum)
+        return render("feedback_scalar", scale_note=scale, optimum_note=optimum)
     notes = [f"- component {k}: {v}" for k, v in ctx.component_notes]
     notes += [f"- diagnostic {k}: {v}" for k, v in ctx.diagnostic_notes]
-    return _render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
+    return render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
 
 
 def interaction_section(ctx: PromptContext) -> str:
     size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
-    return _render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
+    return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
 
 
 # Shared with ``wire.transcript``, which reads entries back out of recorded prompts.
@@ -115,7 +117,7 @@ def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
     if ctx.detailed_feedback and e.diagnostics:
         diags = DIAGNOSTICS_PREFIX + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
     params = params_text(ctx, e.params)  # checks the style
-    return _render(PARAMS_STYLES[ctx.params_style], params=params, ret=fmt(e.ret, d), components=comps, diagnostics=diags)
+    return render(PARAMS_STYLES[ctx.params_style], params=params, ret=fmt(e.ret, d), components=comps, diagnostics=diags)
 
 
 def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
@@ -123,7 +125,7 @@ def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
     iterations, so a server that caches prompt prefixes re-reads just that part."""
     name = _choice(LAYOUTS, ctx.layout, "prompt layout")
     hist = "\n\n".join(history_entry(ctx, e) for e in history) if history else "(empty)"
-    return _render(
+    return render(
         name,
         task=task_section(ctx),
         parameters=parameters_section(ctx),
@@ -134,4 +136,4 @@ def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
 
 
 def build_correction(reason: str, D: int) -> str:
-    return _render("correction", reason=reason, D=D)
+    return render("correction", reason=reason, D=D)
