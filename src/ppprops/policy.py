@@ -46,13 +46,13 @@ class LinearPolicy:
         low: NDArray[np.floating] | None = None,
         high: NDArray[np.floating] | None = None,
     ) -> LinearPolicy:
-        theta = np.asarray(theta, dtype=np.float64)
-        if theta.shape != (param_count(n_s, n_a),):
+        theta64: NDArray[np.float64] = np.asarray(theta, dtype=np.float64)
+        if theta64.shape != (param_count(n_s, n_a),):
             raise ConfigError(
-                f"policy needs {param_count(n_s, n_a)} parameters for n_s={n_s}, n_a={n_a}, got shape {theta.shape}"
+                f"policy needs {param_count(n_s, n_a)} parameters for n_s={n_s}, n_a={n_a}, got shape {theta64.shape}"
             )
-        W = theta[: n_s * n_a].reshape(n_s, n_a).copy()
-        b = theta[n_s * n_a :].copy()
+        W = theta64[: n_s * n_a].reshape(n_s, n_a).copy()
+        b = theta64[n_s * n_a :].copy()
         lo = None if low is None else np.asarray(low, dtype=np.float64)
         hi = None if high is None else np.asarray(high, dtype=np.float64)
         return cls(W=W, b=b, discrete=discrete, low=lo, high=hi)

@@ -188,7 +188,7 @@ GROUP_TITLES = {
 
 
 # -- command line ---------------------------------------------------------------------------------
-def add_flags(parser: argparse.ArgumentParser, *, exclude: Iterable[str] = (), only: Iterable[str] | None = None,
+def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, *, exclude: Iterable[str] = (), only: Iterable[str] | None = None,
               groups: Mapping[str, str] | None = GROUP_TITLES, help_suffix: str = "") -> None:  # fmt: skip
     """Add the settings' flags to ``parser`` (keys in ``exclude`` left out, or only those in ``only``).
 

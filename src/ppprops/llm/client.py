@@ -363,10 +363,10 @@ class ChatClient:
             kind = "refused" if _is_refused(e) else "dropped"
             return failed(kind, f"{kind}: {_cause(e)} at {self.url}"), None, None
         except openai.APIStatusError as e:
-            text = _body_text(e)
-            err = server_error(e.status_code, text)
+            err_body = _body_text(e)
+            err = server_error(e.status_code, err_body)
             after = _retry_after(e)
-            ex = refused(err, text, e.status_code)
+            ex = refused(err, err_body, e.status_code)
             if after is not None:
                 ex = replace(ex, error=f"{ex.error} (Retry-After {after:g} s)")
             return ex, after, err

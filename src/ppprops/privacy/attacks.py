@@ -55,7 +55,9 @@ def diagnostic(v: View) -> Estimate:
                 continue
             raw = sum(coef * x[0] for coef, x in zip(formula.values(), vals, strict=True) if x) + v.facts.formula_const
             if raw != 0:
-                f.append(raw), r.append(e.ret), tol.append(e.ret_tol)
+                f.append(raw)
+                r.append(e.ret)
+                tol.append(e.ret_tol)
         if len(f) >= 2:
             fa, ra = np.array(f), np.array(r)
             c = float(fa @ ra / (fa @ fa))

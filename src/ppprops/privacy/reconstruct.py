@@ -85,7 +85,9 @@ def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[Show
 
 def _skeleton(text: str, entries: list[ShownEntry]) -> tuple[str, list[int]]:
     """The text with each entry replaced by one NUL, and the text offset of each skeleton character."""
-    parts, where, pos = [], [], 0
+    parts: list[str] = []
+    where: list[int] = []
+    pos = 0
     for e in entries:
         parts.append(text[pos:e.start])
         where.extend(range(pos, e.start))
@@ -177,7 +179,7 @@ def differing_spans(expected: str, recorded: str) -> list[tuple[int, int]]:
     if expected == recorded:
         return []
     sm = difflib.SequenceMatcher(None, expected, recorded, autojunk=False)
-    spans = []
+    spans: list[tuple[int, int]] = []
     for tag, _, _, j1, j2 in sm.get_opcodes():
         if tag == "equal":
             continue

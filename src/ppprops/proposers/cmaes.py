@@ -14,7 +14,7 @@ exactly the population it was in the middle of.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -37,7 +37,7 @@ class CMAESProposer:
         self.popsize = popsize
         self.source = source
         self._warmup: list[Candidate] = []
-        self._es = None
+        self._es: Any = None  # cma.CMAEvolutionStrategy once started (pycma has no type information)
         self._pop: list[np.ndarray] | None = None
         self._fit: list[float] = []
 
@@ -64,7 +64,7 @@ class CMAESProposer:
         if self._es is None:
             self._start()
         if self._pop is None:
-            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]  # type: ignore[union-attr]
+            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]
             self._fit = []
         return self._pop
 
@@ -83,5 +83,5 @@ class CMAESProposer:
         ret = candidate.feedback.ret if self.space == "raw" else candidate.feedback_enc.ret
         self._fit.append(-ret if np.isfinite(ret) else np.inf)
         if len(self._fit) == len(pop):
-            self._es.tell(pop, self._fit)  # type: ignore[union-attr]
+            self._es.tell(pop, self._fit)
             self._pop = None

@@ -38,7 +38,10 @@ class EpisodeRecorder(Protocol):
 class ObservationAdapter(Protocol):
     """Maps the environment's observation to the policy's state vector s (length n_s)."""
 
-    names: tuple[str, ...]
+    @property
+    def names(self) -> tuple[str, ...]:
+        """One name per state value, in the order of s."""
+        ...
 
     def __call__(self, obs: Any) -> NDArray[np.float64]: ...
 

@@ -92,7 +92,7 @@ class HighwayRecorder:
         self.crashed = float(bool(info["crashed"]))
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
-        diagnostics = {
+        diagnostics: dict[str, float | str] = {
             "episode_length": float(steps),
             "crashed": self.crashed,
             "mean_speed": self.speed_sum / self.n if self.n else 0.0,
