@@ -19,11 +19,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from . import __version__
 from .config import RunConfig, read_table
 from .errors import ConfigError, PPPropsError
 from .methods import rl_algos
 from .settings import SETTINGS, add_flags, build_config, given, read_settings
+from .version import __version__
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C

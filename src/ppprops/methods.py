@@ -8,14 +8,15 @@ distinction: off, the prompt carries no task description, only the policy struct
 
 ``METHODS`` is the one place that knows each method (``Method``): its kind (a prompted search, a
 black-box optimizer at the same budget, or an RL baseline), its mechanisms, its defaults, which
-settings it refuses, and how its search phase is built (``ppprops.strategies``). The CLI, the
-experiment specs, the runner and the reports ask it instead of keeping lists of their own.
-Adding a method is one ``Method`` entry here plus, for a search, one phase builder there.
+settings it refuses, and how its search phase is built (a builder in ``ppprops.strategies``, or
+any callable). The CLI, the experiment specs, the runner and the reports ask it instead of keeping
+lists of their own. Adding a method is one ``Method`` entry here (or ``register_method`` from
+outside), plus, for a search, one phase builder. docs/architecture.md has the recipe.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import MISSING, asdict, dataclass, fields, replace
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
@@ -175,8 +176,9 @@ class Method:
 
     ``name`` is the ``--method`` value and what a run stores as its method (RL baselines:
     ``rl-<algo>``). ``preset`` is the mechanisms a prompted method starts from. A search runs
-    ``warmup`` uniform samples, then ``iterations`` asks of the phase ``strategies.<phase>``
-    builds; ``iterations`` counts what ``iteration_unit`` says.
+    ``warmup`` uniform samples, then ``iterations`` asks of the phase its builder returns:
+    ``phase`` is the name of a builder in ``ppprops.strategies`` or a callable
+    ``(strategies.SearchSetup) -> loop.Phase``; ``iterations`` counts what ``iteration_unit`` says.
     """
 
     name: str
@@ -185,7 +187,7 @@ class Method:
     preset: Mechanisms | None = None
     default_episodes: int = 1  # episodes per candidate when --episodes is not given
     iteration_unit: str = "LLM iterations"
-    phase: str | None = None  # the builder in ppprops.strategies (None: an RL baseline)
+    phase: str | Callable[[SearchSetup], Phase] | None = None  # builder (name in ppprops.strategies or callable); None: RL
     top_k_prompt: bool = False  # one LLM call per iteration over a top-K history (history-cost figures)
     raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
@@ -206,6 +208,7 @@ class Method:
 
     @property
     def uses_llm(self) -> bool:
+        """True for prompted methods: the run starts (or connects to) an LLM endpoint."""
         return self.kind is MethodKind.PROMPTED
 
     def mechanisms(self, **overrides: bool | None) -> Mechanisms:
@@ -255,14 +258,6 @@ class Method:
                     "use --method pp or pp-hardened for a private search"
                 )
 
-    def search_phase(self, setup: SearchSetup) -> Phase:
-        """The phase that follows the warm-up (``config.iterations`` asks), built by ``strategies``."""
-        if self.phase is None:
-            raise ConfigError(f"{self.name} is an RL baseline; it has no search phase")
-        from . import strategies
-
-        build = getattr(strategies, self.phase)
-        return build(setup)  # type: ignore[no-any-return]
 
 
 def _prompted(name: str, title: str, preset: str) -> Method:
@@ -301,6 +296,21 @@ METHODS: dict[str, Method] = {
         _rl("dqn"),
     )
 }  # fmt: skip
+
+
+def register_method(method: Method) -> Method:
+    """Add ``method`` to the registry (after the built-in ones) and return it.
+
+    From then on ``--method``, ``ppprops.search(method=...)``, the experiment specs and the reports
+    know it. A search method needs a ``phase``. Raises ConfigError if the name is taken or a search
+    method has no phase builder.
+    """
+    if method.name in METHODS:
+        raise ConfigError(f"a method named {method.name!r} is already registered")
+    if method.is_search and method.phase is None:
+        raise ConfigError(f"method {method.name!r} is a search and needs a phase builder")
+    METHODS[method.name] = method
+    return method
 
 
 def methods(kind: MethodKind | None = None, *, search: bool | None = None) -> Iterator[Method]:

@@ -61,7 +61,7 @@ def _versions(entry_point: str | None) -> dict[str, str]:
 
     import gymnasium
 
-    from . import __version__
+    from .version import __version__
 
     out = {"ppprops": __version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__, "python": platform.python_version()}
     modules = {"mujoco"} | ({entry_point.split(":")[0].split(".")[0]} if entry_point else set())

@@ -41,7 +41,7 @@ from .proposers.base import StopSearch
 from .proposers.uniform import warmup_sampler
 from .status import RunStatus
 from .store import DB_NAME, KEY_NAME, RunStore, open_store
-from .strategies import SearchSetup
+from .strategies import SearchSetup, search_phase
 from .tasks import FeedbackKeyError, Task
 from .values import Candidate, Feedback, FinalEval
 
@@ -260,7 +260,7 @@ def execute(
                             model = stack.enter_context(closing(made))
                         chat_fn = lambda: model  # noqa: E731
                     setup = SearchSetup(task=task, config=config, codec=codec, evaluator=evaluator, store=store, chat=chat_fn)
-                    phases.append(method.search_phase(setup))
+                    phases.append(search_phase(method, setup))
                 search = phases[-1].proposer if len(phases) > 1 else None
                 best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 

@@ -5,7 +5,7 @@ ProPS presets (and pp-hardened) are one LLM proposer with different mechanisms, 
 two-stage LLM proposer, and the black-box baselines replace the LLM with another proposer at the
 same budget (warm-up + iterations evaluations). The loop (``ppprops.loop``) is the same for all.
 A builder takes a ``SearchSetup`` and returns a ``Phase``; adding a search method means adding a
-builder here and a ``Method`` naming it in ``ppprops.methods``.
+builder (here, or anywhere for ``methods.register_method``) and a ``Method`` naming it.
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from typing import TYPE_CHECKING, Any
 
 from .client.codec import Codec
 from .config import RunConfig
+from .errors import ConfigError
 from .loop import Phase
+from .methods import Method
 from .proposers.base import Proposal, Proposer
 from .proposers.uniform import UniformSampler
 from .store import RunStore
@@ -41,6 +43,18 @@ class SearchSetup:
     evaluator: Evaluator
     store: RunStore
     chat: Callable[[], Any] | None = None
+
+
+def search_phase(method: Method, setup: SearchSetup) -> Phase:
+    """The phase that follows the warm-up (``setup.config.iterations`` asks) for ``method``.
+
+    ``method.phase`` names a builder of this module or is the builder itself. Raises ConfigError
+    for a method without one (an RL baseline).
+    """
+    if method.phase is None:
+        raise ConfigError(f"{method.name} is an RL baseline; it has no search phase")
+    build = globals()[method.phase] if isinstance(method.phase, str) else method.phase
+    return build(setup)  # type: ignore[no-any-return]
 
 
 class RandomSearch:

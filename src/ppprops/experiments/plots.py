@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..status import RunKind
+from .order import PROMPT_METHODS, column_key, task_key
 
 if TYPE_CHECKING:
     from .report import Group, RunRecord
@@ -48,8 +49,6 @@ def curve(runs: list[RunRecord]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def reward_curves(out: Path, groups: dict[tuple[str, str], Group]) -> list[Path]:
     """One PNG per task: each method's mean return per iteration with a shaded +-std band."""
-    from .report import column_key, task_key
-
     plt = _plt()
     paths = []
     tasks = sorted({t for (t, _), g in groups.items() if g.kind == RunKind.SEARCH}, key=task_key)
@@ -86,8 +85,6 @@ def history_cost(out: Path, groups: dict[tuple[str, str], Group], retained: Call
     """One PNG per task with prompt-based LLM runs: response time against retained history size
     (left) and prompt size (right), one colour per history setting; the large marker is each
     setting's mean over its last iteration (the paper highlights K = 10 and unbounded)."""
-    from .report import PROMPT_METHODS, column_key, task_key
-
     plt = _plt()
     paths = []
     tasks = sorted({t for (t, _), g in groups.items() if g.method in PROMPT_METHODS and any(r.calls for r in g.runs)}, key=task_key)

@@ -30,16 +30,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, MissingExtraError, StoreError
-from ..methods import MethodKind, find_method, methods
+from ..methods import MethodKind, find_method
 from ..status import RunKind, is_complete
 from . import paper_values as pv
+from .order import DEFAULT_K, PROMPT_METHODS, column_key, task_key
 from .tables import Cell, Table, write_csv, write_table
-
-PAPER_TASKS = ("Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joints", "Humanoid-Torso",
-               "Acrobot", "CartPole", "FetchReachDense", "Highway")  # fmt: skip
-METHOD_ORDER = tuple(m.name for m in methods())  # the registry's order: the paper's tables
-PROMPT_METHODS = tuple(m.name for m in methods() if m.top_k_prompt)  # one LLM call per iteration over a top-K history
-DEFAULT_K = 10
 
 
 def method_kind(method: str, kind: str) -> MethodKind:
@@ -90,15 +85,6 @@ def column_name(method: str, top_k: int | None, kind: str) -> str:
     return f"{method} (unbounded)" if top_k == 0 else f"{method} (K={top_k})"
 
 
-def column_key(col: str) -> tuple[int, str]:
-    """Sort key of a table column: the paper's method order first, then the column name."""
-    base = col.split(" ")[0]
-    return (METHOD_ORDER.index(base) if base in METHOD_ORDER else len(METHOD_ORDER), col)
-
-
-def task_key(task: str) -> tuple[int, str]:
-    """Sort key of a task: the paper's task order first, then the task name."""
-    return (PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS), task)
 
 
 # -- reading ---------------------------------------------------------------------------------
