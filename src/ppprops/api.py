@@ -52,10 +52,12 @@ class Evaluation:
 
     @property
     def mean(self) -> float:
+        """Mean episode return (raw reward units); NaN with no episodes."""
         return float(np.mean(self.returns)) if self.returns else float("nan")
 
     @property
     def std(self) -> float:
+        """Population standard deviation of the episode returns (numpy's default); NaN with no episodes."""
         return float(np.std(self.returns)) if self.returns else float("nan")
 
 

@@ -50,6 +50,7 @@ class Mechanisms:
     describe_task: bool = True
 
     def to_json(self) -> dict[str, bool]:
+        """Each switch by name, as stored in a run's config."""
         return asdict(self)
 
     @classmethod

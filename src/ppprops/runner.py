@@ -82,11 +82,17 @@ class ChatModel(Protocol):
     sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it.
     """
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """Send ``messages`` asking for ``D`` numbers; the Exchange holds the request, answer and errors."""
+        ...
 
-    def count_tokens(self, text: str) -> int: ...
+    def count_tokens(self, text: str) -> int:
+        """An estimate of ``text``'s length in the model's tokens (never under-counted on purpose)."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the endpoint (stop an embedded server this object started)."""
+        ...
 
 
 # A chat model for every run started in this context (see ``use_chat``); None: the configured LLM.
@@ -108,6 +114,7 @@ def use_chat(factory: Callable[[RunConfig], ChatModel]) -> Iterator[None]:
 
 
 def new_run_id(config: RunConfig) -> str:
+    """A fresh run id, ``<task>__<method>__<seed>__<8 hex digits>`` (random, so two runs never share one)."""
     return f"{config.task}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}"
 
 
@@ -362,6 +369,7 @@ class LazyChat:
         return self._client
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """``ChatClient.complete`` on the client started on first use, holding the run's LLM gate."""
         client = self._get()
         with self.gate:
             return client.complete(messages, D=D, seed=seed)
@@ -373,6 +381,7 @@ class LazyChat:
         return len(text) // 2 + CHAT_TEMPLATE_MARGIN
 
     def close(self) -> None:
+        """Close the client (and stop the embedded server) if one was started."""
         self._stack.close()
 
 
@@ -385,8 +394,24 @@ def start(
     llm_gate: AbstractContextManager[object] | None = None,
     chat: ChatModel | None = None,
 ) -> FinalEval | None:
-    """Create the run directory and run it. ``llm_gate`` (e.g. a shared semaphore) is held around
-    every LLM request of the run; ``chat`` replaces the configured LLM (see ``execute``)."""
+    """Create the run directory (``create_run``) and run it (``execute``): warm-up, search, final
+    evaluation, policy file (Algorithm 1 of the paper for the prompted methods).
+
+    ``llm_gate`` (e.g. a shared semaphore) is held around every LLM request of the run; ``chat``
+    replaces the configured LLM; ``secrets`` replaces freshly drawn ones (tests, controlled grids).
+
+    Returns:
+        The final evaluation (the best search policy on ``final_episodes`` fresh episodes, raw
+        returns), or None when ``final_episodes`` is 0.
+
+    Raises:
+        ConfigError: an invalid config, or ``run_dir`` already holds something or cannot be made
+            (nothing is written then).
+        LLMError: the endpoint stayed down past the retries (the run is left resumable).
+        KeyboardInterrupt: Ctrl-C; the run is marked ``interrupted`` and resumable.
+        FeedbackKeyError, EpisodeLimitError: the env broke its declaration mid-run (status
+            ``stopped: ...``).
+    """
     store, secrets = create_run(config, run_dir, secrets)
     with store:
         stored = RunConfig.from_json(store.config())  # with the task's declaration
@@ -404,6 +429,7 @@ class Endpoint:
 
     @property
     def given(self) -> bool:
+        """True when any setting is given (the run's endpoint changes)."""
         return any(v is not None for v in (self.base_url, self.model, self.api_key_env))
 
 

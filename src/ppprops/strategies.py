@@ -65,10 +65,11 @@ class RandomSearch:
         self.offset = offset
 
     def ask(self, iteration: int) -> Proposal:
+        """Sample ``offset + iteration`` of the warm-up's uniform stream (shape (D,), in the box)."""
         return self._uniform.ask(self.offset + iteration)
 
     def tell(self, candidate: Candidate) -> None:
-        pass
+        """Nothing: random search does not learn."""
 
 
 def _llm_common(s: SearchSetup) -> dict[str, Any]:
