@@ -43,6 +43,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``ppprops`` argument parser with every subcommand (run, resume, show, audit, report, ...)."""
     p = _Parser(prog="ppprops", description="Privacy-preserving prompted policy search with an LLM as optimizer.")
     p.add_argument("--version", action="version", version=f"ppprops {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)

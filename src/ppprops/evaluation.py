@@ -44,12 +44,18 @@ class Actor(Protocol):
 
 @dataclass(frozen=True)
 class Episode:
+    """One episode's raw outcome: return (reward units), each reward component's sum, and the reduced diagnostics."""
+
     ret: float
     components: dict[str, float]
     diagnostics: dict[str, Diagnostic]
 
 
 def make_policy(task: Task, theta: NDArray[np.floating], env: Any) -> LinearPolicy:
+    """The linear policy of ``theta`` (shape (D,)) for ``task``, with ``env``'s action bounds for continuous actions.
+
+    Raises ConfigError when ``theta`` does not have D = (n_s + 1) n_a values.
+    """
     space = env.action_space
     low = getattr(space, "low", None) if not task.discrete else None
     high = getattr(space, "high", None) if not task.discrete else None
@@ -198,6 +204,7 @@ class Evaluator:
 
     @property
     def env(self) -> Any:
+        """The evaluator's own env (made on first use), for rollouts outside ``evaluate``."""
         if self._env is None:
             self._env = self.task.make_env()
             self._cap = step_cap(self._env)
@@ -241,6 +248,7 @@ class Evaluator:
         return out
 
     def evaluate(self, theta: NDArray[np.floating], seeds: Sequence[int]) -> Feedback:
+        """Raw feedback of ``theta`` (shape (D,)) averaged over one episode per seed in ``seeds`` (paper Sec. II-C)."""
         return self.evaluate_many([theta], [seeds])[0]
 
     def evaluate_many(self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]) -> list[Feedback]:
@@ -251,6 +259,7 @@ class Evaluator:
         return [aggregate(eps) for eps in run(thetas, seeds_list)]
 
     def close(self) -> None:
+        """Shut the worker pool down (if any); the evaluator can still be used serially afterwards."""
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None

@@ -193,6 +193,7 @@ class Policy:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """One name per state value, in the order of s."""
         return tuple(self.selection.names)
 
     def state(self, obs: Any) -> NDArray[np.float64]:
@@ -204,6 +205,7 @@ class Policy:
         return self.state(obs) @ self.W + self.b
 
     def __call__(self, obs: Any) -> int | NDArray[np.float64]:
+        """The action for one raw observation: argmax of u (discrete) or u clipped to the action bounds."""
         u = self.scores(obs)
         if self.discrete:
             return int(np.argmax(u))

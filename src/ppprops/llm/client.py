@@ -73,6 +73,7 @@ class LLMUnavailable(LLMError):
 
     @property
     def kind(self) -> str:
+        """The last failed try's error kind (``timeout``, ``refused``, ``http_5xx``, ...), or ``unknown``."""
         return (self.failures[-1].error_kind or "unknown") if self.failures else "unknown"
 
 
@@ -88,10 +89,13 @@ class Chat(Protocol):
     ``messages``, ``D`` and ``seed``.
     """
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """Send ``messages`` (OpenAI chat messages) asking for ``D`` numbers; returns the recorded Exchange."""
+        ...
 
 
 def params_schema(D: int) -> dict[str, Any]:
+    """The JSON schema of an answer: an object with ``params``, an array of exactly ``D`` numbers (``--structured json_schema``)."""
     return {
         "type": "object",
         "properties": {"params": {"type": "array", "items": {"type": "number"}, "minItems": D, "maxItems": D}},
@@ -174,6 +178,14 @@ _QUOTA = re.compile(r"insufficient_quota|exceeded your current quota|check your 
 
 
 class ChatClient:
+    """The one recording client: every byte sent to an LLM endpoint goes through ``complete``.
+
+    An OpenAI-compatible chat-completions client that adapts to the endpoint (dropped parameters,
+    grammar support, reasoning output), retries transient faults with backoff, and returns each
+    request and answer as an ``Exchange`` for the run's store, so the audit sees all of it.
+    ``runner.chat_client(config)`` builds it (and starts the embedded model when asked).
+    """
+
     def __init__(self, config: LLMConfig, *, base_url: str, model: str, api_key: str, grammar_ok: bool) -> None:
         from openai import OpenAI
 
@@ -203,6 +215,7 @@ class ChatClient:
         return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen)
 
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        """The request body for ``messages`` (a dict in the chat-completions format); what ``complete`` sends."""
         body: dict[str, Any] = {"model": self.model, "messages": messages}
         if "temperature" not in self.dropped:
             body["temperature"] = self.config.temperature
@@ -409,6 +422,7 @@ class ChatClient:
         ), None, None
 
     def close(self) -> None:
+        """Close the HTTP connection pool."""
         self._client.close()
 
 

@@ -34,6 +34,7 @@ STOP_WAIT_S = 3.0  # after closing its stdin, how long the child may take to exi
 
 
 def cache_dir() -> Path:
+    """Where the embedded server keeps files: ``$PPPROPS_CACHE``, else ``~/.cache/ppprops``."""
     return Path(os.environ.get("PPPROPS_CACHE", Path.home() / ".cache" / "ppprops"))
 
 
@@ -69,6 +70,7 @@ class EmbeddedServer:
 
     @property
     def pid(self) -> int | None:
+        """The server child's process id, or None when it is not running."""
         return self._proc.pid if self._proc is not None else None
 
     def __enter__(self) -> EmbeddedServer:

@@ -27,6 +27,13 @@ Space = Literal["raw", "encoded"]
 
 
 class CMAESProposer:
+    """CMA-ES (pycma) at the prompted methods' budget, started from the best warm-up policy.
+
+    ``space="raw"`` searches theta in the box (initial step 0.3 x box width); ``"encoded"`` searches
+    theta~ = A theta with step 1 and decodes each sample (the optimizer then sees what the LLM sees).
+    Raises MissingExtraError (extra ``baselines``) when pycma is not installed.
+    """
+
     def __init__(self, *, D: int, box: tuple[float, float], seed: int, codec: Codec, space: Space = "raw",
                  popsize: int | None = None, source: str = "cmaes") -> None:
         try:
@@ -69,12 +76,14 @@ class CMAESProposer:
         return self._pop
 
     def ask(self, iteration: int) -> Proposal:
+        """The next member of the current population, decoded if needed and clipped into the box: shape (D,)."""
         x = self._population()[len(self._fit)]
         theta = x if self.space == "raw" else self.codec.decode(x)
         theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source=self.source, clipped=clipped)
 
     def tell(self, candidate: Candidate) -> None:
+        """Warm-up candidates seed the start; the population's own returns (negated: CMA-ES minimizes) feed ``tell``."""
         if candidate.source != self.source:
             self._warmup.append(candidate)
             return

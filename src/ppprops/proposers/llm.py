@@ -52,6 +52,14 @@ HINTS = {
 
 
 class LLMProposer:
+    """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
+
+    The prompt is built on the wire side from ``context`` and the encoded entries only; an answer is
+    parsed into D encoded numbers and decoded (theta = A^-1 theta~) into the box. An unusable answer
+    is corrected up to ``parse_retries`` times, then replaced by a fallback: the best policy plus
+    Gaussian noise of ``FALLBACK_SIGMA`` x box width (source ``fallback``, with the reason as note).
+    """
+
     def __init__(
         self,
         *,
@@ -82,9 +90,11 @@ class LLMProposer:
 
     @property
     def D(self) -> int:
+        """D = (n_s + 1) n_a, the number of parameters."""
         return self.ctx.D
 
     def tell(self, candidate: Candidate) -> None:
+        """Add the candidate's encoded entry to the history (a non-finite return is never shown) and track the best."""
         fb = candidate.feedback_enc
         if not (math.isfinite(fb.ret) and math.isfinite(candidate.ret)):
             self.nonfinite_skipped += 1  # a numerical fault: never shown, never the best
@@ -103,6 +113,7 @@ class LLMProposer:
             self.best = candidate
 
     def prompt(self) -> str:
+        """The prompt of the next ask: the public context and the top-K history (best last)."""
         return build_prompt(self.ctx, self.shown())
 
     def shown(self) -> list[EncodedEntry]:
@@ -115,6 +126,11 @@ class LLMProposer:
         return any(printed == params_text(self.ctx, e.params) for e in self.shown())
 
     def ask(self, iteration: int) -> Proposal:
+        """One LLM proposal (raw theta, shape (D,), clipped into the box), or a fallback after unusable answers.
+
+        Raises LLMRejected when the endpoint refuses for good, and LLMUnavailable past the retries
+        when ``on_llm_failure`` is ``stop`` (with ``skip`` a fallback is recorded instead).
+        """
         prompt = self.prompt()
         messages = [{"role": "user", "content": prompt}]
         last_error = "no attempt"

@@ -91,10 +91,12 @@ class Declared:
     reduce: str = "last"
 
     def to_json(self) -> dict[str, Any]:
+        """The stored form."""
         return {"name": self.name, "description": self.description, "info": self.info, "reduce": self.reduce}
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Declared:
+        """The inverse of ``to_json``."""
         return cls(name=str(d["name"]), description=str(d.get("description", "")), info=d.get("info"),
                    reduce=str(d.get("reduce", "last")))  # fmt: skip
 

@@ -58,12 +58,15 @@ class PromptContext:
 
     @property
     def n_s(self) -> int:
+        """Length of the state vector s."""
         return len(self.observations)
 
     @property
     def n_a(self) -> int:
+        """Number of policy outputs (action scores or continuous action dimensions)."""
         return len(self.actions)
 
     @property
     def D(self) -> int:
+        """D = (n_s + 1) n_a, the number of parameters asked for."""
         return (self.n_s + 1) * self.n_a

@@ -59,6 +59,8 @@ ERROR_KINDS = (
 
 @dataclass(frozen=True)
 class ParseResult:
+    """What an answer gave: the D numbers (``values``), or None with an ``error`` kind and a ``detail`` in words."""
+
     values: tuple[float, ...] | None
     error: str | None = None  # one of ERROR_KINDS when values is None
     detail: str = ""  # why, in words that may be shown to the model (no markup, no HTTP text)
@@ -66,6 +68,7 @@ class ParseResult:
 
     @property
     def ok(self) -> bool:
+        """True when the answer gave a usable vector."""
         return self.values is not None
 
 

@@ -14,6 +14,7 @@ from .numbers import fmt, fmt_value, fmt_vector
 
 @cache
 def template(name: str) -> Template:
+    """The prompt template ``wire/templates/<name>.txt`` (read once); FileNotFoundError for an unknown name."""
     text = resources.files("ppprops.wire.templates").joinpath(f"{name}.txt").read_text(encoding="utf-8")
     return Template(text.rstrip("\n"))
 
@@ -49,6 +50,9 @@ _REWARD_NOTES = {"scale": "scale_note", "affine": "scale_note_offset", "warp": "
 
 
 def parameters_section(ctx: PromptContext) -> str:
+    """The policy-structure section: the flat layout of params (D = (n_s + 1) n_a) and the box, encoded
+    (theta~ = A theta, paper Sec. II-B: no range is stated) or raw. ValueError for an unknown encoding.
+    """
     desc = layout.describe(ctx.n_s, ctx.n_a)
     if ctx.encoded_params:
         if ctx.param_encoding not in _PARAM_TEMPLATES:
@@ -65,6 +69,9 @@ def parameters_section(ctx: PromptContext) -> str:
 
 
 def feedback_section(ctx: PromptContext) -> str:
+    """The feedback section: what the printed returns mean (scaled r~ = c r, Sec. II-C, or raw), the
+    optimum when disclosed, and the reward components and diagnostics with detailed feedback.
+    """
     if ctx.scaled_rewards and ctx.reward_encoding not in _REWARD_NOTES:
         raise ValueError(f"unknown reward encoding {ctx.reward_encoding!r}")
     scale = render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
@@ -77,6 +84,7 @@ def feedback_section(ctx: PromptContext) -> str:
 
 
 def interaction_section(ctx: PromptContext) -> str:
+    """The interaction section: how many past policies the history shows (top-K or all) and the answer format (D numbers)."""
     size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
     return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
 
@@ -108,6 +116,10 @@ def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
 
 
 def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
+    """One history line: encoded params, encoded return, components and diagnostics in the chosen style.
+
+    Raises TypeError for anything but an EncodedEntry (raw candidates never reach a prompt).
+    """
     if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
         raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
     d = ctx.decimals
@@ -136,4 +148,5 @@ def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
 
 
 def build_correction(reason: str, D: int) -> str:
+    """The follow-up message after an unusable answer: ``reason`` in words and the D numbers wanted."""
     return render("correction", reason=reason, D=D)

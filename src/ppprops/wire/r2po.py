@@ -30,6 +30,7 @@ def _rollout_lines(ev: Evidence, decimals: int) -> str:
 
 
 def build_critic_prompt(ctx: PromptContext, ev: Evidence) -> str:
+    """R2PO's Critic-LLM prompt: the task, the proposal's statistics and its median rollout (raw states and actions)."""
     d = ctx.decimals
     mean, std, lo, hi = ev.returns
     diags = "\n".join(f"- {k}: {fmt_value(v, d)}" for k, v in ev.diagnostics) or "- (none)"
