@@ -32,6 +32,10 @@ PRIOR = 1.0  # geometric mean of the priors of c and a_j, in both schemes
 
 @dataclass
 class RunAnalysis:
+    """One run's privacy analysis: its search result and audit verdict, and per attack the recovery
+    error of the secret it targets (error factor - 1: exp(abs(ln(estimate / true))) - 1).
+    """
+
     run_dir: str
     task: str
     method: str
@@ -51,6 +55,7 @@ class RunAnalysis:
     coord_errors: dict[str, list[float]] = field(default_factory=dict)  # a-attacks: one error per scored coordinate
 
     def to_json(self) -> dict[str, Any]:
+        """The JSON form written to ``privacy-report.json``."""
         return dict(self.__dict__)
 
 
@@ -158,6 +163,7 @@ def _fmt_err(values: list[float], applicable: list[bool], coverage: list[float] 
 
 
 def format_report(runs: Sequence[RunAnalysis]) -> str:
+    """The report as Markdown: one row per attack (and the prior guesses), one column per (task, scheme); then the search results."""
     groups: dict[tuple[str, str], list[RunAnalysis]] = {}
     for r in runs:
         groups.setdefault((r.task, r.method), []).append(r)
@@ -202,11 +208,16 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
 
 
 def privacy_report(run_dirs: Sequence[Path]) -> tuple[str, list[RunAnalysis]]:
+    """Analyse every run in ``run_dirs`` (``analyse_run``) and format the report: (Markdown text, analyses).
+
+    Raises StoreError / KeyFileError for a directory that is not a run or has no usable key file.
+    """
     analyses = [analyse_run(d) for d in run_dirs]
     return format_report(analyses), analyses
 
 
 def write_report(out: Path, text: str, analyses: Sequence[RunAnalysis], command: str) -> None:
+    """Write ``privacy-report.md`` (with the producing ``command``) and ``privacy-report.json`` into ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "privacy-report.md").write_text(f"# Privacy report\n\nProduced by: `{command}`\n\n{text}\n", encoding="utf-8")
