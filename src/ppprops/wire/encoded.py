@@ -52,6 +52,7 @@ class PromptContext:
     params_style: str = "list"
     param_digits: int = 3  # list form: significant digits of a parameter (at most ``decimals`` decimals); 0: fixed decimals
     layout: str = "static-first"
+    title: str = ""  # the task's name, the document form's header (wire.document)
 
     @property
     def n_s(self) -> int:

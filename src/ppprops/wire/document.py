@@ -1,0 +1,120 @@
+"""The document form of the prompt: a history written as a document for a base model to continue.
+
+The embedded Gemma 3 270M is a base model (its GGUF carries no chat template): asked through a
+chat wrapper it was never trained on, it copies entries or writes patterns. What it does well is
+continue a document. So for it the prompt is a short header, the shown history as ``return:`` /
+``params:`` blocks from the lowest return to the highest, and one open block whose return is a
+target above the best shown one; the model writes the parameters that complete it::
+
+    # CartPole: linear policy search. ...
+
+    return: 12.40
+    params: [1.21,-0.3,...]
+
+    ...
+
+    return: 97.20
+    params: [
+
+The target is computed from the shown (already encoded) returns only, so it discloses nothing the
+history does not. The continuation is sent to a completions endpoint with a grammar that allows
+exactly D numbers and the closing bracket (``continuation_grammar``); ``wire.parse.read_continuation``
+reads it. Capable chat models keep the paper's instruction prompt (``wire.prompt.build_prompt``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+from .encoded import EncodedEntry, PromptContext
+from .numbers import fmt
+from .prompt import _render, params_text
+
+# The open block asks for best + TARGET_LIFT * (best - worst) of the shown returns.
+TARGET_LIFT = 0.2
+# With one shown return, or all equal, the spread is taken as this share of |best|.
+TARGET_FLOOR = 0.1
+# Default sampling temperature of the document form (benchmarks/RESULTS.md: lower temperatures make the
+# base model copy and refine the best entries; 1.0 made it sample almost at random).
+TEMPERATURE = 0.6
+OPENING = "["  # the document ends inside the open list; the continuation starts after it
+
+
+def document_target(history: Sequence[EncodedEntry], lift: float = TARGET_LIFT) -> float:
+    """The return written in the open block: ``best + lift * max(best - worst, 0.1 |best|)`` of the
+    shown (encoded) returns. Same scale as the history, computed from nothing else. Raises
+    ``ValueError`` on an empty history."""
+    if not history:
+        raise ValueError("the document form needs at least one history entry")
+    rets = [e.ret for e in history if math.isfinite(e.ret)]
+    if not rets:
+        raise ValueError("the document form needs at least one finite return")
+    best, worst = max(rets), min(rets)
+    span = max(best - worst, TARGET_FLOOR * abs(best))
+    return best + lift * span
+
+
+def document_entry(ctx: PromptContext, e: EncodedEntry) -> str:
+    """One shown policy: ``return: R``, then ``params: [..]`` in the list form of
+    ``wire.prompt.params_text``. Reward components and diagnostics are not written: the small
+    model gains nothing from them (benchmarks/RESULTS.md) and they cost tokens, so the document
+    form shows less than the chat form under every preset, never more."""
+    if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
+        raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
+    return _render("document_entry", ret=fmt(e.ret, ctx.decimals), params=params_text(ctx, e.params))
+
+
+def build_document(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
+    """The whole document, ending just after ``params: [`` of the open block.
+
+    ``history`` is the shown history, lowest return first (``wire.top_k``). The parameters are
+    always written as one list (the open block continues one), whatever ``ctx.params_style``.
+    """
+    lst = ctx if ctx.params_style == "list" else _as_list(ctx)
+    body = "\n\n".join(document_entry(lst, e) for e in history)
+    return _render("document", title=ctx.title or "Policy", history=body, target=fmt(document_target(history), ctx.decimals))
+
+
+def _as_list(ctx: PromptContext) -> PromptContext:
+    from dataclasses import replace
+
+    return replace(ctx, params_style="list")
+
+
+def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: PromptContext | None = None) -> str:
+    """GBNF for the continuation: exactly D plain decimals separated by commas, then ``]``.
+
+    With ``history`` (the shown entries) and ``ctx``, the grammar fits the encoded scale of each
+    coordinate: coordinate j may have at most as many integer digits as the widest value the
+    prompt prints at j, and at most the decimals the prompt prints for numbers of that size. So
+    a proposal can go up to ten times past the shown values, but not write a coordinate whose
+    values are in the tens with three integer digits, and the model cannot spend tokens on
+    digits the history never shows. It is built only from the printed (encoded) history, which
+    the model reads anyway. Without a history: at most three digits on each side of the point.
+    No whitespace, no exponent.
+    """
+    if D < 1:
+        raise ValueError(f"D must be >= 1, got {D}")
+    if not history or ctx is None:
+        rest = f' ("," num){{{D - 1}}}' if D > 1 else ""
+        return f'root ::= num{rest} "]"\nnum ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
+    lst = ctx if ctx.params_style == "list" else _as_list(ctx)
+    widest = [1] * D
+    for e in history:
+        if len(e.params) != D:
+            raise ValueError(f"history entry {e.index} has {len(e.params)} parameters, expected {D}")
+        for j, tok in enumerate(params_text(lst, e.params).strip("[]").split(",")):
+            widest[j] = max(widest[j], len(tok.lstrip("-").split(".")[0]))
+    names: list[str] = []
+    rules: dict[str, str] = {}
+    for k in widest:
+        dec = ctx.decimals if ctx.param_digits <= 0 else max(0, min(ctx.decimals, ctx.param_digits - k))
+        name = f"n{k}d{dec}"
+        if name not in rules:
+            ints = " ".join(["[0-9]"] + ["[0-9]?"] * (k - 1))
+            frac = f' ("." {" ".join(["[0-9]"] + ["[0-9]?"] * (dec - 1))})?' if dec > 0 else ""
+            rules[name] = f'{name} ::= "-"? {ints}{frac}'
+        names.append(name)
+    root = "root ::= " + ' "," '.join(names) + ' "]"'
+    return "\n".join([root, *rules.values()]) + "\n"
