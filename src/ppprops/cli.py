@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import PROMPT_LAYOUTS, PROMPT_PARAMS, REASONING_EFFORTS, LLMConfig, RunConfig
+from .config import PROMPT_FORMS, PROMPT_LAYOUTS, PROMPT_PARAMS, REASONING_EFFORTS, LLMConfig, RunConfig
 from .errors import PPPropsError
 from .methods import HARDENING, PRESETS, Mechanisms, resolve
 from .strategies import BLACK_BOX
@@ -64,6 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="list form: significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals (default 3)")
     r.add_argument("--prompt-layout", choices=PROMPT_LAYOUTS, default="static-first",
                    help="fixed sections before the history (default; a server's prefix cache reuses them) or history first")
+    r.add_argument("--prompt-form", choices=PROMPT_FORMS, default="auto",
+                   help="chat: the paper's instruction prompt; document: the history as a document for a base model "
+                        "to continue (completions endpoint); auto (default): document for the embedded model, chat otherwise")
     r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
     r.add_argument("--component", action="append", default=[], metavar="KEY",
                    help="for a plain Gymnasium id: an info key to sum as a reward component (repeatable)")
@@ -84,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="OpenAI-compatible API root that /chat/completions is appended to, e.g. http://localhost:11434/v1")
     llm.add_argument("--model", default=None)
     llm.add_argument("--api-key-env", default=None, metavar="VAR", help="environment variable that holds the API key")
-    llm.add_argument("--temperature", type=float, default=1.0)
+    llm.add_argument("--temperature", type=float, default=None,
+                     help="sampling temperature (default: 1.0 for the chat form, 0.6 for the document form)")
     llm.add_argument("--max-tokens", type=int, default=None,
                      help="answer token budget; reasoning counts against it (default: room for D numbers, "
                           "plus room for reasoning when --reasoning-effort is set or the endpoint reasons)")
@@ -192,6 +196,7 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
         prompt_params=a.prompt_params,
         param_digits=a.param_digits,
         prompt_layout=a.prompt_layout,
+        prompt_form=a.prompt_form,
         parse_retries=a.parse_retries,
         on_llm_failure=a.on_llm_failure,
         llm=LLMConfig(

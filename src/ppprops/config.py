@@ -24,6 +24,7 @@ MAX_DELAY_S = 3600.0
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
+PROMPT_FORMS = ("auto", "chat", "document")  # see RunConfig.form
 REASONING_EFFORTS = ("none", "minimal", "low", "medium", "high")
 
 
@@ -34,7 +35,7 @@ class LLMConfig:
     base_url: str | None = None
     model: str | None = None
     api_key_env: str | None = None  # name of the env var holding the key; the key itself is never stored
-    temperature: float = 1.0
+    temperature: float | None = None  # None: the prompt form's default (1.0 chat, wire.document.TEMPERATURE document)
     max_tokens: int | None = None  # None: enough for D numbers, plus room for reasoning (ppprops.llm.client.default_max_tokens)
     timeout_s: float = 300.0
     # for reasoning models: gpt-oss and OpenAI's take minimal|low|medium|high; "none" turns thinking off on Ollama's /v1
@@ -47,7 +48,7 @@ class LLMConfig:
     retry_after_cap_s: float = 60.0  # a server's Retry-After is honoured up to this
 
     def validate(self) -> None:
-        if not (0.0 <= self.temperature <= 2.0):
+        if self.temperature is not None and not (0.0 <= self.temperature <= 2.0):
             raise ConfigError(f"--temperature must be in [0, 2], got {self.temperature}")
         if self.max_tokens is not None and self.max_tokens < 1:
             raise ConfigError(f"--max-tokens must be >= 1, got {self.max_tokens}")
@@ -99,6 +100,16 @@ class RunConfig:
     prompt_params: str = "list"  # how history parameters are written: list | indexed (ProPS form)
     param_digits: int = 3  # list form: significant digits per parameter (at most `decimals` decimals); 0: fixed decimals
     prompt_layout: str = "static-first"  # fixed sections before the history (prefix-cache friendly) | history-first
+    # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
+    # base model to continue (/completions, wire.document); auto: document for the embedded model, chat otherwise
+    prompt_form: str = "auto"
+
+    @property
+    def form(self) -> str:
+        """The prompt form this run uses: ``chat`` or ``document`` (``auto`` resolved). R2PO always chats."""
+        if self.prompt_form == "auto":
+            return "document" if self.llm.embedded and self.method != "r2po" else "chat"
+        return self.prompt_form
 
     def validate(self) -> None:
         checks = [
@@ -122,6 +133,9 @@ class RunConfig:
             (self.prompt_params in PROMPT_PARAMS, f"--prompt-params must be list or indexed, got {self.prompt_params!r}"),
             (self.prompt_layout in PROMPT_LAYOUTS,
              f"--prompt-layout must be static-first or history-first, got {self.prompt_layout!r}"),
+            (self.prompt_form in PROMPT_FORMS, f"--prompt-form must be auto, chat or document, got {self.prompt_form!r}"),
+            (not (self.method == "r2po" and self.prompt_form == "document"),
+             "--prompt-form document does not apply to r2po (its critic is a chat prompt); use auto or chat"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -144,6 +158,7 @@ class RunConfig:
         d["box"] = tuple(d["box"])
         for key in ("components", "diagnostics"):
             d[key] = tuple(d.get(key, ()))
+        d.setdefault("prompt_form", "chat")  # runs stored before the document form existed chatted
         return cls(**d)
 
     def make_task(self):  # type: ignore[no-untyped-def]  # -> Task; imported late (tasks pull in gymnasium)

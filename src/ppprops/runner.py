@@ -193,7 +193,7 @@ def execute(
                     proposer = r2po  # type: ignore[assignment]
                     phases.append(Phase("r2po", r2po, config.iterations))
                 else:
-                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, **common)  # type: ignore[arg-type]
+                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, form=config.form, **common)  # type: ignore[arg-type]
                     phases.append(Phase("llm", proposer, config.iterations))
             best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
@@ -257,6 +257,11 @@ class LazyChat:
         client = self._get()
         with self.gate:
             return client.complete(messages, D=D, seed=seed)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+        client = self._get()
+        with self.gate:
+            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar)
 
     def count_tokens(self, text: str) -> int:
         """Exact with a llama.cpp server (its /tokenize endpoint); otherwise a conservative

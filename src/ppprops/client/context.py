@@ -53,6 +53,7 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         params_style=config.prompt_params,
         param_digits=config.param_digits,
         layout=config.prompt_layout,
+        title=task.name,
         history_limit=config.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,

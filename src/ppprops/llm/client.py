@@ -36,6 +36,7 @@ from urllib.parse import urlsplit
 
 from ..config import LLMConfig
 from ..errors import LLMError
+from ..wire.document import TEMPERATURE as DOCUMENT_TEMPERATURE
 from ..wire.parse import read_answer, split_reasoning
 
 
@@ -82,13 +83,15 @@ class LLMRejected(LLMUnavailable):
 
 
 class Chat(Protocol):
-    """What a proposer needs from a model: one chat completion, recorded.
+    """What a proposer needs from a model: one chat completion, or one continuation of a
+    document (``wire.document``), recorded.
 
-    Returns an ``ok`` exchange or raises ``LLMUnavailable``/``LLMRejected``; callers pass only
-    ``messages``, ``D`` and ``seed``.
+    Both return an ``ok`` exchange or raise ``LLMUnavailable``/``LLMRejected``.
     """
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange: ...
 
 
 def params_schema(D: int) -> dict[str, Any]:
@@ -113,6 +116,8 @@ def params_grammar(D: int) -> str:
         'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
     )
 
+
+CHAT_TEMPERATURE = 1.0  # the chat form's default sampling temperature (--temperature unset)
 
 # Tokens of reasoning room added to the answer budget: by --reasoning-effort, or when the endpoint
 # reasons without one being set. Reasoning counts against max_tokens on every server we know of.
@@ -195,8 +200,13 @@ class ChatClient:
 
     @property
     def url(self) -> str:
-        """The URL every request goes to."""
+        """The URL chat requests go to."""
         return self.base_url.rstrip("/") + "/chat/completions"
+
+    @property
+    def document_url(self) -> str:
+        """The URL document continuations go to (the completions endpoint)."""
+        return self.base_url.rstrip("/") + "/completions"
 
     def max_tokens(self, D: int) -> int:
         """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens``."""
@@ -205,7 +215,7 @@ class ChatClient:
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
         body: dict[str, Any] = {"model": self.model, "messages": messages}
         if "temperature" not in self.dropped:
-            body["temperature"] = self.config.temperature
+            body["temperature"] = CHAT_TEMPERATURE if self.config.temperature is None else self.config.temperature
         if self.token_param not in self.dropped:
             body[self.token_param] = self.max_tokens(D)
         if seed is not None and "seed" not in self.dropped:
@@ -221,19 +231,45 @@ class ChatClient:
             body["grammar"] = params_grammar(D)
         return body
 
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None) -> dict[str, Any]:
+        """A completions request: the raw document, no chat wrapper. ``grammar`` (GBNF, from
+        ``wire.document.continuation_grammar``) is sent when the endpoint takes llama.cpp grammars
+        (``--structured grammar``, or ``auto`` with the embedded model); there is no JSON answer
+        to constrain, so a JSON schema is never sent here."""
+        body: dict[str, Any] = {"model": self.model, "prompt": prompt}
+        if "temperature" not in self.dropped:
+            body["temperature"] = DOCUMENT_TEMPERATURE if self.config.temperature is None else self.config.temperature
+        if self.token_param not in self.dropped:
+            body[self.token_param] = self.max_tokens(D)
+        if seed is not None and "seed" not in self.dropped:
+            body["seed"] = seed
+        if grammar is not None and self.structured == "grammar":
+            body["grammar"] = grammar
+        return body
+
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         """One usable answer (``ok``), after adapting the request and retrying transient faults.
 
         The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
         bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
         """
+        return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+        """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
+        the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
+        the continuation text; ``wire.parse.read_continuation`` reads it."""
+        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar), D=D)
+
+    def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
         failures: list[Exchange] = []
         transient = 0
         retry = 0
         while True:
-            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
+            body = build()
+            ex, retry_after, err = self._attempt(body, D=D, retry=retry)
             if ex.ok:
-                return replace(self._after_answer(ex, D), failures=tuple(failures))
+                return replace(self._after_answer(ex, D, document="prompt" in body), failures=tuple(failures))
             if err is not None and ex.error_kind in ("bad_request", "http_422"):
                 change, hint = self._adapt(err)
                 if change is not None:
@@ -306,8 +342,9 @@ class ChatClient:
         self.dropped.add(param)
         return f"dropped {param}"
 
-    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
-        """Learn from a usable exchange: room for reasoning, and schema answers that keep failing."""
+    def _after_answer(self, ex: Exchange, D: int, *, document: bool = False) -> Exchange:
+        """Learn from a usable exchange: room for reasoning, and schema answers that keep failing
+        (a document continuation is never under a JSON schema)."""
         notes = []
         saw = bool((ex.reasoning or "").strip()) or bool(ex.reasoning_tokens) or bool(split_reasoning(ex.content).reasoning)
         if saw and not self.reasoning_seen:
@@ -315,7 +352,7 @@ class ChatClient:
             self.reasoning_seen = True
             if self.max_tokens(D) != before:
                 notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
-        if self.structured == "json_schema" and self.config.structured == "auto" and ex.finish_reason != "length":
+        if not document and self.structured == "json_schema" and self.config.structured == "auto" and ex.finish_reason != "length":
             usable = read_answer(ex.content, ex.reasoning, D, finish_reason=ex.finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
@@ -327,18 +364,18 @@ class ChatClient:
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(
-        self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int
-    ) -> tuple[Exchange, float | None, ServerError | None]:
-        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds,
-        what the server said when it refused)."""
+    def _attempt(self, body: dict[str, Any], *, D: int, retry: int) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, never
+        raising for endpoint faults: (exchange, Retry-After seconds, what the server said when it refused)."""
         import openai
 
-        body = self.body(messages, D=D, seed=seed)
+        document = "prompt" in body
+        url = self.document_url if document else self.url
         request = json.dumps(body)
-        prompt_chars = sum(len(m["content"]) for m in messages)
-        sdk_args = {k: v for k, v in body.items() if k in _SDK_ARGS}
-        extra = {k: v for k, v in body.items() if k not in _SDK_ARGS} or None
+        prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
+        known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
+        sdk_args = {k: v for k, v in body.items() if k in known}
+        extra = {k: v for k, v in body.items() if k not in known} or None
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:
@@ -348,20 +385,21 @@ class ChatClient:
         def refused(err: ServerError, response: str | None, shown: int) -> Exchange:
             kind = _kind(err)
             where = f"HTTP {shown}" if shown == err.status else f"HTTP {shown} with an error body (code {err.code})"
-            text = f"{kind}: {where} from {self.url}: {err.message}"
+            text = f"{kind}: {where} from {url}: {err.message}"
             if err.status == 404:
                 text += f"; {_url_hint(self.base_url, self.model)}"
             return failed(kind, text, response)
 
         try:
-            raw = self._client.chat.completions.with_raw_response.create(**sdk_args, extra_body=extra)
+            api = self._client.completions if document else self._client.chat.completions
+            raw = api.with_raw_response.create(**sdk_args, extra_body=extra)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {self.url}"), None, None
+            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
-            return failed(kind, f"{kind}: {_cause(e)} at {self.url}"), None, None
+            return failed(kind, f"{kind}: {_cause(e)} at {url}"), None, None
         except openai.APIStatusError as e:
             text = _body_text(e)
             err = server_error(e.status_code, text)
@@ -380,23 +418,30 @@ class ChatClient:
         try:
             completion = raw.parse()
             choice = completion.choices[0]
-            message = choice.message
-        except Exception as e:  # a 200 whose body is not a chat completion (no choices, cut, wrong shape)
-            return failed("bad_response", f"bad_response: not a chat completion ({e.__class__.__name__}: {_short(e)})",
+            if document:
+                content, reasoning = choice.text, None
+                if not isinstance(content, str):
+                    raise TypeError("the choice has no text")
+            else:
+                message = choice.message
+                extra_fields = message.model_extra or {}
+                content = message.content
+                reasoning = next((v for k in ("reasoning_content", "reasoning")
+                                  if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
+        except Exception as e:  # a 200 whose body is not a completion (no choices, cut, wrong shape)
+            what = "completion" if document else "chat completion"
+            return failed("bad_response", f"bad_response: not a {what} ({e.__class__.__name__}: {_short(e)})",
                           text), None, None
         finish = choice.finish_reason
         if finish == "error":
-            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({self.url})",
+            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({url})",
                           text), None, None
-        extra_fields = message.model_extra or {}
-        reasoning = next((v for k in ("reasoning_content", "reasoning")
-                          if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
         usage = completion.usage
         details = getattr(usage, "completion_tokens_details", None) if usage else None
         return Exchange(
             request=request,
             response=text,
-            content=message.content,
+            content=content,
             reasoning=reasoning,
             prompt_chars=prompt_chars,
             prompt_tokens=usage.prompt_tokens if usage else None,
@@ -415,6 +460,7 @@ class ChatClient:
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
+_SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed"})
 
 
 def server_error(status: int | None, text: str | None) -> ServerError:

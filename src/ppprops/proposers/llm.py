@@ -10,6 +10,13 @@ and asked again. Unusable answers get a bounded number of corrections; after tha
 is a documented fallback: the best policy so far plus Gaussian noise with standard deviation 5%
 of the box width, clipped to the box, recorded with source ``fallback``.
 
+Two prompt forms (``form``): ``chat``, the paper's instruction prompt as one chat message, and
+``document``, the history as a document for a base model to continue (``wire.document``), sent
+to the completions endpoint with a grammar fitted to the shown history. A document answer is
+``[`` plus the continuation up to its first ``]`` (``wire.parse.read_continuation``); an
+unusable one is asked again with the same document and the next seed (there is no conversation
+to correct). Everything else (repeats, fallbacks, recording) is the same in both forms.
+
 A correction repeats the model's final text (never its reasoning or markup) and says what was
 wrong; an HTTP error never reaches the model (the client adapts, retries or raises). An
 endpoint that stays down past the client's retry bound either stops the run (``stop``,
@@ -36,7 +43,8 @@ from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
 from ..store import Candidate
 from ..wire import EncodedEntry, ParseResult, PromptContext, build_correction, build_prompt, top_k
-from ..wire.parse import final_text, read_answer
+from ..wire.document import OPENING, build_document, continuation_grammar
+from ..wire.parse import final_text, read_answer, read_continuation
 from ..wire.prompt import params_text
 from .base import Proposal, clip_to_box
 
@@ -64,7 +72,14 @@ class LLMProposer:
         parse_retries: int = 2,
         on_exchange: ExchangeHook | None = None,
         on_llm_failure: str = "stop",
+        form: str = "chat",
     ) -> None:
+        """``form`` ``chat`` sends the paper's instruction prompt as a chat message; ``document``
+        sends the history as a document to continue (``wire.document``) to the completions
+        endpoint, constrained by ``continuation_grammar``."""
+        if form not in ("chat", "document"):
+            raise ValueError(f"unknown prompt form {form!r} (known: chat, document)")
+        self.form = form
         self.chat = chat
         self.codec = codec
         self.ctx = context
@@ -103,7 +118,13 @@ class LLMProposer:
             self.best = candidate
 
     def prompt(self) -> str:
+        if self.form == "document":
+            return build_document(self.ctx, self.shown())
         return build_prompt(self.ctx, self.shown())
+
+    def grammar(self) -> str:
+        """The continuation grammar of the document form, shaped by the shown history."""
+        return continuation_grammar(self.D, self.shown(), self.ctx)
 
     def shown(self) -> list[EncodedEntry]:
         """The history entries the prompt shows (top-K, best last)."""
@@ -117,11 +138,15 @@ class LLMProposer:
     def ask(self, iteration: int) -> Proposal:
         prompt = self.prompt()
         messages = [{"role": "user", "content": prompt}]
+        grammar = self.grammar() if self.form == "document" else None
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
             seed = seeding.llm_seed(self.seed, iteration, attempt)
             try:
-                ex = self.chat.complete(messages, D=self.D, seed=seed)
+                if self.form == "document":  # a retry asks the same document again, with the next seed
+                    ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar)
+                else:
+                    ex = self.chat.complete(messages, D=self.D, seed=seed)
             except LLMUnavailable as e:
                 self._record(iteration, attempt, e.failures)
                 if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
@@ -146,12 +171,16 @@ class LLMProposer:
             kind = result.error or "unknown"
             self.failures[kind] += 1
             last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
-            messages = self._correction(prompt, ex, result)
+            if self.form == "chat":
+                messages = self._correction(prompt, ex, result)
         return self._fallback(iteration, last_error)
 
     def _read(self, ex: Exchange) -> ParseResult:
         """The proposal in an answer (``wire.parse.read_answer``), refused if it repeats the history."""
-        result = read_answer(ex.content, ex.reasoning, self.D, finish_reason=ex.finish_reason)
+        if self.form == "document":
+            result = read_continuation(ex.content, self.D, opening=OPENING, finish_reason=ex.finish_reason)
+        else:
+            result = read_answer(ex.content, ex.reasoning, self.D, finish_reason=ex.finish_reason)
         if result.values is not None and self.repeats_history(result.values):
             return ParseResult(None, "repeats_history",
                                "those params are a policy already in the history; propose a new one", result.source)
