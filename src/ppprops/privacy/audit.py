@@ -37,7 +37,9 @@ from ..config import RunConfig
 from ..errors import StoreError
 from ..methods import Mechanisms
 from ..store import Candidate, open_store
-from ..wire.transcript import ShownEntry, number_tokens, outside_entries
+from ..wire.document import document_target
+from ..wire.encoded import EncodedEntry
+from ..wire.transcript import ShownEntry, number_tokens, open_target, outside_entries
 from .knowledge import facts_for
 from .transcript import Request, load_requests
 
@@ -203,18 +205,19 @@ class _Auditor:
             return int(tied[0]), name
         return None, ""
 
-    def entry(self, req: Request, k: int, e: ShownEntry) -> None:
+    def entry(self, req: Request, k: int, e: ShownEntry) -> Candidate | None:
+        """Check one shown entry; returns the candidate it shows, or None if it matches none."""
         where = f"{req.where}, entry {k + 1}"
         parsed = [token_value(t) for t in e.params]
         if any(p is None for p in parsed):
             self.finding("unverified", "entry", "history entry with unreadable parameters", where)
-            return
+            return None
         vals = np.array([p[0] for p in parsed if p is not None])
         tols = np.array([p[1] for p in parsed if p is not None])
         idx, how = self.match(vals, tols, e.ret)
         if idx is None:
             self.finding("unverified", "entry", "history entry that matches no evaluated candidate", where)
-            return
+            return None
         c = self.cands[idx]
         self.shown[c.index] = c
         where = f"{where} = candidate {c.index}"
@@ -258,15 +261,36 @@ class _Auditor:
                     self.finding("channel", "diagnostic_return", f"diagnostic {key} equals the raw component {ck}", where)
         if c.clipped and protected and not self.mech.warp_params:
             self.finding("channel", "clip_edge", "a clipped candidate shows the encoded box edge (a_j times the public bound)", where)
+        return c
 
     # -- prose: everything outside the history entries --------------------------------------------
-    def prose(self, req: Request) -> None:
+    def target(self, req: Request, shown: list[Candidate | None]) -> int | None:
+        """The document form's open block: its return must be ``wire.document.document_target`` of
+        the shown candidates' encoded returns (a derived encoded value). Returns its offset when
+        it is, so the prose check skips it; otherwise it is unverified and read like any prose."""
+        found = open_target(req.text)
+        if found is None:
+            if req.form == "document":
+                self.finding("unverified", "target", "a document prompt that does not end in an open block", req.where)
+            return None
+        at, tok = found
+        parsed = token_value(tok)
+        entries = [EncodedEntry(index=c.index, params=(), ret=float(c.feedback_enc.ret)) for c in shown if c is not None]
+        if parsed is not None and entries and len(entries) == len(shown) and renders(document_target(entries), *parsed):
+            return at
+        self.finding("unverified", "target", "the open block's return is not the target computed from the shown "
+                     "encoded returns", f"{req.where}, prose at character {at}")
+        return None
+
+    def prose(self, req: Request, skip: int | None = None) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
         raw_rewards = [(c.index, "return", c.ret) for c in self.cands]
         raw_rewards += [(c.index, f"component {k}", v) for c in self.cands for k, v in c.feedback.components.items()]
         for offset, text in outside_entries(req.text, list(req.entries)):
             for pos, tok in number_tokens(text):
+                if skip is not None and offset + pos == skip:
+                    continue  # the document's target, checked by ``target``
                 parsed = token_value(tok)
                 if parsed is None:
                     continue
@@ -344,9 +368,9 @@ class _Auditor:
     def run(self) -> AuditReport:
         for req in self.requests:
             self.report.requests += 1
-            for k, e in enumerate(req.entries):
-                self.entry(req, k, e)
-            self.prose(req)
+            shown = [self.entry(req, k, e) for k, e in enumerate(req.entries)]
+            skip = self.target(req, shown) if req.form == "document" else None
+            self.prose(req, skip)
         self.channels()
         order = {"leak": 0, "unverified": 1, "channel": 2}
         self.report.findings.sort(key=lambda f: order.get(f.severity, 3))

@@ -22,7 +22,7 @@ from ..wire.transcript import history_entries
 
 
 class EchoOptimizer:
-    """Chat protocol: best shown entry + N(0, spread * (|x| + 1)) per coordinate, two decimals."""
+    """Chat protocol (both prompt forms): best shown entry + N(0, spread * (|x| + 1)) per coordinate, two decimals."""
 
     def __init__(self, config: Any = None, *, spread: float = 0.5) -> None:
         self.spread = spread
@@ -31,18 +31,29 @@ class EchoOptimizer:
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         self.calls += 1
         prompt = messages[0]["content"]
-        entries = history_entries(prompt)
-        rng = np.random.default_rng(seed)
-        if entries and len(entries[-1].params) == D:
-            best = np.array([float(t) for t in entries[-1].params])
-        else:
-            best = np.zeros(D)
-        proposal = best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
+        proposal = self._propose(history_entries(prompt, "chat"), D, seed)
         content = json.dumps({"params": [round(float(v), 2) for v in proposal]})
         body = {"model": "echo-optimizer", "messages": messages, "seed": seed}
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None,
                         prompt_chars=sum(len(m["content"]) for m in messages), prompt_tokens=None, completion_tokens=None,
                         latency_s=0.0, ok=True)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+        """The document form: the same proposal, written as the continuation of the open list."""
+        self.calls += 1
+        proposal = self._propose(history_entries(prompt, "document"), D, seed)
+        content = ",".join(f"{v:.2f}" for v in proposal) + "]"
+        body = {"model": "echo-optimizer", "prompt": prompt, "seed": seed}
+        return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None, prompt_chars=len(prompt),
+                        prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, finish_reason="stop")
+
+    def _propose(self, entries: list, D: int, seed: int | None) -> np.ndarray:  # type: ignore[type-arg]
+        rng = np.random.default_rng(seed)
+        if entries and len(entries[-1].params) == D:
+            best = np.array([float(t) for t in entries[-1].params])
+        else:
+            best = np.zeros(D)
+        return best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
 
     def count_tokens(self, text: str) -> int:
         return len(text) // 4
