@@ -1,0 +1,212 @@
+"""The document form (issue 14): the history as a document for the embedded base model to continue.
+
+Guards the mechanics, not the search quality (that is benchmark 6 in benchmarks/RESULTS.md): the
+format sent, the grammar, the parsing of what comes back, which vector is evaluated, and the audit.
+One short real search with the embedded model is shared by the module.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppprops.client.context import prompt_context
+from ppprops.client.hardening import codec_for
+from ppprops.config import LLMConfig, RunConfig
+from ppprops.errors import ConfigError
+from ppprops.llm.embedded import default_threads
+from ppprops.methods import resolve
+from ppprops.privacy.audit import audit_run
+from ppprops.proposers import LLMProposer
+from ppprops.proposers.base import clip_to_box
+from ppprops.runner import load_run, start
+from ppprops.store import open_store
+from ppprops.wire import EncodedEntry, PromptContext, build_document, continuation_grammar, document_target, read_continuation
+from ppprops.wire.transcript import history_entries, open_target
+
+
+def _ctx(**kw: object) -> PromptContext:
+    base = dict(summary="s", observations=(("x", "x"), ("v", "v")), actions=("left", "right"), discrete=True,
+                reward_text="r", hints="", encoded_params=True, scaled_rewards=True, detailed_feedback=True,
+                param_range=None, optimum=None, title="CartPole")
+    base.update(kw)
+    return PromptContext(**base)  # type: ignore[arg-type]
+
+
+HISTORY = [
+    EncodedEntry(3, (0.5, 14.26, -300.4, 1.0, 2.0, 0.001), 5.0, (("c", 1.0),), (("episode_length", 12.0),)),
+    EncodedEntry(7, (3.1, -0.2, 5.5, 0.0, -7.25, 8.0), 7.5),
+]
+
+
+# -- the prompt: format, target, grammar ---------------------------------------------------------------
+def test_document_is_header_entries_lowest_first_and_an_open_block() -> None:
+    doc = build_document(_ctx(), HISTORY)
+    header, *blocks = doc.split("\n\n")
+    assert header.startswith("# CartPole: linear policy search.")
+    assert blocks == [
+        "return: 5.00\nparams: [0.50,14.3,-300,1.00,2.00,0.00]",
+        "return: 7.50\nparams: [3.10,-0.20,5.50,0.00,-7.25,8.00]",
+        "return: 8.00\nparams: [",  # best 7.5 + 0.2 * (7.5 - 5.0)
+    ]
+    # returns and parameters only: no reward components, diagnostics or instructions
+    assert "components" not in doc and "episode_length" not in doc and "JSON" not in doc
+
+
+def test_document_uses_the_list_form_whatever_the_parameter_style() -> None:
+    assert build_document(_ctx(params_style="indexed"), HISTORY) == build_document(_ctx(), HISTORY)
+
+
+def test_target_is_computed_from_the_shown_encoded_returns_only() -> None:
+    assert document_target(HISTORY) == pytest.approx(8.0)
+    one = [EncodedEntry(0, (1.0,), -40.0)]
+    assert document_target(one) == pytest.approx(-40.0 + 0.2 * 4.0)  # spread floor: 10% of |best|
+    assert document_target([EncodedEntry(0, (1.0,), 0.0)]) == 0.0
+    with pytest.raises(ValueError):
+        document_target([])
+
+
+def test_grammar_fits_each_coordinate_to_the_widest_value_printed_there() -> None:
+    g = continuation_grammar(6, HISTORY, _ctx())
+    root, *rules = g.strip().split("\n")
+    # coordinates: 3.10 (1 digit), 14.3 (2), -300 (3), 1.00, -7.25, 8.00 (1)
+    assert root == 'root ::= n1d2 "," n2d1 "," n3d0 "," n1d2 "," n1d2 "," n1d2 "]"'
+    assert set(rules) == {'n1d2 ::= "-"? [0-9] ("." [0-9] [0-9]?)?', 'n2d1 ::= "-"? [0-9] [0-9]? ("." [0-9])?',
+                          'n3d0 ::= "-"? [0-9] [0-9]? [0-9]?'}
+    assert continuation_grammar(3).startswith('root ::= num ("," num){2} "]"')
+    with pytest.raises(ValueError):
+        continuation_grammar(5, HISTORY, _ctx())
+
+
+# -- what comes back -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("text,values,error", [
+    ("1.5,-2,30]", (1.5, -2.0, 30.0), None),
+    ("1.5,-2,30]\n\nreturn: 9.00\nparams: [4,5,6]", (1.5, -2.0, 30.0), None),  # more document: ignored
+    ("1.5,\u22122,30]", (1.5, -2.0, 30.0), None),  # a typographic minus sign
+    ("1.5,-2]", None, "wrong_length"),
+    ("1.5,-2,30", None, "truncated"),
+    ("", None, "empty"),
+    ("nan,1,2]", None, "non_finite"),
+])
+def test_continuation_is_read_up_to_the_first_closing_bracket(text: str, values: tuple[float, ...] | None,
+                                                              error: str | None) -> None:
+    r = read_continuation(text, 3)
+    assert r.values == values and r.error == error
+
+
+def test_continuation_cut_at_the_token_limit_is_never_used() -> None:
+    assert read_continuation("1,2,3]", 3, finish_reason="length").error == "length"
+
+
+# -- configuration ---------------------------------------------------------------------------------------
+def _config(**kw: object) -> RunConfig:
+    base = dict(task="CartPole", method="pp", mechanisms=resolve("pp"), warmup=4, iterations=4, final_episodes=2, seed=3)
+    base.update(kw)
+    return RunConfig(**base)  # type: ignore[arg-type]
+
+
+def test_auto_is_the_document_form_for_the_embedded_model_only() -> None:
+    assert _config().form == "document"
+    assert _config(llm=LLMConfig(base_url="http://localhost:1/v1", model="m")).form == "chat"
+    assert _config(prompt_form="chat").form == "chat"
+    assert _config(method="r2po", mechanisms=resolve("vanilla")).form == "chat"
+    with pytest.raises(ConfigError, match="r2po"):
+        _config(method="r2po", mechanisms=resolve("vanilla"), prompt_form="document").validate()
+    with pytest.raises(ConfigError, match="prompt-form"):
+        _config(prompt_form="doc").validate()
+    stored = _config().to_json()
+    del stored["prompt_form"]  # a run stored before the document form existed resumes as it ran: chat
+    assert RunConfig.from_json(stored).form == "chat"
+
+
+@pytest.mark.parametrize("cores,load,threads", [(2, 0.1, 2), (2, 0.6, 1), (2, 1.2, 1), (2, 11.0, 1), (16, 3.2, 13)])
+def test_threads_leave_busy_cores_alone(cores: int, load: float, threads: int) -> None:
+    assert default_threads(cores, load) == threads
+
+
+# -- one real search with the embedded model ---------------------------------------------------------------
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("doc") / "run"
+    start(_config(), out)
+    return out
+
+
+@pytest.mark.llm
+def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path) -> None:
+    store, cfg, secrets = load_run(run_dir)
+    try:
+        cands, calls = store.candidates(), store.llm_calls()
+    finally:
+        store.close()
+    task = cfg.make_task()
+    codec = codec_for(secrets, task, cfg)
+    rebuilt = LLMProposer(chat=None, codec=codec, context=prompt_context(task, cfg, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
+                          box=cfg.box, seed=cfg.seed, form="document")
+    by_iteration: dict[int, list[dict[str, object]]] = {}
+    for c in calls:
+        by_iteration.setdefault(int(c["iteration"]), []).append(c)
+    assert sorted(by_iteration) == [0, 1, 2, 3]
+    for c in cands:
+        if c.source == "warmup":
+            rebuilt.tell(c)
+            continue
+        for call in by_iteration[c.iteration]:
+            body = json.loads(str(call["request"]))
+            assert "messages" not in body and body["prompt"] == rebuilt.prompt()  # exactly the document, nothing else
+            assert body["prompt"].endswith("\nparams: [")
+            assert body["grammar"] == rebuilt.grammar()
+            assert json.loads(str(call["response"]))["object"] == "text_completion"  # the completions endpoint
+        last = by_iteration[c.iteration][-1]
+        if c.source == "llm":  # the evaluated vector is the continuation the model wrote, decoded and clipped
+            values = read_continuation(str(last["content"]), task.D).values
+            assert values is not None
+            theta, _ = clip_to_box(codec.decode(np.asarray(values)), cfg.box)
+            assert c.params == pytest.approx(theta)
+        rebuilt.tell(c)
+
+
+@pytest.mark.llm
+def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
+    report = audit_run(run_dir)
+    assert report.clean, report.format()
+    store = open_store(run_dir)
+    try:
+        prompts = [json.loads(c["request"])["prompt"] for c in store.llm_calls()]
+    finally:
+        store.close()
+    assert report.requests == len(prompts)
+    assert report.entries == sum(len(history_entries(p, "document")) for p in prompts) >= 4 * len(prompts)
+    assert not [f for f in report.findings if f.kind == "target"]
+
+
+@pytest.mark.llm
+@pytest.mark.parametrize("tamper,kind", [("raw_return", "raw_return"), ("target", "target")])
+def test_audit_flags_a_raw_return_or_a_wrong_target_in_a_document(run_dir: Path, tmp_path: Path, tamper: str,
+                                                                   kind: str) -> None:
+    import shutil
+    import sqlite3
+
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    store = open_store(copy)
+    try:
+        call = store.llm_calls()[-1]
+        best_raw = max(c.ret for c in store.candidates())
+    finally:
+        store.close()
+    body = json.loads(call["request"])
+    at, tok = open_target(body["prompt"])  # type: ignore[misc]
+    new = f"{best_raw:.2f}" if tamper == "raw_return" else f"{float(tok) + 1.0:.2f}"
+    body["prompt"] = body["prompt"][:at] + new + body["prompt"][at + len(tok):]
+    db = sqlite3.connect(copy / "run.sqlite")
+    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call["id"]))
+    db.commit()
+    db.close()
+    report = audit_run(copy)
+    assert not report.clean
+    assert kind in {f.kind for f in report.leaks + report.unverified}
