@@ -1,6 +1,6 @@
 """The benchmark suite: every figure of benchmarks/RESULTS.md, measured in one run.
 
-    python benchmarks/run_all.py                 # about 40 minutes on 2 cores; rewrites benchmarks/RESULTS.md
+    python benchmarks/run_all.py                 # about 2 hours on 2 idle cores; rewrites benchmarks/RESULTS.md
     python benchmarks/run_all.py --quick --results /tmp/RESULTS.md   # tiny budgets: checks the suite runs
 
 Needs the ``baselines`` and ``mujoco`` extras (CMA-ES; Ant and Humanoid). Runs are kept under
@@ -25,11 +25,12 @@ import bench_history
 import bench_overhead
 import bench_prompt
 import bench_quality
+import bench_readme
 from _common import Context, Section, machine, table
 
 # Order matters: later benchmarks replay runs that earlier ones recorded (see Context.cache).
 SUITE = (("quality", bench_quality), ("prompt", bench_prompt), ("history", bench_history), ("cache", bench_cache),
-         ("overhead", bench_overhead), ("eval", bench_eval))
+         ("overhead", bench_overhead), ("eval", bench_eval), ("readme", bench_readme))
 HERE = Path(__file__).resolve().parent
 
 
