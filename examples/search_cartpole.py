@@ -4,34 +4,24 @@
 
 1. choose a task and a preset (pp: encoded parameters, scaled rewards, detailed feedback,
    no optimum);
-2. start a run: the client draws fresh secrets A and c, samples the warm-up, then asks the
-   embedded LLM for 10 candidates it only sees encoded;
-3. read the result back from the store and evaluate the deployable policy with no encoding.
+2. search: the client draws fresh secrets A and c, samples the warm-up, then asks the embedded
+   LLM for candidates it only sees encoded (PPPROPS_EXAMPLE_ITERATIONS of them, default 10);
+3. read the result back and evaluate the deployable policy with no encoding involved.
 """
 
 from __future__ import annotations
 
+import os
 import sys
-from pathlib import Path
 
-import numpy as np
+import ppprops
 
-from ppprops import seeding
-from ppprops.config import RunConfig
-from ppprops.evaluation import Evaluator
-from ppprops.methods import resolve
-from ppprops.policy_file import read_policy
-from ppprops.report import format_summary, run_summary
-from ppprops.runner import start
-from ppprops.tasks import get_task
+out = sys.argv[1] if len(sys.argv) > 1 else "runs/example"
+iterations = int(os.environ.get("PPPROPS_EXAMPLE_ITERATIONS", "10"))
 
-out = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/example")
+result = ppprops.search("CartPole", method="pp", warmup=10, iterations=iterations, final_episodes=10, seed=0, out=out)
+print(f"{result.task} {result.method}: {len(result.history)} candidates, best search return {result.best_return:.1f}, "
+      f"final {result.final.mean:.1f} over {len(result.final.returns)} fresh episodes")
 
-config = RunConfig(task="CartPole", method="pp", mechanisms=resolve("pp"), warmup=10, iterations=10, final_episodes=10, seed=0)
-start(config, out)
-print(format_summary(run_summary(out)))
-
-doc, theta = read_policy(out / "best_policy.json")
-with Evaluator(get_task(doc["task"])) as ev:
-    returns = ev.evaluate(theta, seeding.final_eval_seeds(seed=0, episodes=10)).episode_returns
-print(f"deployed policy: {np.mean(returns):.1f} over {len(returns)} episodes")
+evaluation = ppprops.evaluate_policy(result.policy, episodes=10, seed=0)  # the same fresh episodes
+print(f"deployed policy: {evaluation.mean:.1f} over {len(evaluation.returns)} episodes (W is {result.W.shape[0]}x{result.W.shape[1]})")

@@ -51,7 +51,7 @@ RUN = ["run", "--env", "CartPole", "--quiet"]
         (RUN + ["--retry-base-delay", "nan"], "--retry-base-delay must be in [0, 3600] seconds"),
         (RUN + ["--retry-base-delay", "5", "--retry-max-delay", "1"], "--retry-max-delay (1.0) must be >= --retry-base-delay"),
         (RUN + ["--on-llm-failure", "retry"], "invalid choice"),
-        (["run", "--quiet"], "--env is required"),
+        (["run", "--quiet"], "--env or --task-file is required"),
         (RUN + ["--config", "/nonexistent/c.toml"], "config file /nonexistent/c.toml does not exist"),
     ],
 )

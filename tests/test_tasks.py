@@ -190,6 +190,11 @@ def test_highway_components_split_the_env_reward() -> None:
     assert all(v == 0.0 for v in split_reward(off_road).values())
     fast = get_task("Highway-Fast")
     assert fast.env_kwargs["config"]["simulation_frequency"] == 5
+    from ppprops.tasks.highway import REWARD_CONFIG
+
+    for name in ("Highway", "Highway-Fast"):  # the recorder's weights are the task files' weights
+        config = get_task(name).env_kwargs["config"]
+        assert {k: config[k] for k in REWARD_CONFIG} == dict(REWARD_CONFIG), name
     assert get_task("highway-v0") is get_task("Highway")
 
 
@@ -237,8 +242,8 @@ def test_generic_task_reports_declared_info_keys() -> None:
     assert isinstance(ep.diagnostics["x_position"], float)
 
 
-def test_dict_observation_needs_an_explicit_adapter() -> None:
-    with pytest.raises(ConfigError, match="adapter"):
+def test_dict_observation_needs_chosen_keys() -> None:
+    with pytest.raises(ConfigError, match=r"Dict observation \(achieved_goal, desired_goal, observation\); choose .* --obs-keys"):
         get_task("FetchReach-v4")  # the sparse Fetch env: registered by the plugin, not a ppprops task
 
 

@@ -1,7 +1,31 @@
 """ppprops: Privacy-Preserving Prompted Policy Search (PP-ProPS).
 
 An LLM proposes linear-policy parameters from an encoded history; the client keeps the policy,
-the rewards and the secrets. See ``ppprops.runner`` for the programmatic entry points.
+the rewards and the secrets. The Python API (``ppprops.api``, loaded on first use so that
+``import ppprops`` stays light):
+
+    result = ppprops.search("CartPole", method="pp", iterations=50, out="runs/x")
+    policy = ppprops.load_policy("runs/x/best_policy.json")   # raw observation -> action
+    ppprops.evaluate_policy(policy, episodes=20, seed=0)
+    ppprops.resume("runs/x"); ppprops.load_run("runs/x")
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 __version__ = "0.1.0"
+
+_API = ("search", "resume", "load_run", "evaluate_policy", "load_policy", "SearchResult", "Evaluation", "Policy")
+__all__ = ["__version__", *_API]
+
+if TYPE_CHECKING:
+    from .api import Evaluation, Policy, SearchResult, evaluate_policy, load_policy, load_run, resume, search  # noqa: F401
+
+
+def __getattr__(name: str) -> Any:
+    if name in _API:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'ppprops' has no attribute {name!r}")

@@ -32,6 +32,26 @@ def _box(text: str) -> tuple[float, float]:
     return lo, hi
 
 
+def _json_object(text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {text!r} ({e.msg})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {text!r}")
+    return value
+
+
+_json_object.accepts_table = True  # type: ignore[attr-defined]  # a --config file may give a TOML table
+
+
+def _names(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected K1,K2,..., got {text!r}")
+    return names
+
+
 def _flag(value: str) -> bool:
     if value.lower() in ("on", "true", "yes", "1"):
         return True
@@ -46,7 +66,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     r = sub.add_parser("run", help="start a search")
-    r.add_argument("--env", default=None, help="task name (see `ppprops envs`) or its Gymnasium id (required, here or in --config)")
+    r.add_argument("--env", default=None,
+                   help="task name (see `ppprops envs`), a Gymnasium id, module:EnvId, or module:attr (an env class or factory)")
+    r.add_argument("--task-file", type=Path, default=None, metavar="FILE",
+                   help="a task described in TOML (env, observation, feedback keys, prose; docs/own-robot.md) instead of --env")
+    r.add_argument("--env-kwargs", type=_json_object, default=None, metavar="JSON",
+                   help="keyword arguments of the env's constructor, as a JSON object")
+    r.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
+                   help="time limit of an episode (needed when the env has none of its own)")
+    r.add_argument("--gym-packages", action="append", default=[], metavar="MOD",
+                   help="a module to import first, e.g. one that registers the env (repeatable)")
+    r.add_argument("--obs-keys", type=_names, default=None, metavar="K1,K2",
+                   help="a Dict observation: the entries the policy sees, in this order")
     r.add_argument("--method", choices=[*PRESETS, "r2po", *BLACK_BOX], default="pp",
                    help="a preset of the paper (default pp), R2PO, or a black-box baseline at the same budget")
     r.add_argument("--warmup", type=int, default=10, help="random warm-up policies (default 10)")
@@ -69,9 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "to continue (completions endpoint); auto (default): document for the embedded model, chat otherwise")
     r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
     r.add_argument("--component", action="append", default=[], metavar="KEY",
-                   help="for a plain Gymnasium id: an info key to sum as a reward component (repeatable)")
+                   help="an info key to sum as a reward component (repeatable); KEY.SUB picks an entry of a dict, KEY.* all")
     r.add_argument("--diagnostic", action="append", default=[], metavar="KEY",
-                   help="for a plain Gymnasium id: an info key to report as a diagnostic (repeatable)")
+                   help="an info key to report as a diagnostic (its last value; repeatable)")
     r.add_argument("--parse-retries", type=int, default=2, help="corrections asked for before a fallback (default 2)")
     r.add_argument("--on-llm-failure", choices=["stop", "skip"], default="stop",
                    help="when the endpoint stays down past --retries: stop, resumable (default), or skip: "
@@ -153,10 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run_config(a: argparse.Namespace) -> RunConfig:
-    if a.env is None:
+    if a.env is None and getattr(a, "task_file", None) is None:
         from .errors import ConfigError
 
-        raise ConfigError("--env is required (on the command line, or as env in the --config file)")
+        raise ConfigError("--env or --task-file is required (on the command line, or in the --config file)")
     if a.method in BLACK_BOX:
         # no prompt: only whether the optimizer works in the encoded space matters
         mech = Mechanisms(bool(a.encode_params), bool(a.encode_params), False, False, False)
@@ -170,19 +201,15 @@ def _run_config(a: argparse.Namespace) -> RunConfig:
             disclose_reward_structure=a.disclose_reward_structure,
             **{h: getattr(a, h) for h in HARDENING},
         )
-    from .tasks import get_task
+    from .tasks import is_builtin, load_task
 
-    if a.component or a.diagnostic:
-        from .tasks import generic_task
-
-        task = generic_task(a.env, tuple(a.component), tuple(a.diagnostic))
-    else:
-        task = get_task(a.env)
+    task = load_task(a.env, task_file=getattr(a, "task_file", None), env_kwargs=getattr(a, "env_kwargs", None),
+                     max_episode_steps=getattr(a, "max_episode_steps", None), gym_packages=getattr(a, "gym_packages", ()),
+                     obs_keys=getattr(a, "obs_keys", None), components=a.component, diagnostics=a.diagnostic)  # fmt: skip
     return RunConfig(
-        task=task.env_id if (a.component or a.diagnostic) else task.name,
+        task=task.name,
+        task_spec=None if is_builtin(task) or task.spec is None else task.spec.to_json(),
         workers=a.workers,
-        components=tuple(a.component),
-        diagnostics=tuple(a.diagnostic),
         method=a.method,
         mechanisms=mech,
         warmup=a.warmup,
@@ -261,29 +288,15 @@ def _cmd_show(a: argparse.Namespace) -> int:
 
 
 def _cmd_policy_eval(a: argparse.Namespace) -> int:
-    import numpy as np
+    from .api import evaluate_policy
 
-    from . import seeding
-    from .errors import ConfigError
-    from .evaluation import Evaluator
-    from .policy_file import read_policy
-    from .tasks import get_task
-
-    if a.episodes < 1:
-        raise ConfigError(f"--episodes must be >= 1, got {a.episodes}")
-    doc, theta = read_policy(a.file)
-    task = get_task(str(doc.get("task")))
-    if (task.n_s, task.n_a) != (int(doc["n_s"]), int(doc["n_a"])):
-        raise ConfigError(f"policy file {a.file} has n_s={doc['n_s']}, n_a={doc['n_a']}; task {task.name} needs {task.n_s}, {task.n_a}")
-    seeds = seeding.final_eval_seeds(a.seed, a.episodes)
-    with Evaluator(task) as ev:
-        returns = list(ev.evaluate(theta, seeds).episode_returns)
-    result: dict[str, Any] = {"task": task.name, "mean": float(np.mean(returns)), "std": float(np.std(returns)),
-                              "episodes": len(returns), "seed": a.seed, "returns": returns}
+    ev = evaluate_policy(a.file, episodes=a.episodes, seed=a.seed)
+    result: dict[str, Any] = {"task": ev.task, "mean": ev.mean, "std": ev.std, "episodes": len(ev.returns), "seed": ev.seed,
+                              "returns": list(ev.returns), "seeds": list(ev.seeds)}  # fmt: skip
     if a.json:
         print(json.dumps(result))
     else:
-        print(f"{task.name}: mean return {result['mean']:.2f} +- {result['std']:.2f} over {len(returns)} episodes (seed {a.seed})")
+        print(f"{ev.task}: mean return {ev.mean:.2f} +- {ev.std:.2f} over {len(ev.returns)} episodes (seed {a.seed})")
     return 0
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import json
 import math
 import tomllib
 from collections.abc import Iterable
@@ -95,11 +96,15 @@ class RunConfig:
     llm: LLMConfig = field(default_factory=LLMConfig)
     on_llm_failure: str = "stop"  # stop (resumable) | skip (record a fallback candidate and go on)
     workers: int = 1  # processes that run episodes in parallel (results identical to serial)
-    components: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys summed as reward components
-    diagnostics: tuple[str, ...] = ()  # generic Gymnasium tasks: info keys reported as diagnostics
+    components: tuple[str, ...] = ()  # runs stored before task_spec existed: a generic task's component info keys
+    diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: str = "list"  # how history parameters are written: list | indexed (ProPS form)
     param_digits: int = 3  # list form: significant digits per parameter (at most `decimals` decimals); 0: fixed decimals
     prompt_layout: str = "static-first"  # fixed sections before the history (prefix-cache friendly) | history-first
+    # The task's whole declaration (ppprops.tasks.spec.TaskSpec.to_json()): env recipe, observation
+    # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
+    # None in a config built from a task name (the run stores the declaration when it starts).
+    task_spec: dict[str, Any] | None = None
     # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
     # base model to continue (/completions, wire.document); auto: document for the embedded model, chat otherwise
     prompt_form: str = "auto"
@@ -148,6 +153,8 @@ class RunConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["box"] = list(self.box)
+        if self.task_spec is None:
+            del d["task_spec"]  # a config naming its task matches the stored one that holds the declaration
         return d
 
     @classmethod
@@ -162,9 +169,11 @@ class RunConfig:
         return cls(**d)
 
     def make_task(self):  # type: ignore[no-untyped-def]  # -> Task; imported late (tasks pull in gymnasium)
-        """The task this run searches; generic Gymnasium ids carry their declared info keys."""
-        from .tasks import generic_task, get_task
+        """The task this run searches: from its stored declaration, else by name (older runs, fresh configs)."""
+        from .tasks import generic_task, get_task, task_from_json
 
+        if self.task_spec is not None:
+            return task_from_json(self.task_spec)
         if self.components or self.diagnostics:
             return generic_task(self.task, self.components, self.diagnostics)
         return get_task(self.task)
@@ -224,7 +233,9 @@ def _file_value(path: Path, key: str, value: Any, act: argparse.Action) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"config file {path}: {key} must be true or false, got {value!r}")
         return value
-    if isinstance(value, dict):
+    if isinstance(value, dict) and getattr(conv, "accepts_table", False):
+        value = json.dumps(value)  # e.g. env-kwargs = { g = 9.81 }: the flag's JSON text
+    elif isinstance(value, dict):
         raise bad
     if isinstance(act, argparse._AppendAction):  # a repeatable flag: a list of strings
         if not (isinstance(value, list) and all(isinstance(v, str) for v in value)):

@@ -20,6 +20,18 @@ from .errors import ConfigError
 from .policy import LinearPolicy
 from .tasks.base import Diagnostic, Task
 
+# An env with no time limit whose episode runs this long is stopped with an error naming the fix
+# (--max-episode-steps): a search must never hang on an episode that does not end.
+SAFETY_STEPS = 100_000
+
+
+class EpisodeLimitError(ConfigError):
+    """An episode of an env without a time limit did not end within ``SAFETY_STEPS`` steps."""
+
+
+class WorkerError(ConfigError):
+    """A worker process could not make the task's env; the message is the worker's own error line."""
+
 
 @dataclass(frozen=True)
 class Feedback:
@@ -62,8 +74,19 @@ def make_policy(task: Task, theta: NDArray[np.floating], env: Any) -> LinearPoli
     return LinearPolicy.from_flat(theta, task.n_s, task.n_a, discrete=task.discrete, low=low, high=high)
 
 
-def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int) -> Episode:
-    """One episode. A non-finite observation or reward ends it and is marked, never propagated."""
+def step_cap(env: Any) -> int | None:
+    """The safety cap for an env without a TimeLimit wrapper (None when one ends every episode)."""
+    from .tasks.envs import has_time_limit
+
+    return None if has_time_limit(env) else SAFETY_STEPS
+
+
+def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int, *, max_steps: int | None = None) -> Episode:
+    """One episode. A non-finite observation or reward ends it and is marked, never propagated.
+
+    ``max_steps`` (see ``step_cap``) bounds an episode of an env with no time limit: past it the
+    episode is an ``EpisodeLimitError``, never an endless loop.
+    """
     recorder = task.feedback()
     obs, info = env.reset(seed=seed)
     total = 0.0
@@ -89,6 +112,9 @@ def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int) -> Episod
         recorder.step(obs, reward, info)
         if terminated or truncated:
             break
+        if max_steps is not None and steps >= max_steps:
+            raise EpisodeLimitError(f"an episode of {task.env_id} ran {steps} steps without ending and the env has no time "
+                                    "limit: give one with --max-episode-steps N (max_episode_steps in a task file)")  # fmt: skip
     fb = recorder.finish(terminated=bool(terminated), truncated=bool(truncated), steps=steps, info=info)
     diagnostics = dict(fb.diagnostics)
     if numerical_fault:
@@ -121,22 +147,40 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(ref: Any) -> None:
-    from .tasks import resolve_task
+    # A failure here would kill the pool with a traceback; keep it, and report it as one line instead.
+    try:
+        from .tasks import resolve_task
 
-    task = resolve_task(ref)
-    _worker["task"] = task
-    _worker["env"] = task.make_env()
+        task = resolve_task(ref)
+        _worker["task"] = task
+        _worker["env"] = task.make_env()
+        _worker["cap"] = step_cap(_worker["env"])
+    except Exception as e:
+        _worker["error"] = f"a worker process cannot make the env of task {getattr(ref, 'name', None) or _ref_name(ref)}: {e}"
+
+
+def _ref_name(ref: Any) -> str:
+    return str(ref.get("name")) if isinstance(ref, dict) else str(ref)
 
 
 def _worker_episode(theta: NDArray[np.floating], seed: int) -> Episode:
+    if "error" in _worker:
+        raise WorkerError(_worker["error"])
     task, env = _worker["task"], _worker["env"]
-    return run_episode(task, env, make_policy(task, theta, env), seed)
+    return run_episode(task, env, make_policy(task, theta, env), seed, max_steps=_worker["cap"])
 
 
 def _start_method() -> str:
     # Never fork: the parent may run threads (the embedded LLM server), and a forked child can
     # inherit their locks held. forkserver forks from a clean single-threaded server instead.
     return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
+def check_parallel(task: Task) -> None:
+    """Refuse, in one line, a task whose env worker processes cannot make (see ``EnvRecipe.local_only``)."""
+    local = task.spec.env.local_only() if task.spec is not None else None
+    if local is not None:
+        raise ConfigError(f"task {task.name} cannot run in worker processes: {local} (or use workers=1)")
 
 
 class Evaluator:
@@ -153,12 +197,14 @@ class Evaluator:
         self.task = task
         self.workers = workers
         self._env: Any = None
+        self._cap: int | None = None
         self._pool: ProcessPoolExecutor | None = None
 
     @property
     def env(self) -> Any:
         if self._env is None:
             self._env = self.task.make_env()
+            self._cap = step_cap(self._env)
         return self._env
 
     def _episodes_serial(
@@ -167,7 +213,7 @@ class Evaluator:
         out = []
         for theta, seeds in zip(thetas, seeds_list, strict=True):
             policy = make_policy(self.task, theta, self.env)
-            out.append([run_episode(self.task, self.env, policy, s) for s in seeds])
+            out.append([run_episode(self.task, self.env, policy, s, max_steps=self._cap) for s in seeds])
         return out
 
     def _pool_for(self) -> ProcessPoolExecutor:
@@ -176,6 +222,7 @@ class Evaluator:
 
             if self.task.setup is not None:
                 self.task.setup()  # a missing extra fails here, with its own message, not in a worker
+            check_parallel(self.task)
             ctx = multiprocessing.get_context(_start_method())
             self._pool = ProcessPoolExecutor(
                 self.workers, mp_context=ctx, initializer=_init_worker, initargs=(task_ref(self.task),)

@@ -1,51 +1,123 @@
 """The deployable result: ``best_policy.json``, a linear policy with no encoding involved.
 
-Format ``ppprops.linear_policy/1``::
+Format ``ppprops.linear_policy/2`` holds everything needed to run the policy with numpy and
+gymnasium alone (the README's recipe)::
 
     {
-      "format": "ppprops.linear_policy/1",
-      "task": "CartPole",            # ppprops task name (gives the observation adapter)
-      "env_id": "CartPole-v1",
-      "n_s": 4, "n_a": 2, "action_type": "discrete",
-      "observation": ["cart_position", ...],   # names of s[0..n_s-1]
-      "W": [[...n_a values...], ... n_s rows],  # u = W^T s + b
+      "format": "ppprops.linear_policy/2",
+      "task": "Ant-Ultra", "env_id": "Ant-v5",
+      "env": {"spec": {...},                  # Gymnasium's EnvSpec as JSON: gym.make(EnvSpec.from_json(...))
+              "imports": [...], "paths": [...]},  # modules to import / folders to put on sys.path first
+      "observation": {"names": [...],         # names of s[0..n_s-1]
+                      "keys": null,           # Dict observation: entries kept, in this order (flattened, concatenated)
+                      "one_hot": null,        # Discrete observation: {"n": N, "start": S} -> one-hot vector of length N
+                      "indices": [0, 5, ...]},  # values kept of the flattened float64 vector
+      "action": {"type": "continuous", "rule": "clip", "low": [...], "high": [...]}
+             or {"type": "discrete", "rule": "argmax", "n": 5},
+      "n_s": 10, "n_a": 8, "action_type": "continuous",
+      "W": [[...n_a values...], ... n_s rows],  # u = W^T s + b, i.e. u = s @ W + b
       "b": [...n_a values...],
       "theta": [...D values...],                # the same numbers in the flat layout
+      "versions": {"ppprops": ..., "gymnasium": ..., "numpy": ..., "python": ..., <simulator>: ...},
+      "task_spec": {...},                       # the task's declaration (ppprops rebuilds the task from it)
       "search": {"run_id": ..., "method": ..., "seed": ..., "return": ..., "candidate": ...},
       "final_eval": {"mean": ..., "std": ..., "episodes": ..., "seed": ...}
     }
+
+An action bound that is infinite is written as the largest float, so the file stays strict JSON
+and clipping to it changes no finite value. ``load_policy`` reads either format version
+(``/1`` files, which name only the task, are completed from ppprops' task registry).
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
+import platform
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .errors import ConfigError, PPPropsError
 from .policy import LinearPolicy, param_count
-from .tasks.base import Task
+from .tasks.base import Selection, Task
 
-FORMAT = "ppprops.linear_policy/1"
+FORMAT = "ppprops.linear_policy/2"
+FORMAT_V1 = "ppprops.linear_policy/1"
+_BIG = float(np.finfo(np.float64).max)
 
 
-def policy_document(task: Task, theta: np.ndarray, *, search: dict[str, Any], final_eval: dict[str, Any] | None) -> dict[str, Any]:
+def _bound(values: Any, n: int) -> list[float]:
+    arr = np.broadcast_to(np.asarray(values, dtype=np.float64), (n,))
+    return [float(np.clip(v, -_BIG, _BIG)) for v in arr]
+
+
+def _versions(entry_point: str | None) -> dict[str, str]:
+    import importlib.metadata as md
+
+    import gymnasium
+
+    from . import __version__
+
+    out = {"ppprops": __version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__, "python": platform.python_version()}
+    modules = {"mujoco"} | ({entry_point.split(":")[0].split(".")[0]} if entry_point else set())
+    dists = md.packages_distributions()
+    for module in sorted(modules):
+        if module in sys.modules:
+            for dist in dists.get(module, ()):
+                try:
+                    out[dist] = md.version(dist)
+                except md.PackageNotFoundError:
+                    pass
+    return out
+
+
+def env_document(task: Task) -> dict[str, Any]:
+    """How to make the task's env: Gymnasium's EnvSpec (JSON), plus modules to import and folders for sys.path."""
+    from .tasks.envs import EnvRecipe
+
+    recipe = task.spec.env if task.spec is not None else EnvRecipe(id=task.env_id, kwargs=dict(task.env_kwargs))
+    spec = recipe.env_spec()
+    try:
+        spec_json = json.loads(spec.to_json())
+    except (ValueError, TypeError):  # an entry point with no importable name: this process only
+        spec_json = None
+    return {"spec": spec_json, "imports": list(recipe.imports), "paths": list(recipe.paths)}
+
+
+def policy_document(
+    task: Task, theta: np.ndarray, *, env: Any, search: dict[str, Any], final_eval: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The policy file's content for ``theta`` (shape (D,)) on ``task``; ``env`` gives the action bounds."""
     pol = LinearPolicy.from_flat(theta, task.n_s, task.n_a, discrete=task.discrete)
+    if task.discrete:
+        action: dict[str, Any] = {"type": "discrete", "rule": "argmax", "n": task.n_a}
+    else:
+        space = env.action_space
+        action = {"type": "continuous", "rule": "clip", "low": _bound(space.low, task.n_a), "high": _bound(space.high, task.n_a)}
+    adapter = task.observation
+    observation = adapter.to_json() if isinstance(adapter, Selection) else {"names": list(adapter.names)}
+    env_doc = env_document(task)
     return {
         "format": FORMAT,
         "task": task.name,
         "env_id": task.env_id,
+        "env": env_doc,
+        "observation": observation,
+        "action": action,
         "n_s": task.n_s,
         "n_a": task.n_a,
         "action_type": task.action_type,
-        "observation": list(task.observation.names),
         "W": pol.W.tolist(),
         "b": pol.b.tolist(),
         "theta": [float(v) for v in theta],
+        "versions": _versions((env_doc["spec"] or {}).get("entry_point")),
+        "task_spec": task.spec.to_json() if task.spec is not None else None,
         "search": search,
         "final_eval": final_eval,
     }
@@ -69,13 +141,18 @@ def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
 
 
 def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
+    """The policy file's document and its flat theta (shape (D,)).
+
+    Raises:
+        PPPropsError: missing, unreadable, not JSON, not a ppprops policy file, or W/b inconsistent.
+    """
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise PPPropsError(f"policy file {path} does not exist") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise PPPropsError(f"policy file {path} cannot be read as JSON ({e.__class__.__name__})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+    if not isinstance(doc, dict) or doc.get("format") not in (FORMAT, FORMAT_V1):
         raise PPPropsError(f"policy file {path} is not a {FORMAT} document")
     try:
         n_s, n_a = int(doc["n_s"]), int(doc["n_a"])
@@ -85,6 +162,105 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
         raise PPPropsError(f"policy file {path} lacks n_s, n_a, W or b") from None
     if W.shape != (n_s, n_a) or b.shape != (n_a,) or not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
         raise ConfigError(f"policy file {path}: W must be {n_s}x{n_a} and b length {n_a}, all finite")
+    if doc["format"] == FORMAT:
+        try:
+            Selection.from_json(doc["observation"])
+            if doc["action"]["rule"] not in ("argmax", "clip") or not isinstance(doc["env"], dict):
+                raise ValueError
+        except (KeyError, TypeError, ValueError):
+            raise PPPropsError(f"policy file {path} lacks a valid observation, action or env block") from None
     theta = np.concatenate([W.reshape(-1), b])
     assert theta.shape == (param_count(n_s, n_a),)
     return doc, theta
+
+
+class Policy:
+    """A deployable linear policy read from a policy file: call it on raw env observations.
+
+    ``policy(obs)`` returns the action for one raw observation of the env the file records: an
+    ``int`` for discrete actions (the argmax of u), a float64 array of shape (n_a,) clipped to the
+    action bounds for continuous ones, where u = s @ W + b and s = ``policy.state(obs)`` (shape
+    (n_s,)). ``make_env()`` makes that env (``gym.make`` of the recorded EnvSpec). Only numpy is
+    needed to act; gymnasium to make the env.
+    """
+
+    def __init__(self, doc: dict[str, Any], theta: NDArray[np.float64], *, path: Path | None = None) -> None:
+        self.document = doc
+        self.path = path
+        self.task: str = str(doc.get("task"))
+        self.theta = theta
+        self.n_s, self.n_a = int(doc["n_s"]), int(doc["n_a"])
+        self.W = theta[: self.n_s * self.n_a].reshape(self.n_s, self.n_a)
+        self.b = theta[self.n_s * self.n_a :]
+        self.discrete = doc["action_type"] == "discrete"
+        if doc["format"] == FORMAT:
+            self.selection = Selection.from_json(doc["observation"])
+            action = doc["action"]
+            self.low = None if self.discrete else np.asarray(action["low"], dtype=np.float64)
+            self.high = None if self.discrete else np.asarray(action["high"], dtype=np.float64)
+        else:  # a /1 file names its task only: the adapter and bounds come from the task registry
+            from .tasks import get_task
+
+            task = get_task(self.task)
+            self.selection = task.observation  # type: ignore[assignment]
+            self.low = self.high = None
+            if not self.discrete:
+                env = task.make_env()
+                self.low, self.high = np.asarray(env.action_space.low, np.float64), np.asarray(env.action_space.high, np.float64)
+                env.close()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.selection.names)
+
+    def state(self, obs: Any) -> NDArray[np.float64]:
+        """The policy's state s (shape (n_s,)) from one raw observation."""
+        return self.selection(obs)
+
+    def scores(self, obs: Any) -> NDArray[np.float64]:
+        """u = s @ W + b, shape (n_a,)."""
+        return self.state(obs) @ self.W + self.b
+
+    def __call__(self, obs: Any) -> int | NDArray[np.float64]:
+        u = self.scores(obs)
+        if self.discrete:
+            return int(np.argmax(u))
+        assert self.low is not None and self.high is not None
+        return np.clip(u, self.low, self.high)
+
+    def make_env(self, **kwargs: Any) -> Any:
+        """The env this policy was searched on (``kwargs`` go to ``gym.make``, e.g. ``render_mode``).
+
+        Raises:
+            ConfigError: the file records no portable env (its factory had no importable name).
+        """
+        if self.document["format"] != FORMAT:
+            from .tasks import get_task
+
+            return get_task(self.task).make_env()
+        import gymnasium as gym
+        from gymnasium.envs.registration import EnvSpec
+
+        env_doc = self.document["env"]
+        if env_doc.get("spec") is None:
+            raise ConfigError(f"policy file {self.path}: its env was made by a factory with no importable name; make it yourself")
+        for folder in env_doc.get("paths", ()):
+            if folder not in sys.path:
+                sys.path.append(folder)
+        for module in env_doc.get("imports", ()):
+            importlib.import_module(module)
+        return gym.make(EnvSpec.from_json(json.dumps(env_doc["spec"])), **kwargs)
+
+    def __repr__(self) -> str:
+        kind = "discrete" if self.discrete else "continuous"
+        return f"Policy(task={self.task!r}, n_s={self.n_s}, n_a={self.n_a}, {kind})"
+
+
+def load_policy(path: str | os.PathLike[str]) -> Policy:
+    """Read a policy file (``best_policy.json``) into a callable ``Policy`` (raw observation -> action).
+
+    Raises:
+        PPPropsError: the file is missing, not JSON, or not a valid ppprops policy file.
+    """
+    doc, theta = read_policy(Path(path))
+    return Policy(doc, theta, path=Path(path))

@@ -20,8 +20,10 @@ import urllib.request
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing, contextmanager, nullcontext
-from dataclasses import dataclass
+from contextvars import ContextVar
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -31,7 +33,7 @@ from .client.hardening import codec_for, generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
-from .evaluation import Evaluator, Feedback
+from .evaluation import EpisodeLimitError, Evaluator, Feedback, WorkerError, check_parallel
 from .llm.client import ChatClient, Exchange, default_max_tokens
 from .loop import Phase, StopSearch, best_candidate, run_loop
 from .policy_file import policy_document, write_json_atomic
@@ -41,9 +43,11 @@ from .proposers.uniform import warmup_sampler
 from .rollout import record_rollout
 from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
 from .strategies import BLACK_BOX, black_box_phase
-from .tasks import Task
+from .tasks import FeedbackKeyError, Task
 
 KEY_NAME = "secrets.key"
+# Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
+BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 CHAT_TEMPLATE_MARGIN = 32  # tokens the chat template adds around a single user message
 POLICY_NAME = "best_policy.json"
 
@@ -57,6 +61,39 @@ class RunEvents:
     on_final: Callable[[FinalEval], None] = lambda fe: None
 
 
+class ChatModel(Protocol):
+    """What the runner asks an LLM through: the recording ``ChatClient`` or any object like it.
+
+    ``complete`` sends one prompt (``messages``: OpenAI chat messages) for a vector of ``D`` numbers
+    and returns the ``Exchange`` (request and answer text, recorded in the store, so the audit
+    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it.
+    """
+
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+
+    def count_tokens(self, text: str) -> int: ...
+
+    def close(self) -> None: ...
+
+
+# A chat model for every run started in this context (see ``use_chat``); None: the configured LLM.
+_CHAT_FACTORY: ContextVar[Callable[[RunConfig], ChatModel] | None] = ContextVar("ppprops_chat_factory", default=None)
+
+
+@contextmanager
+def use_chat(factory: Callable[[RunConfig], ChatModel]) -> Iterator[None]:
+    """Within the block, runs talk to ``factory(config)`` instead of their configured endpoint.
+
+    For offline stand-ins (``ppprops.privacy.simulate.offline_llm``) and tests; a single run takes
+    its chat model as the ``chat`` argument of ``start`` / ``resume`` instead.
+    """
+    token = _CHAT_FACTORY.set(factory)
+    try:
+        yield
+    finally:
+        _CHAT_FACTORY.reset(token)
+
+
 def new_run_id(config: RunConfig) -> str:
     return f"{config.task}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}"
 
@@ -66,9 +103,15 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
 
     ``secrets`` is for tests and controlled experiments; normally they are drawn fresh here.
     Everything is written under a temporary sibling name first, then renamed to ``run_dir``.
+    The stored config holds the task's whole declaration (``task_spec``), so the run can be resumed
+    and evaluated in any process; a task's env and info keys are checked before anything is written.
     """
     config.validate()
     task = config.make_task()
+    if config.task_spec is None and task.spec is not None:
+        config = replace(config, task_spec=task.spec.to_json())
+    if config.workers > 1:
+        check_parallel(task)  # before the directory: a pool that could never start
     run_dir = Path(run_dir)
     if run_dir.exists() and (not run_dir.is_dir() or any(run_dir.iterdir())):
         what = "another run" if (run_dir / DB_NAME).exists() else "files"
@@ -146,8 +189,14 @@ def execute(
     events: RunEvents = RunEvents(),
     *,
     llm_gate: AbstractContextManager[object] | None = None,
+    chat: ChatModel | None = None,
 ) -> FinalEval | None:
-    """Run (or continue) the search, then the final evaluation, then write the policy file."""
+    """Run (or continue) the search, then the final evaluation, then write the policy file.
+
+    ``chat`` replaces the configured LLM (the caller keeps and closes it). An env that turns out
+    to break its declaration mid-run (an info key gone, an episode that never ends) stops the run
+    cleanly (status ``stopped: ...``) and raises that one-line error.
+    """
     task = config.make_task()
     codec = codec_for(secrets, task, config)  # every mechanism of the config, hardening included
     done = store.candidates()
@@ -171,7 +220,9 @@ def execute(
             if config.iterations > 0 and config.method in BLACK_BOX:
                 phases.append(black_box_phase(task, config, codec))
             elif config.iterations > 0:
-                chat = stack.enter_context(closing(LazyChat(config, llm_gate)))
+                if chat is None:
+                    factory = _CHAT_FACTORY.get()
+                    chat = stack.enter_context(closing(factory(config) if factory is not None else LazyChat(config, llm_gate)))
                 common = dict(
                     chat=chat,
                     codec=codec,
@@ -210,7 +261,14 @@ def execute(
                 status = f"stopped: {stop.reason}"
             except LLMError as e:  # the endpoint stayed down past the retry bound: stop, resumable
                 raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {run_dir}'") from e
-        fe = finish(run_dir, store, config, task, evaluator, done, status=status)
+            except BROKEN_TASK as e:  # the env broke its declaration
+                store.set_status(f"stopped: {e}")
+                raise
+        try:
+            fe = finish(run_dir, store, config, task, evaluator, done, status=status)
+        except BROKEN_TASK as e:
+            store.set_status(f"stopped: {e}")
+            raise
     events.on_final(fe) if fe is not None else None
     return fe
 
@@ -232,7 +290,8 @@ def finish(
     for stale in Path(run_dir).glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
         stale.unlink(missing_ok=True)
     try:
-        write_json_atomic(path, policy_document(task, best.params, search=search, final_eval=final))
+        write_json_atomic(path, policy_document(task, best.params, env=None if task.discrete else evaluator.env, search=search,
+                                                  final_eval=final))
     except OSError as e:
         raise StoreError(f"cannot write {path}: {e.strerror or e}; then continue with 'ppprops resume {run_dir}'") from None
     store.set_status(status)
@@ -287,20 +346,26 @@ def start(
     *,
     secrets: Secrets | None = None,
     llm_gate: AbstractContextManager[object] | None = None,
+    chat: ChatModel | None = None,
 ) -> FinalEval | None:
-    """``llm_gate`` (e.g. a shared semaphore) is held around every LLM request of the run."""
+    """Create the run directory and run it. ``llm_gate`` (e.g. a shared semaphore) is held around
+    every LLM request of the run; ``chat`` replaces the configured LLM (see ``execute``)."""
     store, secrets = create_run(config, run_dir, secrets)
     try:
-        return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate)
+        stored = RunConfig.from_json(store.config())  # with the task's declaration
+        return execute(run_dir, store, stored, secrets, events, llm_gate=llm_gate, chat=chat)
     finally:
         store.close()
 
 
-def resume(run_dir: Path, events: RunEvents = RunEvents(), *, llm_gate: AbstractContextManager[object] | None = None) -> FinalEval | None:
+def resume(
+    run_dir: Path, events: RunEvents = RunEvents(), *, llm_gate: AbstractContextManager[object] | None = None,
+    chat: ChatModel | None = None,
+) -> FinalEval | None:
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
     try:
-        return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate)
+        return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate, chat=chat)
     finally:
         store.close()

@@ -117,11 +117,12 @@ def read_run(path: Path) -> RunRecord:
         returns=[c["return"] for c in s["candidates"]],
         calls=[{k: c[k] for k in ("iteration", "latency_s", "prompt_chars", "ok")} for c in s["llm_calls"]],
     )  # fmt: skip
+    spec = cfg.get("task_spec")
     try:
         from ..tasks import get_task
 
-        rec.D = get_task(rec.task).D
-    except ConfigError:
+        rec.D = (len(spec["observation"]["names"]) + 1) * len(spec["actions"]) if spec else get_task(rec.task).D
+    except (ConfigError, KeyError, TypeError):
         rec.D = None
     return rec
 

@@ -13,7 +13,6 @@ import json
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
-from unittest import mock
 
 import numpy as np
 
@@ -65,6 +64,7 @@ class EchoOptimizer:
 @contextmanager
 def offline_llm(spread: float = 0.5) -> Iterator[None]:
     """Within the block, every run started by ``ppprops.runner`` talks to an ``EchoOptimizer``."""
-    # whatever the runner passes LazyChat (config, and whatever else it grows), the stand-in answers
-    with mock.patch("ppprops.runner.LazyChat", lambda *args, **kwargs: EchoOptimizer(spread=spread)):
+    from ..runner import use_chat
+
+    with use_chat(lambda config: EchoOptimizer(spread=spread)):
         yield

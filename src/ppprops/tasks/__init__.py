@@ -1,54 +1,108 @@
-"""Task registry: look tasks up by the paper's name, or by any Gymnasium id (a generic task).
+"""Task registry and loading: the paper's task files, a user's task files, Gymnasium ids, env factories.
 
-Registering a task imports nothing heavy: simulators are imported when a task's env is made, so the
-list of tasks is available without any extra installed.
+``get_task(name)`` finds a task by its name, its env id, a task file path, or builds one for any
+Gymnasium id. ``load_task(source, ...)`` is the general form behind ``ppprops run`` and
+``ppprops.search``: the source may also be an env factory or a ``TaskSpec``, with the quick options
+(env kwargs, a step limit, packages to import, Dict keys, info keys) applied.
+
+Loading the registry reads the paper's task files only; simulators are imported when a task's env
+is made, so the list of tasks is available without any extra installed.
 """
 
 from __future__ import annotations
 
 import difflib
+import os
+from collections.abc import Callable, Mapping, Sequence
+from functools import cache
+from importlib import resources
+from pathlib import Path
+from typing import Any
 
-from ..errors import UnknownTaskError
-from .base import ComponentSums, EpisodeFeedback, EpisodeRecorder, FlatBox, Task, TaskText
-from .classic import TASKS as _CLASSIC
-from .generic import GenericSpec, generic_task, known_ids, registered_id, spec_of
-from .highway import PRESETS as _HIGHWAY_PRESETS
-from .highway import TASKS as _HIGHWAY
-from .mujoco import TASKS as _MUJOCO
-from .robotics import TASKS as _ROBOTICS
+from ..errors import ConfigError, UnknownTaskError
+from .base import EpisodeFeedback, EpisodeRecorder, Selection, Task, TaskText
+from .envs import EnvRecipe, TaskImportError, import_module, known_ids, registered_id
+from .feedback import FeedbackKeyError
+from .paper import PRESET_FILES, TASK_FILES
+from .spec import (
+    Declared,
+    TaskFileError,
+    TaskSpec,
+    build_task,
+    read_task_file,
+    resolve,
+    spec_for_env,
+    spec_from_table,
+    task_from_json,
+)
 
 _REGISTRY: dict[str, Task] = {}
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
+_BUILTIN: set[str] = set()  # the paper's tasks: always known by name, in every process
 
 
-def register(task: Task, *, by_env_id: bool = True) -> Task:
-    """Add a task; its name must not clash with one already registered.
+def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str], *, by_env_id: bool = True) -> Task:
+    """Add a task (a Task, a TaskSpec, a task-file table as a dict, or a task file path) so ``get_task`` finds it by name.
 
+    The name must not clash with a task already registered, unless it is the same declaration.
     ``by_env_id=False`` keeps ``get_task(env_id)`` pointing at the main task of that env.
+    A registered task is known in this process only; runs store its declaration, so resuming
+    or evaluating them elsewhere needs no registration.
+
+    Raises:
+        ValueError (ConfigError): the name is taken by another declaration.
     """
-    if task.name.lower() in _REGISTRY:
-        raise ValueError(f"task {task.name!r} is already registered")
-    _REGISTRY[task.name.lower()] = task
+    if not isinstance(task, Task):
+        task = load_task(task)
+    key = task.name.lower()
+    old = _REGISTRY.get(key)
+    if old is not None:
+        if old is task or (old.spec is not None and task.spec is not None and old.spec.to_json() == task.spec.to_json()):
+            return old
+        raise ConfigError(f"task {task.name!r} is already registered")
+    _REGISTRY[key] = task
     if not by_env_id:
-        _NAME_ONLY.add(task.name.lower())
+        _NAME_ONLY.add(key)
     return task
 
 
-for _t in (*_MUJOCO, *_CLASSIC, *_ROBOTICS, *_HIGHWAY):
-    register(_t)
-for _t in _HIGHWAY_PRESETS:
-    register(_t, by_env_id=False)
+def _load_paper() -> None:
+    root = resources.files(__name__ + ".paper")
+    for files, by_env_id in ((TASK_FILES, True), (PRESET_FILES, False)):
+        for filename in files:
+            with resources.as_file(root.joinpath(filename)) as path:
+                task = build_task(read_task_file(path, builtin=True))
+            register(task, by_env_id=by_env_id)
+            _BUILTIN.add(task.name.lower())
+
+
+_load_paper()
 
 
 def list_tasks() -> list[Task]:
+    """Every registered task: the paper's ten and its presets first, then any registered in this process."""
     return list(_REGISTRY.values())
 
 
+def is_builtin(task: Task) -> bool:
+    """True for the paper's own task objects (known by name in every process)."""
+    return task.name.lower() in _BUILTIN and _REGISTRY.get(task.name.lower()) is task
+
+
+def _is_task_file(name: str) -> bool:
+    return name.lower().endswith(".toml")
+
+
 def get_task(name: str) -> Task:
-    """Find a task by its name (case-insensitive), by its env id, or build one for a Gymnasium id.
+    """Find a task by its name (case-insensitive), its env id, a task file path, or build one for a Gymnasium id.
 
     An env id that several tasks share (Ant-v5: Ultra, Joints, Torso) is an error naming them; an
-    id no task uses gives a generic task (see ``generic_task``).
+    id no task uses gives a generic task (see ``generic_task``); a path ending in ``.toml`` is read
+    as a task file and registered.
+
+    Raises:
+        UnknownTaskError: neither a task, a task file, nor a Gymnasium id (with close matches).
+        ConfigError: the task file or the env's info keys are wrong (one line naming the cause).
     """
     key = name.lower()
     if key in _REGISTRY:
@@ -58,8 +112,11 @@ def get_task(name: str) -> Task:
         return by_id[0]
     if by_id:
         raise UnknownTaskError(f"{name!r} is the env of several tasks; pick one: {', '.join(t.name for t in by_id)}")
-    if registered_id(name) is not None:
-        return generic_task(name)
+    if _is_task_file(name):
+        return register(name)
+    found = registered_id(name)
+    if found is not None or ":" in name:  # module:attr: an env class or factory (checked when built)
+        return generic_task(found or name)
     names = [t.name for t in _REGISTRY.values()]
     candidates = names + [t.env_id for t in _REGISTRY.values()] + known_ids()
     close = difflib.get_close_matches(name, list(dict.fromkeys(candidates)), n=3, cutoff=0.5)
@@ -67,40 +124,153 @@ def get_task(name: str) -> Task:
     raise UnknownTaskError(f"unknown task {name!r}{hint}")
 
 
-TaskRef = str | GenericSpec | Task
+def generic_task(
+    env_id: str, components: tuple[str, ...] | list[str] = (), diagnostics: tuple[str, ...] | list[str] = ()
+) -> Task:
+    """A Task for any registered Gymnasium id with a Box (or Discrete, one-hot) observation and Box/Discrete actions.
+
+    ``components`` are info keys summed over an episode and reported as reward components (they are
+    scaled with the return under PP-ProPS, so declare only reward-valued keys); ``diagnostics`` are
+    info keys reported as their last value, never scaled. One probe episode checks them (see
+    ``ppprops.tasks.spec.resolve``).
+    """
+    return _generic(env_id, tuple(components), tuple(diagnostics))
+
+
+@cache
+def _generic(name: str, components: tuple[str, ...], diagnostics: tuple[str, ...]) -> Task:
+    found = registered_id(name)
+    if found is None and ":" not in name:
+        raise UnknownTaskError(f"unknown task {name!r}: not a registered Gymnasium id")
+    spec = spec_for_env(found or name).with_options(components=components, diagnostics=diagnostics)
+    return build_task(resolve(spec))
+
+
+TaskSource = str | os.PathLike[str] | Callable[..., Any] | Mapping[str, Any] | TaskSpec | Task
+
+
+def load_task(
+    source: TaskSource | None = None,
+    *,
+    task_file: str | os.PathLike[str] | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+    max_episode_steps: int | None = None,
+    gym_packages: Sequence[str] = (),
+    obs_keys: Sequence[str] | None = None,
+    components: Sequence[str] = (),
+    diagnostics: Sequence[str] = (),
+) -> Task:
+    """The task a run searches, from any of the forms a user gives one in.
+
+    ``source`` is a paper task name (``"Ant-Ultra"``), a Gymnasium id (``"Pendulum-v1"``), a
+    ``module:EnvId`` or ``module:attr`` string (an Env class or a function returning an env), a path
+    to a task file (``.toml``), a dict with a task file's keys (``{"name": ..., "env": ...,
+    "observation": {"indices": [...]}}``), an env factory callable, a ``TaskSpec``, or a ``Task``;
+    ``task_file`` names a task file instead. The options are those of ``ppprops run``
+    (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``, ``--obs-keys``, ``--component``,
+    ``--diagnostic``) and win over the declaration. A task that is not a paper task is checked
+    against its env (one probe episode) before this returns.
+
+    Raises:
+        UnknownTaskError, TaskFileError, TaskImportError, FeedbackKeyError (all ConfigError): one
+        line naming what is wrong (an unknown id, a bad task file, a module that fails to import
+        and why, an info key missing or not a scalar).
+    """
+    options = bool(env_kwargs or max_episode_steps is not None or gym_packages or obs_keys is not None or components or diagnostics)
+    for module in gym_packages:
+        import_module(module, "--gym-packages")
+    if task_file is not None:
+        if source is not None:
+            raise ConfigError("give a task name/id or a task file, not both (--env or --task-file)")
+        source = Path(task_file)
+    if source is None:
+        raise ConfigError("no task: give a task name or Gymnasium id (--env), or a task file (--task-file)")
+    spec: TaskSpec
+    if isinstance(source, Task):
+        if options:
+            raise ConfigError(f"task {source.name} is a Task object: change its declaration (its .spec) instead of passing options")
+        return source
+    if isinstance(source, TaskSpec):
+        spec = source
+    elif isinstance(source, Mapping):
+        spec = spec_from_table(dict(source), where=f"task {source.get('name', '?')!r}")
+    elif isinstance(source, os.PathLike) or (isinstance(source, str) and _is_task_file(source)):
+        spec = read_task_file(Path(source))
+    elif isinstance(source, str):
+        if not options:
+            return get_task(source)
+        known = _REGISTRY.get(source.lower())
+        if known is None:
+            by_id = [t for k, t in _REGISTRY.items() if t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
+            known = by_id[0] if len(by_id) == 1 else None
+        if known is not None and is_builtin(known):
+            raise ConfigError(f"{known.name} is a paper task: its env, observation and feedback are fixed; to change them, "
+                              f"write a task file (docs/own-robot.md) or give its env id {known.env_id}")  # fmt: skip
+        if known is not None and known.spec is not None:
+            spec = known.spec
+        else:
+            if ":" not in source:
+                found = registered_id(source)
+                if found is None:
+                    get_task(source)  # the unknown-task error, with close matches
+                source = found or source
+            spec = spec_for_env(source)
+    elif callable(source):
+        spec = spec_for_env(source)
+    else:
+        raise ConfigError(f"a task is a name, a Gymnasium id, a task file, an env factory, a TaskSpec or a Task; got {source!r}")
+    if options:
+        spec = spec.with_options(env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
+                                 obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    return build_task(resolve(spec))
+
+
+TaskRef = str | dict[str, Any] | Task
 
 
 def task_ref(task: Task) -> TaskRef:
-    """A small picklable handle from which another process rebuilds ``task`` (see ``resolve_task``)."""
-    spec = spec_of(task)
-    if spec is not None:
-        return spec
-    if _REGISTRY.get(task.name.lower()) is task:
+    """A small picklable handle from which another process rebuilds ``task`` (see ``resolve_task``).
+
+    A paper task is its name; a task with a declaration is that declaration (JSON values, so the
+    other process needs none of the code that registered it); a hand-made Task is sent whole.
+    """
+    if is_builtin(task):
         return task.name
+    if task.spec is not None:
+        return task.spec.to_json()
     return task  # an ad-hoc task: sent whole, so it must pickle
 
 
 def resolve_task(ref: TaskRef) -> Task:
+    """The task a ``task_ref`` handle stands for (in any process)."""
     if isinstance(ref, str):
         return get_task(ref)
-    if isinstance(ref, GenericSpec):
-        return generic_task(ref.env_id, ref.components, ref.diagnostics)
+    if isinstance(ref, dict):
+        return task_from_json(ref)
     return ref
 
 
 __all__ = [
-    "ComponentSums",
+    "Declared",
+    "EnvRecipe",
     "EpisodeFeedback",
     "EpisodeRecorder",
-    "FlatBox",
-    "GenericSpec",
+    "FeedbackKeyError",
+    "Selection",
     "Task",
+    "TaskFileError",
+    "TaskImportError",
     "TaskRef",
+    "TaskSpec",
     "TaskText",
     "generic_task",
     "get_task",
+    "is_builtin",
     "list_tasks",
+    "load_task",
+    "read_task_file",
     "register",
     "resolve_task",
+    "task_from_json",
     "task_ref",
 ]

@@ -1,15 +1,13 @@
-"""A task is data: env id, kwargs, observation adapter, feedback extractor and a description.
+"""What the search loop knows about a task: the Task, its observation adapter, its feedback recorder.
 
-The search loop only ever sees a ``Task``; adding an environment means adding one of these
-(plus a description file), never touching the loop.
+The loop only ever sees a ``Task``. Tasks are data: each is built from a task file (TOML) or the
+equivalent ``TaskSpec`` (``ppprops.tasks.spec``), never by touching the loop.
 """
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from importlib import resources
 from typing import Any, Literal, Protocol
 
 import numpy as np
@@ -46,52 +44,50 @@ class ObservationAdapter(Protocol):
 
 
 @dataclass(frozen=True)
-class FlatBox:
-    """Flattens a Box observation, optionally keeping only some indices."""
+class Selection:
+    """The policy's state s from a raw observation: Dict entries, one-hot, then chosen indices.
+
+    The same four steps, in this order, are the deployment recipe of the policy file (README): a
+    Dict observation keeps ``keys`` (each flattened, concatenated in this order); a Discrete
+    observation becomes a one-hot vector of length ``one_hot[0]`` (its value minus ``one_hot[1]``,
+    the space's start); the result is flattened to float64; ``indices`` keep some of its values.
+    """
 
     names: tuple[str, ...]
     indices: tuple[int, ...] | None = None
+    keys: tuple[str, ...] | None = None
+    one_hot: tuple[int, int] | None = None  # (n, start) of a Discrete observation
 
     def __call__(self, obs: Any) -> NDArray[np.float64]:
-        flat = np.asarray(obs, dtype=np.float64).reshape(-1)
+        if self.keys is not None:
+            obs = np.concatenate([np.ravel(obs[k]) for k in self.keys])
+        if self.one_hot is not None:
+            obs = np.eye(self.one_hot[0])[obs - self.one_hot[1]]
+        flat = np.ravel(np.asarray(obs, dtype=np.float64))
         return flat if self.indices is None else flat[list(self.indices)]
 
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "names": list(self.names),
+            "keys": None if self.keys is None else list(self.keys),
+            "one_hot": None if self.one_hot is None else {"n": self.one_hot[0], "start": self.one_hot[1]},
+            "indices": None if self.indices is None else list(self.indices),
+        }
 
-@dataclass(frozen=True)
-class ComponentSums:
-    """Sums the named info keys over an episode as reward components; counts steps as a diagnostic."""
-
-    keys: tuple[str, ...] = ()
-    diagnostic_keys: tuple[str, ...] = ()
-
-    def __call__(self) -> EpisodeRecorder:
-        return _SumRecorder(self.keys, self.diagnostic_keys)
-
-
-class _SumRecorder:
-    def __init__(self, keys: tuple[str, ...], diagnostic_keys: tuple[str, ...]) -> None:
-        self.keys = keys
-        self.diagnostic_keys = diagnostic_keys
-        self.sums = dict.fromkeys(keys, 0.0)
-        self.last: dict[str, Diagnostic] = {}
-
-    def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
-        for k in self.keys:
-            self.sums[k] += float(info.get(k, 0.0))
-        for k in self.diagnostic_keys:
-            if k in info:
-                v = info[k]
-                self.last[k] = float(v) if isinstance(v, (int, float, bool, np.number, np.bool_)) else str(v)
-
-    def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
-        diag: dict[str, Diagnostic] = {"episode_length": float(steps)}
-        diag.update(self.last)
-        return EpisodeFeedback(components=dict(self.sums), diagnostics=diag)
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Selection:
+        oh = d.get("one_hot")
+        return cls(
+            names=tuple(d["names"]),
+            indices=None if d.get("indices") is None else tuple(int(i) for i in d["indices"]),
+            keys=None if d.get("keys") is None else tuple(d["keys"]),
+            one_hot=None if oh is None else (int(oh["n"]), int(oh["start"])),
+        )
 
 
 @dataclass(frozen=True)
 class TaskText:
-    """The prose a prompt may use about a task. Loaded from a TOML file next to the task module.
+    """The prose a prompt may use about a task (from its task file, see ``ppprops.tasks.spec``).
 
     ``reward_structure`` may hold numbers (per-step rewards, limits) and is shown only when the
     preset discloses the reward structure; ``reward_hint`` is qualitative and safe for every preset.
@@ -106,24 +102,15 @@ class TaskText:
     components: Mapping[str, str] = field(default_factory=dict)
     diagnostics: Mapping[str, str] = field(default_factory=dict)
 
-    @classmethod
-    def load(cls, package: str, filename: str) -> TaskText:
-        raw = tomllib.loads(resources.files(package).joinpath(filename).read_text(encoding="utf-8"))
-        return cls(
-            summary=raw["summary"].strip(),
-            observations=tuple(raw["observations"]),
-            actions=tuple(raw["actions"]),
-            reward_structure=raw["reward_structure"].strip(),
-            reward_hint=raw["reward_hint"].strip(),
-            hints=raw.get("hints", "").strip(),
-            components=dict(raw.get("components", {})),
-            diagnostics=dict(raw.get("diagnostics", {})),
-        )
 
 
 @dataclass(frozen=True)
 class Task:
-    """Everything the loop needs to know about an environment configuration."""
+    """Everything the loop needs to know about an environment configuration.
+
+    Tasks are built from a ``TaskSpec`` (``spec``: the declaration as data, stored with every run);
+    a Task made by hand without one works in this process and is sent whole to worker processes.
+    """
 
     name: str
     env_id: str
@@ -138,6 +125,7 @@ class Task:
     env_kwargs: Mapping[str, Any] = field(default_factory=dict)
     optimal_return: float | None = None
     setup: Callable[[], None] | None = None  # e.g. registering third-party envs before gym.make
+    spec: Any = field(default=None, compare=False, repr=False)  # the TaskSpec it was built from
 
     @property
     def D(self) -> int:
@@ -148,8 +136,11 @@ class Task:
         return self.action_type == "discrete"
 
     def make_env(self) -> Any:
+        """A fresh env (the spec's recipe when there is one: the same ``gym.make`` as the policy file's)."""
         import gymnasium as gym
 
+        if self.spec is not None:
+            return self.spec.env.make()
         if self.setup is not None:
             self.setup()
         return gym.make(self.env_id, disable_env_checker=True, **dict(self.env_kwargs))

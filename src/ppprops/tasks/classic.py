@@ -1,4 +1,4 @@
-"""Classic-control tasks of the paper: CartPole-v1 and Acrobot-v1."""
+"""Feedback code of the paper's classic-control tasks (CartPole-v1, Acrobot-v1; declared in tasks/paper/*.toml)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,10 @@ from typing import Any
 
 from numpy.typing import NDArray
 
-from .base import EpisodeFeedback, FlatBox, Task, TaskText
-
-_TEXT = "ppprops.tasks.descriptions"
+from .base import EpisodeFeedback
 
 
-class _CartPoleRecorder:
+class CartPoleRecorder:
     """Episode length and why the episode ended (the pole fell, the cart left the track, or time ran out)."""
 
     def __init__(self) -> None:
@@ -32,7 +30,7 @@ class _CartPoleRecorder:
         return EpisodeFeedback(components={}, diagnostics={"episode_length": float(steps), "termination": cause})
 
 
-class _AcrobotRecorder:
+class AcrobotRecorder:
     """Episode length, whether the tip reached the goal height, and the mean height of the free tip."""
 
     def __init__(self) -> None:
@@ -51,35 +49,3 @@ class _AcrobotRecorder:
             components={},
             diagnostics={"episode_length": float(steps), "success": 1.0 if terminated else 0.0, "mean_tip_height": mean_h},
         )
-
-
-CARTPOLE = Task(
-    name="CartPole",
-    env_id="CartPole-v1",
-    n_s=4,
-    n_a=2,
-    action_type="discrete",
-    observation=FlatBox(names=("cart_position", "cart_velocity", "pole_angle", "pole_angular_velocity")),
-    feedback=_CartPoleRecorder,
-    text=TaskText.load(_TEXT, "cartpole.toml"),
-    diagnostics=("episode_length", "termination"),
-    optimal_return=500.0,
-)
-
-ACROBOT = Task(
-    name="Acrobot",
-    env_id="Acrobot-v1",
-    n_s=6,
-    n_a=3,
-    action_type="discrete",
-    observation=FlatBox(names=("cos_theta1", "sin_theta1", "cos_theta2", "sin_theta2", "theta1_dot", "theta2_dot")),
-    feedback=_AcrobotRecorder,
-    text=TaskText.load(_TEXT, "acrobot.toml"),
-    diagnostics=("episode_length", "success", "mean_tip_height"),
-    # No optimum is known: every step costs -1 until the swing-up, and the fastest possible
-    # swing-up is not known in closed form (0 bounds it but is unreachable). So no preset
-    # states a target here; the paper's best reported mean is about -71.6.
-    optimal_return=None,
-)
-
-TASKS = (CARTPOLE, ACROBOT)

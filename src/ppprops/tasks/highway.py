@@ -1,4 +1,6 @@
-"""highway-v0 (highway-env): drive fast on the right of a busy four-lane highway without crashing.
+"""Feedback code of the paper's highway-v0 tasks (highway-env; declared in tasks/paper/highway*.toml).
+
+The task: drive fast on the right of a busy four-lane highway without crashing.
 
 Observation: Kinematics of 3 vehicles (the ego car and the two nearest cars ahead) x 5 features
 (presence, x, y, vx, vy), flattened to 15 values; the other cars are relative to the ego car and every
@@ -33,12 +35,12 @@ from typing import Any
 from numpy.typing import NDArray
 
 from ..errors import MissingExtraError
-from .base import EpisodeFeedback, FlatBox, Task, TaskText
+from .base import EpisodeFeedback
 
-_TEXT = "ppprops.tasks.descriptions"
 COMPONENTS = ("high_speed_reward", "right_lane_reward", "collision_reward", "on_road_reward")
 DIAGNOSTICS = ("episode_length", "crashed", "mean_speed")
 
+# The reward weights of both task files (env_kwargs.config); a test checks they agree.
 REWARD_CONFIG: Mapping[str, Any] = {
     "collision_reward": -1.0,
     "right_lane_reward": 0.1,
@@ -47,21 +49,6 @@ REWARD_CONFIG: Mapping[str, Any] = {
     "reward_speed_range": [20, 30],
     "normalize_reward": True,
 }
-BASE_CONFIG: Mapping[str, Any] = {
-    "observation": {"type": "Kinematics", "vehicles_count": 3, "features": ["presence", "x", "y", "vx", "vy"]},
-    "action": {"type": "DiscreteMetaAction"},
-    "duration": 40,
-    "policy_frequency": 5,
-    **REWARD_CONFIG,
-}
-FAST_CONFIG: Mapping[str, Any] = {**BASE_CONFIG, "simulation_frequency": 5, "vehicles_count": 20}
-STEPS = 40 * 5  # duration x policy_frequency: the most steps an episode can have
-
-_ROWS = ("ego", "car1", "car2")
-_FEATURES = ("present", "x", "y", "vx", "vy")
-STATE_NAMES = tuple(f"{row}_{feat}" for row in _ROWS for feat in _FEATURES)
-
-
 def setup_highway() -> None:
     try:
         import gymnasium as gym
@@ -111,30 +98,3 @@ class HighwayRecorder:
             "mean_speed": self.speed_sum / self.n if self.n else 0.0,
         }
         return EpisodeFeedback(components=dict(self.sums), diagnostics=diagnostics)
-
-
-def _task(name: str, config: Mapping[str, Any]) -> Task:
-    return Task(
-        name=name,
-        env_id="highway-v0",
-        n_s=15,
-        n_a=5,
-        action_type="discrete",
-        observation=FlatBox(names=STATE_NAMES),
-        feedback=HighwayRecorder,
-        text=TaskText.load(_TEXT, "highway.toml"),
-        components=COMPONENTS,
-        diagnostics=DIAGNOSTICS,
-        env_kwargs={"config": dict(config)},
-        # No optimum is known: a step pays at most 1 (rightmost lane, >= 30 m/s, no crash), so STEPS
-        # bounds the return, but the car starts at 25 m/s and traffic blocks lanes, so the bound is
-        # not reachable and the best reachable return is unknown. No preset states a target.
-        optimal_return=None,
-        setup=setup_highway,
-    )
-
-
-HIGHWAY = _task("Highway", BASE_CONFIG)
-HIGHWAY_FAST = _task("Highway-Fast", FAST_CONFIG)
-TASKS = (HIGHWAY,)
-PRESETS = (HIGHWAY_FAST,)  # registered by name only: "highway-v0" keeps meaning the paper's task

@@ -1,4 +1,6 @@
-"""MuJoCo locomotion tasks of the paper: Ant-v5 and Humanoid-v5, each in three observation configurations.
+"""Feedback code of the paper's MuJoCo tasks: Ant-v5 and Humanoid-v5, each in three observation configurations.
+
+The tasks are declared in tasks/paper/{ant,humanoid}-{torso,joints,ultra}.toml; this note explains them.
 
 Torso is the env's observation with the extra terms switched off: the complete generalized position
 (without the torso's x, y) and velocity. Ultra and Joints keep index subsets of it, so the three
@@ -38,54 +40,16 @@ Reward components are the env's own per-step terms (info ``reward_forward``, ``r
 
 from __future__ import annotations
 
-import tomllib
 from collections.abc import Mapping
-from importlib import resources
 from typing import Any
 
 from numpy.typing import NDArray
 
 from ..errors import MissingExtraError
-from .base import EpisodeFeedback, FlatBox, Task, TaskText
+from .base import EpisodeFeedback
 
-_TEXT = "ppprops.tasks.descriptions"
 COMPONENTS = ("reward_forward", "reward_survive", "reward_ctrl", "reward_contact")
 DIAGNOSTICS = ("episode_length", "termination")
-
-_ANT_LEGS = ("hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3", "hip_4", "ankle_4")
-ANT_STATES = (
-    ("torso_z", "torso_qw", "torso_qx", "torso_qy", "torso_qz")
-    + _ANT_LEGS
-    + ("torso_vx", "torso_vy", "torso_vz", "torso_wx", "torso_wy", "torso_wz")
-    + tuple(f"{j}_vel" for j in _ANT_LEGS)
-)
-_HUMANOID_JOINTS = (
-    "abdomen_z", "abdomen_y", "abdomen_x",
-    "right_hip_x", "right_hip_z", "right_hip_y", "right_knee",
-    "left_hip_x", "left_hip_z", "left_hip_y", "left_knee",
-    "right_shoulder1", "right_shoulder2", "right_elbow",
-    "left_shoulder1", "left_shoulder2", "left_elbow",
-)  # fmt: skip
-HUMANOID_STATES = (
-    ("torso_z", "torso_qw", "torso_qx", "torso_qy", "torso_qz")
-    + _HUMANOID_JOINTS
-    + ("torso_vx", "torso_vy", "torso_vz", "torso_wx", "torso_wy", "torso_wz")
-    + tuple(f"{j}_vel" for j in _HUMANOID_JOINTS)
-)
-
-ANT_ULTRA = (0, 5, 6, 7, 8, 9, 10, 11, 12, 13)
-ANT_JOINTS = tuple(sorted(ANT_ULTRA + (2, 3, 19, 21, 23, 25)))
-HUMANOID_ULTRA = (0, 2, 3, 6, 10, 11, 14, 15, 22, 25, 26)
-HUMANOID_JOINTS = tuple(sorted(HUMANOID_ULTRA + (7, 8, 9, 12, 13, 29, 30, 31, 32, 33, 34, 35, 36, 37, 38)))
-
-ANT_KWARGS: Mapping[str, Any] = {"include_cfrc_ext_in_observation": False}
-HUMANOID_KWARGS: Mapping[str, Any] = {
-    "include_cinert_in_observation": False,
-    "include_cvel_in_observation": False,
-    "include_qfrc_actuator_in_observation": False,
-    "include_cfrc_ext_in_observation": False,
-}
-
 
 def require_mujoco() -> None:
     """Fail with the pip extra to install, not with Gymnasium's generic dependency error."""
@@ -108,58 +72,3 @@ class LocomotionRecorder:
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
         cause = "unhealthy" if terminated else "time_limit" if truncated else "stopped"
         return EpisodeFeedback(components=dict(self.sums), diagnostics={"episode_length": float(steps), "termination": cause})
-
-
-def text_for_states(filename: str, names: tuple[str, ...]) -> TaskText:
-    """A TaskText whose observation lines are looked up by state name in the file's [states] table.
-
-    One file per robot describes every state once; each configuration picks its lines by name, so
-    the three configurations can never describe the same index differently.
-    """
-    raw = tomllib.loads(resources.files(_TEXT).joinpath(filename).read_text(encoding="utf-8"))
-    states: Mapping[str, str] = raw["states"]
-    missing = [n for n in names if n not in states]
-    if missing:
-        raise ValueError(f"{filename}: no description for state(s) {', '.join(missing)}")
-    return TaskText(
-        summary=raw["summary"].strip(),
-        observations=tuple(states[n] for n in names),
-        actions=tuple(raw["actions"]),
-        reward_structure=raw["reward_structure"].strip(),
-        reward_hint=raw["reward_hint"].strip(),
-        hints=raw.get("hints", "").strip(),
-        components=dict(raw.get("components", {})),
-        diagnostics=dict(raw.get("diagnostics", {})),
-    )
-
-
-def _task(name: str, env_id: str, all_names: tuple[str, ...], indices: tuple[int, ...] | None, n_a: int,
-          text_file: str, kwargs: Mapping[str, Any]) -> Task:  # fmt: skip
-    names = all_names if indices is None else tuple(all_names[i] for i in indices)
-    return Task(
-        name=name,
-        env_id=env_id,
-        n_s=len(names),
-        n_a=n_a,
-        action_type="continuous",
-        observation=FlatBox(names=names, indices=indices),
-        feedback=LocomotionRecorder,
-        text=text_for_states(text_file, names),
-        components=COMPONENTS,
-        diagnostics=DIAGNOSTICS,
-        env_kwargs=dict(kwargs),
-        # Forward progress is not bounded by anything the task states, so no return is defensible
-        # as "the optimum"; the prompt then simply states none.
-        optimal_return=None,
-        setup=require_mujoco,
-    )
-
-
-TASKS = (
-    _task("Ant-Ultra", "Ant-v5", ANT_STATES, ANT_ULTRA, 8, "ant.toml", ANT_KWARGS),
-    _task("Ant-Joints", "Ant-v5", ANT_STATES, ANT_JOINTS, 8, "ant.toml", ANT_KWARGS),
-    _task("Ant-Torso", "Ant-v5", ANT_STATES, None, 8, "ant.toml", ANT_KWARGS),
-    _task("Humanoid-Ultra", "Humanoid-v5", HUMANOID_STATES, HUMANOID_ULTRA, 17, "humanoid.toml", HUMANOID_KWARGS),
-    _task("Humanoid-Joints", "Humanoid-v5", HUMANOID_STATES, HUMANOID_JOINTS, 17, "humanoid.toml", HUMANOID_KWARGS),
-    _task("Humanoid-Torso", "Humanoid-v5", HUMANOID_STATES, None, 17, "humanoid.toml", HUMANOID_KWARGS),
-)
