@@ -149,12 +149,13 @@ def search(
     prompt_params: str = "list",
     param_digits: int = 3,
     prompt_layout: str = "static-first",
+    prompt_form: str = "auto",
     parse_retries: int = 2,
     on_llm_failure: str = "stop",
     base_url: str | None = None,
     model: str | None = None,
     api_key_env: str | None = None,
-    temperature: float = 1.0,
+    temperature: float | None = None,
     max_tokens: int | None = None,
     timeout: float = 300.0,
     reasoning_effort: str | None = None,
@@ -182,11 +183,16 @@ def search(
         env_kwargs, max_episode_steps, gym_packages, obs_keys, components, diagnostics: the quick
             task options of ``ppprops run`` (``--env-kwargs`` ...); they win over a task file.
         encode_params ... encoded_warmup: switch one mechanism of the preset on or off (None keeps it).
+        prompt_params, param_digits, prompt_layout, prompt_form: the prompt form flags of ``ppprops run``
+            (``prompt_form`` ``auto``: the document form for the embedded model, the paper's chat prompt otherwise).
         base_url, model, api_key_env, temperature, max_tokens, timeout, reasoning_effort,
-            structured, context_size, retries: the LLM endpoint (default: the embedded model).
+            structured, context_size, retries: the LLM endpoint (default: the embedded model;
+            ``temperature`` None: 1.0 for the chat form, 0.6 for the document form).
         chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
             a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
-            keeps it (it is not closed). Its exchanges are recorded like an endpoint's.
+            keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With
+            ``complete_document(prompt, *, D, seed, grammar)`` too it gets the document form under
+            ``prompt_form="auto"``; without, the chat form.
         progress: show a progress bar on stderr.
 
     Returns:
@@ -224,6 +230,7 @@ def search(
         prompt_params=prompt_params,
         param_digits=param_digits,
         prompt_layout=prompt_layout,
+        prompt_form=prompt_form,
         parse_retries=parse_retries,
         on_llm_failure=on_llm_failure,
         llm=LLMConfig(base_url=base_url, model=model, api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens,

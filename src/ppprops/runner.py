@@ -66,7 +66,9 @@ class ChatModel(Protocol):
 
     ``complete`` sends one prompt (``messages``: OpenAI chat messages) for a vector of ``D`` numbers
     and returns the ``Exchange`` (request and answer text, recorded in the store, so the audit
-    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it.
+    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it. A model
+    that also has ``complete_document(prompt, *, D, seed, grammar)`` (``ChatClient`` does) can be
+    sent the document form; without it, ``--prompt-form auto`` uses the chat form.
     """
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
@@ -92,6 +94,19 @@ def use_chat(factory: Callable[[RunConfig], ChatModel]) -> Iterator[None]:
         yield
     finally:
         _CHAT_FACTORY.reset(token)
+
+
+def prompt_form(config: RunConfig, chat: object) -> str:
+    """The form the run's proposer uses: ``config.form``, except that ``auto`` falls back to chat for
+    a chat model that cannot continue documents. ``--prompt-form document`` with such a model is a
+    ConfigError."""
+    form = config.form
+    if form == "document" and not callable(getattr(chat, "complete_document", None)):
+        if config.prompt_form == "document":
+            raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
+                              "grammar); this one has only complete(): use --prompt-form chat or auto")
+        return "chat"
+    return form
 
 
 def new_run_id(config: RunConfig) -> str:
@@ -244,7 +259,8 @@ def execute(
                     proposer = r2po  # type: ignore[assignment]
                     phases.append(Phase("r2po", r2po, config.iterations))
                 else:
-                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, form=config.form, **common)  # type: ignore[arg-type]
+                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, form=prompt_form(config, chat),
+                                           **common)  # type: ignore[arg-type]
                     phases.append(Phase("llm", proposer, config.iterations))
             best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
