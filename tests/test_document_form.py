@@ -26,6 +26,7 @@ from ppprops.proposers.base import clip_to_box
 from ppprops.runner import load_run, start
 from ppprops.store import open_store
 from ppprops.wire import EncodedEntry, PromptContext, build_document, continuation_grammar, document_target, read_continuation
+from ppprops.wire.document import document_temperature
 from ppprops.wire.transcript import history_entries, open_target
 
 
@@ -66,8 +67,17 @@ def test_target_is_computed_from_the_shown_encoded_returns_only() -> None:
     one = [EncodedEntry(0, (1.0,), -40.0)]
     assert document_target(one) == pytest.approx(-40.0 + 0.2 * 4.0)  # spread floor: 10% of |best|
     assert document_target([EncodedEntry(0, (1.0,), 0.0)]) == 0.0
+    # negative returns: never asked to turn positive (at most |best| * 0.2 above the best)
+    neg = [EncodedEntry(0, (1.0,), -500.0), EncodedEntry(1, (2.0,), -78.0)]
+    assert document_target(neg) == pytest.approx(-78.0 + 0.2 * 78.0)
     with pytest.raises(ValueError):
         document_target([])
+
+
+def test_temperature_alternates_and_rises_on_retries() -> None:
+    assert [document_temperature(i, 0) for i in range(4)] == [0.6, 1.0, 0.6, 1.0]
+    assert document_temperature(0, 2) == pytest.approx(1.2) and document_temperature(1, 5) == 2.0
+    assert document_temperature(3, 0, 0.3) == 0.3 and document_temperature(3, 1, 0.3) == pytest.approx(0.6)
 
 
 def test_grammar_fits_each_coordinate_to_the_widest_value_printed_there() -> None:
@@ -160,6 +170,7 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
             assert "messages" not in body and body["prompt"] == rebuilt.prompt()  # exactly the document, nothing else
             assert body["prompt"].endswith("\nparams: [")
             assert body["grammar"] == rebuilt.grammar()
+            assert body["temperature"] == document_temperature(c.iteration, int(call["attempt"]))
             assert json.loads(str(call["response"]))["object"] == "text_completion"  # the completions endpoint
         last = by_iteration[c.iteration][-1]
         if c.source == "llm":  # the evaluated vector is the continuation the model wrote, decoded and clipped

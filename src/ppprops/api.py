@@ -187,7 +187,7 @@ def search(
             (``prompt_form`` ``auto``: the document form for the embedded model, the paper's chat prompt otherwise).
         base_url, model, api_key_env, temperature, max_tokens, timeout, reasoning_effort,
             structured, context_size, retries: the LLM endpoint (default: the embedded model;
-            ``temperature`` None: 1.0 for the chat form, 0.6 for the document form).
+            ``temperature`` None: 1.0 for the chat form; the document form alternates 0.6 and 1.0).
         chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
             a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
             keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With

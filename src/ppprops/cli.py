@@ -119,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     llm.add_argument("--model", default=None)
     llm.add_argument("--api-key-env", default=None, metavar="VAR", help="environment variable that holds the API key")
     llm.add_argument("--temperature", type=float, default=None,
-                     help="sampling temperature (default: 1.0 for the chat form, 0.6 for the document form)")
+                     help="sampling temperature (default: 1.0 for the chat form; the document form alternates 0.6 and 1.0)")
     llm.add_argument("--max-tokens", type=int, default=None,
                      help="answer token budget; reasoning counts against it (default: room for D numbers, "
                           "plus room for reasoning when --reasoning-effort is set or the endpoint reasons)")

@@ -36,7 +36,7 @@ class LLMConfig:
     base_url: str | None = None
     model: str | None = None
     api_key_env: str | None = None  # name of the env var holding the key; the key itself is never stored
-    temperature: float | None = None  # None: the prompt form's default (1.0 chat, wire.document.TEMPERATURE document)
+    temperature: float | None = None  # None: the prompt form's default (1.0 chat; document: wire.document.TEMPERATURES)
     max_tokens: int | None = None  # None: enough for D numbers, plus room for reasoning (ppprops.llm.client.default_max_tokens)
     timeout_s: float = 300.0
     # for reasoning models: gpt-oss and OpenAI's take minimal|low|medium|high; "none" turns thinking off on Ollama's /v1

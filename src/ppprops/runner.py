@@ -260,7 +260,7 @@ def execute(
                     phases.append(Phase("r2po", r2po, config.iterations))
                 else:
                     proposer = LLMProposer(on_llm_failure=config.on_llm_failure, form=prompt_form(config, chat),
-                                           **common)  # type: ignore[arg-type]
+                                           temperature=config.llm.temperature, **common)  # type: ignore[arg-type]
                     phases.append(Phase("llm", proposer, config.iterations))
             best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
@@ -333,10 +333,11 @@ class LazyChat:
         with self.gate:
             return client.complete(messages, D=D, seed=seed)
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
         client = self._get()
         with self.gate:
-            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar)
+            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
 
     def count_tokens(self, text: str) -> int:
         """Exact with a llama.cpp server (its /tokenize endpoint); otherwise a conservative

@@ -36,7 +36,7 @@ from urllib.parse import urlsplit
 
 from ..config import LLMConfig
 from ..errors import LLMError
-from ..wire.document import TEMPERATURE as DOCUMENT_TEMPERATURE
+from ..wire.document import document_temperature
 from ..wire.parse import read_answer, split_reasoning
 
 
@@ -91,7 +91,8 @@ class Chat(Protocol):
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange: ...
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange: ...
 
 
 def params_schema(D: int) -> dict[str, Any]:
@@ -231,14 +232,16 @@ class ChatClient:
             body["grammar"] = params_grammar(D)
         return body
 
-    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None) -> dict[str, Any]:
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
+                      temperature: float | None = None) -> dict[str, Any]:
         """A completions request: the raw document, no chat wrapper. ``grammar`` (GBNF, from
         ``wire.document.continuation_grammar``) is sent when the endpoint takes llama.cpp grammars
         (``--structured grammar``, or ``auto`` with the embedded model); there is no JSON answer
-        to constrain, so a JSON schema is never sent here."""
+        to constrain, so a JSON schema is never sent here. ``temperature`` (the proposer's, per
+        request: ``wire.document.document_temperature``) wins over ``--temperature``."""
         body: dict[str, Any] = {"model": self.model, "prompt": prompt}
         if "temperature" not in self.dropped:
-            body["temperature"] = DOCUMENT_TEMPERATURE if self.config.temperature is None else self.config.temperature
+            body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
         if self.token_param not in self.dropped:
             body[self.token_param] = self.max_tokens(D)
         if seed is not None and "seed" not in self.dropped:
@@ -255,11 +258,12 @@ class ChatClient:
         """
         return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
         """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
         the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
         the continuation text; ``wire.parse.read_continuation`` reads it."""
-        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar), D=D)
+        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature), D=D)
 
     def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
         failures: list[Exchange] = []

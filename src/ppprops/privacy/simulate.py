@@ -37,7 +37,8 @@ class EchoOptimizer:
                         prompt_chars=sum(len(m["content"]) for m in messages), prompt_tokens=None, completion_tokens=None,
                         latency_s=0.0, ok=True)
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None) -> Exchange:
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
         """The document form: the same proposal, written as the continuation of the open list."""
         self.calls += 1
         proposal = self._propose(history_entries(prompt, "document"), D, seed)

@@ -43,7 +43,7 @@ from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
 from ..store import Candidate
 from ..wire import EncodedEntry, ParseResult, PromptContext, build_correction, build_prompt, top_k
-from ..wire.document import OPENING, build_document, continuation_grammar
+from ..wire.document import OPENING, build_document, continuation_grammar, document_temperature
 from ..wire.parse import final_text, read_answer, read_continuation
 from ..wire.prompt import params_text
 from .base import Proposal, clip_to_box
@@ -73,10 +73,13 @@ class LLMProposer:
         on_exchange: ExchangeHook | None = None,
         on_llm_failure: str = "stop",
         form: str = "chat",
+        temperature: float | None = None,
     ) -> None:
         """``form`` ``chat`` sends the paper's instruction prompt as a chat message; ``document``
         sends the history as a document to continue (``wire.document``) to the completions
-        endpoint, constrained by ``continuation_grammar``."""
+        endpoint, constrained by ``continuation_grammar``, at ``document_temperature`` (``temperature``
+        is ``--temperature``; None alternates the form's defaults)."""
+        self.temperature = temperature
         if form not in ("chat", "document"):
             raise ValueError(f"unknown prompt form {form!r} (known: chat, document)")
         self.form = form
@@ -144,7 +147,8 @@ class LLMProposer:
             seed = seeding.llm_seed(self.seed, iteration, attempt)
             try:
                 if self.form == "document":  # a retry asks the same document again, with the next seed
-                    ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar)
+                    ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar,
+                                                     temperature=document_temperature(iteration, attempt, self.temperature))
                 else:
                     ex = self.chat.complete(messages, D=self.D, seed=seed)
             except LLMUnavailable as e:

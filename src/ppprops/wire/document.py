@@ -31,28 +31,39 @@ from .encoded import EncodedEntry, PromptContext
 from .numbers import fmt
 from .prompt import _render, params_text
 
-# The open block asks for best + TARGET_LIFT * (best - worst) of the shown returns.
+# The open block asks for best + TARGET_LIFT * min(best - worst, |best|) of the shown returns.
 TARGET_LIFT = 0.2
 # With one shown return, or all equal, the spread is taken as this share of |best|.
 TARGET_FLOOR = 0.1
-# Default sampling temperature of the document form (benchmarks/RESULTS.md: lower temperatures make the
-# base model copy and refine the best entries; 1.0 made it sample almost at random).
-TEMPERATURE = 0.6
+# Sampling temperatures of the document form when --temperature is not set: LLM iteration i uses
+# TEMPERATURES[i % len]. Low temperatures make the base model copy and refine the best entries,
+# 1.0 makes it explore; no single one served every task (benchmarks/RESULTS.md). A retry of the
+# same iteration (after a repeated entry or an unusable answer) adds RETRY_STEP per attempt.
+TEMPERATURES = (0.6, 1.0)
+RETRY_STEP = 0.3
+MAX_TEMPERATURE = 2.0
 OPENING = "["  # the document ends inside the open list; the continuation starts after it
 
 
 def document_target(history: Sequence[EncodedEntry], lift: float = TARGET_LIFT) -> float:
-    """The return written in the open block: ``best + lift * max(best - worst, 0.1 |best|)`` of the
-    shown (encoded) returns. Same scale as the history, computed from nothing else. Raises
-    ``ValueError`` on an empty history."""
-    if not history:
-        raise ValueError("the document form needs at least one history entry")
+    """The return written in the open block: ``best + lift * min(spread, |best|)``, where spread is
+    ``best - worst`` of the shown (encoded) returns (``0.1 |best|`` when they are all equal). The
+    cap keeps the target on the side of zero the best is on (asking a base model for a positive
+    return after only negative ones made it write junk). Same scale as the history, computed
+    from nothing else. Raises ``ValueError`` on a history without a finite return."""
     rets = [e.ret for e in history if math.isfinite(e.ret)]
     if not rets:
-        raise ValueError("the document form needs at least one finite return")
+        raise ValueError("the document form needs at least one history entry with a finite return")
     best, worst = max(rets), min(rets)
-    span = max(best - worst, TARGET_FLOOR * abs(best))
-    return best + lift * span
+    spread = best - worst if best > worst else TARGET_FLOOR * abs(best)
+    return best + lift * min(spread, abs(best))
+
+
+def document_temperature(iteration: int, attempt: int, temperature: float | None = None) -> float:
+    """The sampling temperature of one document request: ``temperature`` (``--temperature``) or
+    ``TEMPERATURES[iteration % len]``, plus ``RETRY_STEP`` per retry, at most 2."""
+    base = TEMPERATURES[iteration % len(TEMPERATURES)] if temperature is None else temperature
+    return min(MAX_TEMPERATURE, base + RETRY_STEP * attempt)
 
 
 def document_entry(ctx: PromptContext, e: EncodedEntry) -> str:
