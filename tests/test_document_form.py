@@ -45,13 +45,13 @@ HISTORY = [
 
 
 # -- the prompt: format, target, grammar ---------------------------------------------------------------
-def test_document_is_header_entries_lowest_first_and_an_open_block() -> None:
+def test_document_is_header_labelled_entries_lowest_first_and_an_open_block() -> None:
     doc = build_document(_ctx(), HISTORY)
     header, *blocks = doc.split("\n\n")
     assert header.startswith("# CartPole: linear policy search.")
     assert blocks == [
-        "return: 5.00\nparams: [0.50,14.3,-300,1.00,2.00,0.00]",
-        "return: 7.50\nparams: [3.10,-0.20,5.50,0.00,-7.25,8.00]",
+        "return: 5.00\nparams: [0:0.50,1:14.3,2:-300,3:1.00,4:2.00,5:0.00]",
+        "return: 7.50\nparams: [0:3.10,1:-0.20,2:5.50,3:0.00,4:-7.25,5:8.00]",
         "return: 8.00\nparams: [",  # best 7.5 + 0.2 * (7.5 - 5.0)
     ]
     # returns and parameters only: no reward components, diagnostics or instructions
@@ -83,18 +83,25 @@ def test_temperature_alternates_and_rises_on_retries() -> None:
 def test_grammar_fits_each_coordinate_to_the_widest_value_printed_there() -> None:
     g = continuation_grammar(6, HISTORY, _ctx())
     root, *rules = g.strip().split("\n")
-    # coordinates: 3.10 (1 digit), 14.3 (2), -300 (3), 1.00, -7.25, 8.00 (1)
-    assert root == 'root ::= n1d2 "," n2d1 "," n3d0 "," n1d2 "," n1d2 "," n1d2 "]"'
-    assert set(rules) == {'n1d2 ::= "-"? [0-9] ("." [0-9] [0-9]?)?', 'n2d1 ::= "-"? [0-9] [0-9]? ("." [0-9])?',
-                          'n3d0 ::= "-"? [0-9] [0-9]? [0-9]?'}
-    assert continuation_grammar(3).startswith('root ::= num ("," num){2} "]"')
+    # widest printed values per coordinate: 3.10 (1 integer digit), 14.3 (2), -300 (3), 1.00, -7.25, 8.00 (1)
+    assert root == 'root ::= "0:" w1 ",1:" w2 ",2:" w3 ",3:" w1 ",4:" w1 ",5:" w1 "]"'
+    # numbers as the list form prints them at 3 significant digits, 2 decimals at most
+    assert rules == ['w1 ::= "-"? ("0" ("." [0-9] [0-9]?)? | [1-9] ("." [0-9] [0-9]?)?)',
+                     'w2 ::= "-"? ("0" ("." [0-9] [0-9]?)? | [1-9] ("." [0-9] [0-9]?)? | [1-9] [0-9] ("." [0-9])?)',
+                     'w3 ::= "-"? ("0" ("." [0-9] [0-9]?)? | [1-9] ("." [0-9] [0-9]?)? | [1-9] [0-9] ("." [0-9])? '
+                     '| [1-9] [0-9] [0-9])']
+    two = continuation_grammar(6, HISTORY, _ctx(param_digits=2)).split("\n")[1]
+    assert two == 'w1 ::= "-"? ("0" ("." [0-9] [0-9]?)? | [1-9] ("." [0-9])?)'
+    assert continuation_grammar(3).startswith('root ::= "0:" num ",1:" num ",2:" num "]"')
     with pytest.raises(ValueError):
         continuation_grammar(5, HISTORY, _ctx())
 
 
 # -- what comes back -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("text,values,error", [
-    ("1.5,-2,30]", (1.5, -2.0, 30.0), None),
+    ("0:1.5,1:-2,2:30]", (1.5, -2.0, 30.0), None),
+    ("1.5,-2,30]", (1.5, -2.0, 30.0), None),  # no labels (an endpoint without the grammar)
+    ("0:1.5,2:-2,1:30]", None, "labels"),
     ("1.5,-2,30]\n\nreturn: 9.00\nparams: [4,5,6]", (1.5, -2.0, 30.0), None),  # more document: ignored
     ("1.5,\u22122,30]", (1.5, -2.0, 30.0), None),  # a typographic minus sign
     ("1.5,-2]", None, "wrong_length"),
@@ -106,6 +113,14 @@ def test_continuation_is_read_up_to_the_first_closing_bracket(text: str, values:
                                                               error: str | None) -> None:
     r = read_continuation(text, 3)
     assert r.values == values and r.error == error
+
+
+def test_labels_out_of_order_make_an_entry_unreadable_for_the_audit() -> None:
+    doc = build_document(_ctx(), HISTORY)
+    assert [e.params for e in history_entries(doc, "document")] == [
+        ("0.50", "14.3", "-300", "1.00", "2.00", "0.00"), ("3.10", "-0.20", "5.50", "0.00", "-7.25", "8.00")]
+    swapped = doc.replace("[0:3.10,1:-0.20", "[1:3.10,0:-0.20")
+    assert history_entries(swapped, "document")[1].params == ("(indices out of order)",)
 
 
 def test_continuation_cut_at_the_token_limit_is_never_used() -> None:
@@ -128,6 +143,7 @@ def test_auto_is_the_document_form_for_the_embedded_model_only() -> None:
         _config(method="r2po", mechanisms=resolve("vanilla"), prompt_form="document").validate()
     with pytest.raises(ConfigError, match="prompt-form"):
         _config(prompt_form="doc").validate()
+    assert (_config().digits(), _config(prompt_form="chat").digits(), _config(param_digits=4).digits()) == (2, 3, 4)
     stored = _config().to_json()
     del stored["prompt_form"]  # a run stored before the document form existed resumes as it ran: chat
     assert RunConfig.from_json(stored).form == "chat"

@@ -147,7 +147,7 @@ def search(
     hide_return_diagnostics: bool | None = None,
     encoded_warmup: bool | None = None,
     prompt_params: str = "list",
-    param_digits: int = 3,
+    param_digits: int | None = None,
     prompt_layout: str = "static-first",
     prompt_form: str = "auto",
     parse_retries: int = 2,

@@ -91,8 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
     r.add_argument("--prompt-params", choices=PROMPT_PARAMS, default="list",
                    help="history parameters as one list (default, compact) or as ProPS-style params[i]: value pairs")
-    r.add_argument("--param-digits", type=int, default=3,
-                   help="list form: significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals (default 3)")
+    r.add_argument("--param-digits", type=int, default=None,
+                   help="significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals "
+                        "(default 3 in the chat form's list, 2 in the document form)")
     r.add_argument("--prompt-layout", choices=PROMPT_LAYOUTS, default="static-first",
                    help="fixed sections before the history (default; a server's prefix cache reuses them) or history first")
     r.add_argument("--prompt-form", choices=PROMPT_FORMS, default="auto",

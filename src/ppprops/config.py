@@ -26,6 +26,10 @@ ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
 PROMPT_FORMS = ("auto", "chat", "document")  # see RunConfig.form
+# Default significant digits of a parameter per prompt form: the document form's labelled lists need
+# the room (Ant-Ultra's K=10 prompt stays under 8,000 characters) and the small model gains nothing
+# from a third digit; the chat form keeps the list form's 3.
+PARAM_DIGITS = {"chat": 3, "document": 2}
 REASONING_EFFORTS = ("none", "minimal", "low", "medium", "high")
 
 
@@ -99,7 +103,9 @@ class RunConfig:
     components: tuple[str, ...] = ()  # runs stored before task_spec existed: a generic task's component info keys
     diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: str = "list"  # how history parameters are written: list | indexed (ProPS form)
-    param_digits: int = 3  # list form: significant digits per parameter (at most `decimals` decimals); 0: fixed decimals
+    # list form: significant digits per parameter (at most `decimals` decimals); 0: fixed decimals;
+    # None: the prompt form's default (PARAM_DIGITS: 3 for chat, 2 for the document form)
+    param_digits: int | None = None
     prompt_layout: str = "static-first"  # fixed sections before the history (prefix-cache friendly) | history-first
     # The task's whole declaration (ppprops.tasks.spec.TaskSpec.to_json()): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
@@ -108,6 +114,10 @@ class RunConfig:
     # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
     # base model to continue (/completions, wire.document); auto: document for the embedded model, chat otherwise
     prompt_form: str = "auto"
+
+    def digits(self, form: str | None = None) -> int:
+        """Significant digits of a parameter in the prompt of ``form`` (default: this run's form)."""
+        return self.param_digits if self.param_digits is not None else PARAM_DIGITS[form or self.form]
 
     @property
     def form(self) -> str:
@@ -134,7 +144,7 @@ class RunConfig:
              f"--parse-retries must be <= {MAX_PARSE_RETRIES}, got {self.parse_retries}"),
             (1 <= self.workers <= 256, f"--workers must be in [1, 256], got {self.workers}"),
             (self.on_llm_failure in ON_LLM_FAILURE, f"--on-llm-failure must be stop or skip, got {self.on_llm_failure!r}"),
-            (0 <= self.param_digits <= 8, f"--param-digits must be in [0, 8], got {self.param_digits}"),
+            (self.param_digits is None or 0 <= self.param_digits <= 8, f"--param-digits must be in [0, 8], got {self.param_digits}"),
             (self.prompt_params in PROMPT_PARAMS, f"--prompt-params must be list or indexed, got {self.prompt_params!r}"),
             (self.prompt_layout in PROMPT_LAYOUTS,
              f"--prompt-layout must be static-first or history-first, got {self.prompt_layout!r}"),

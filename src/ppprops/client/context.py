@@ -51,7 +51,7 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         diagnostic_notes=tuple((k, text.diagnostics.get(k, k)) for k in diagnostics),
         decimals=config.decimals,
         params_style=config.prompt_params,
-        param_digits=config.param_digits,
+        param_digits=config.digits(),
         layout=config.prompt_layout,
         title=task.name,
         history_limit=config.top_k,

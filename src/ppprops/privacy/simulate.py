@@ -42,7 +42,7 @@ class EchoOptimizer:
         """The document form: the same proposal, written as the continuation of the open list."""
         self.calls += 1
         proposal = self._propose(history_entries(prompt, "document"), D, seed)
-        content = ",".join(f"{v:.2f}" for v in proposal) + "]"
+        content = ",".join(f"{i}:{v:.2f}" for i, v in enumerate(proposal)) + "]"
         body = {"model": "echo-optimizer", "prompt": prompt, "seed": seed}
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None, prompt_chars=len(prompt),
                         prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, finish_reason="stop")

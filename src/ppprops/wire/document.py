@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 from .encoded import EncodedEntry, PromptContext
 from .numbers import fmt
@@ -43,6 +44,7 @@ TEMPERATURES = (0.6, 1.0)
 RETRY_STEP = 0.3
 MAX_TEMPERATURE = 2.0
 OPENING = "["  # the document ends inside the open list; the continuation starts after it
+LABEL = ":"  # between a value's index and the value
 
 
 def document_target(history: Sequence[EncodedEntry], lift: float = TARGET_LIFT) -> float:
@@ -66,14 +68,22 @@ def document_temperature(iteration: int, attempt: int, temperature: float | None
     return min(MAX_TEMPERATURE, base + RETRY_STEP * attempt)
 
 
+def labelled(ctx: PromptContext, params: Sequence[float]) -> str:
+    """Parameters as one list whose values carry their index, ``[0:1.21,1:-0.3,...]``, each value
+    in the list form of ``wire.prompt.params_text``. The labels let the small model copy a value
+    from the same coordinate of an entry above (without them it lost its place in lists of 21
+    numbers and wrote junk; benchmarks/RESULTS.md)."""
+    values = params_text(_as_list(ctx), tuple(params)).strip("[]").split(",")
+    return "[" + ",".join(f"{i}{LABEL}{v}" for i, v in enumerate(values)) + "]"
+
+
 def document_entry(ctx: PromptContext, e: EncodedEntry) -> str:
-    """One shown policy: ``return: R``, then ``params: [..]`` in the list form of
-    ``wire.prompt.params_text``. Reward components and diagnostics are not written: the small
-    model gains nothing from them (benchmarks/RESULTS.md) and they cost tokens, so the document
-    form shows less than the chat form under every preset, never more."""
+    """One shown policy: ``return: R``, then ``params: [0:..,1:..]`` (``labelled``). Reward
+    components and diagnostics are not written: they cost tokens the small model does not use,
+    so the document form shows less than the chat form under every preset, never more."""
     if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
         raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
-    return _render("document_entry", ret=fmt(e.ret, ctx.decimals), params=params_text(ctx, e.params))
+    return _render("document_entry", ret=fmt(e.ret, ctx.decimals), params=labelled(ctx, e.params))
 
 
 def build_document(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
@@ -82,50 +92,60 @@ def build_document(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
     ``history`` is the shown history, lowest return first (``wire.top_k``). The parameters are
     always written as one list (the open block continues one), whatever ``ctx.params_style``.
     """
-    lst = ctx if ctx.params_style == "list" else _as_list(ctx)
-    body = "\n\n".join(document_entry(lst, e) for e in history)
+    body = "\n\n".join(document_entry(ctx, e) for e in history)
     return _render("document", title=ctx.title or "Policy", history=body, target=fmt(document_target(history), ctx.decimals))
 
 
 def _as_list(ctx: PromptContext) -> PromptContext:
-    from dataclasses import replace
-
-    return replace(ctx, params_style="list")
+    return ctx if ctx.params_style == "list" else replace(ctx, params_style="list")
 
 
 def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: PromptContext | None = None) -> str:
-    """GBNF for the continuation: exactly D plain decimals separated by commas, then ``]``.
+    """GBNF for the continuation: ``0:`` value ``,1:`` value ... ``,D-1:`` value ``]`` (the labels
+    are fixed text; the model writes only the values).
 
     With ``history`` (the shown entries) and ``ctx``, the grammar fits the encoded scale of each
-    coordinate: coordinate j may have at most as many integer digits as the widest value the
-    prompt prints at j, and at most the decimals the prompt prints for numbers of that size. So
-    a proposal can go up to ten times past the shown values, but not write a coordinate whose
-    values are in the tens with three integer digits, and the model cannot spend tokens on
-    digits the history never shows. It is built only from the printed (encoded) history, which
-    the model reads anyway. Without a history: at most three digits on each side of the point.
-    No whitespace, no exponent.
+    coordinate: a value is written as the prompt writes numbers (``ctx.param_digits``
+    significant digits, at most ``ctx.decimals`` decimals), with at most as many integer digits
+    as the widest value the prompt prints at that coordinate. So a proposal can go up to ten
+    times past the shown values, but not write a coordinate whose values are in the tens with
+    three integer digits, nor spend tokens on digits the history never shows. It is built only
+    from the printed (encoded) history, which the model reads anyway. Without a history: at most
+    three digits on each side of the point. No whitespace, no exponent.
     """
     if D < 1:
         raise ValueError(f"D must be >= 1, got {D}")
-    if not history or ctx is None:
-        rest = f' ("," num){{{D - 1}}}' if D > 1 else ""
-        return f'root ::= num{rest} "]"\nnum ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
-    lst = ctx if ctx.params_style == "list" else _as_list(ctx)
-    widest = [1] * D
-    for e in history:
-        if len(e.params) != D:
-            raise ValueError(f"history entry {e.index} has {len(e.params)} parameters, expected {D}")
-        for j, tok in enumerate(params_text(lst, e.params).strip("[]").split(",")):
-            widest[j] = max(widest[j], len(tok.lstrip("-").split(".")[0]))
-    names: list[str] = []
     rules: dict[str, str] = {}
-    for k in widest:
-        dec = ctx.decimals if ctx.param_digits <= 0 else max(0, min(ctx.decimals, ctx.param_digits - k))
-        name = f"n{k}d{dec}"
-        if name not in rules:
-            ints = " ".join(["[0-9]"] + ["[0-9]?"] * (k - 1))
-            frac = f' ("." {" ".join(["[0-9]"] + ["[0-9]?"] * (dec - 1))})?' if dec > 0 else ""
-            rules[name] = f'{name} ::= "-"? {ints}{frac}'
-        names.append(name)
-    root = "root ::= " + ' "," '.join(names) + ' "]"'
+    if not history or ctx is None:
+        names = ["num"] * D
+        rules["num"] = 'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?'
+    else:
+        lst = _as_list(ctx)
+        widest = [1] * D
+        for e in history:
+            if len(e.params) != D:
+                raise ValueError(f"history entry {e.index} has {len(e.params)} parameters, expected {D}")
+            for j, tok in enumerate(params_text(lst, e.params).strip("[]").split(",")):
+                widest[j] = max(widest[j], len(tok.lstrip("-").split(".")[0]))
+        names = []
+        for w in widest:
+            name = f"w{w}"
+            if name not in rules:
+                alts = [_magnitude(k, ctx) for k in range(w + 1)]
+                rules[name] = f'{name} ::= "-"? ({" | ".join(alts)})'
+            names.append(name)
+    items = [f'"{"," if j else ""}{j}{LABEL}" {n}' for j, n in enumerate(names)]
+    root = "root ::= " + " ".join(items) + ' "]"'
     return "\n".join([root, *rules.values()]) + "\n"
+
+
+def _magnitude(k: int, ctx: PromptContext) -> str:
+    """GBNF for a number with ``k`` integer digits (0: below 1) as the list form prints it."""
+    fixed = ctx.param_digits <= 0
+    if k == 0:
+        dec, ints = ctx.decimals, '"0"'
+    else:
+        dec = ctx.decimals if fixed else max(0, min(ctx.decimals, ctx.param_digits - k))
+        ints = " ".join(["[1-9]"] + ["[0-9]"] * (k - 1))
+    frac = f' ("." {" ".join(["[0-9]"] + ["[0-9]?"] * (dec - 1))})?' if dec > 0 else ""
+    return ints + frac

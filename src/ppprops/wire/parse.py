@@ -20,8 +20,9 @@ Where the proposal comes from (one rule, for every server and model):
 
 A continuation of the document form (``wire.document``) is read by ``read_continuation``: the
 document ends inside an open list, so the answer is ``[`` plus the continuation up to its first
-``]``; whatever follows is the model writing more document and is never read. Rule 1 holds for
-it too, and the numbers go through the same reader as a final text.
+``]``; whatever follows is the model writing more document and is never read. The values' index
+labels (``0:1.5,1:-2``) are dropped and must count 0, 1, 2, ... Rule 1 holds for it too, and the
+numbers go through the same reader as a final text.
 
 Typographic minus signs (U+2212, en and figure dashes) before a number read as ``-``; exponents
 are accepted. The parser never raises on model output: failures come back as a typed result.
@@ -58,7 +59,7 @@ _OPEN_TAIL = re.compile(r"\[([^\[\]]*)$")
 
 ERROR_KINDS = (
     "empty", "reasoning_only", "length", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite",
-    "several_vectors",
+    "several_vectors", "labels",
 )
 
 
@@ -313,4 +314,26 @@ def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_re
         return _fail("empty", "the answer was empty")
     close = body.find("]")
     head = body if close < 0 else body[: close + 1]
+    head, bad = _unlabel(head)
+    if bad:
+        return _fail("labels", bad)
     return _parse_final(opening + head, D)
+
+
+_LABELLED = re.compile(r"^\s*(\d+)\s*:\s*(.*)$", re.DOTALL)
+
+
+def _unlabel(text: str) -> tuple[str, str]:
+    """Drop the index labels of a labelled list (``0:1.5,1:-2]`` -> ``1.5,-2]``). Items with no
+    label are left as they are; labels must count 0, 1, 2, ... (else the second value is why)."""
+    items = text.split(",")
+    out = []
+    for i, item in enumerate(items):
+        m = _LABELLED.match(item)
+        if m is None:
+            out.append(item)
+            continue
+        if int(m.group(1)) != i:
+            return text, f"the value at position {i} was labelled {m.group(1)}; label the values 0, 1, 2, ... in order"
+        out.append(m.group(2))
+    return ",".join(out), ""

@@ -83,6 +83,19 @@ def _indexed_params(text: str) -> tuple[str, ...]:
     return tuple(v.strip() for _, v in pairs)
 
 
+def _labelled_params(text: str) -> tuple[str, ...]:
+    """Values of a labelled list ``0:v,1:v,...`` (the document form). Labels that do not count
+    0, 1, 2, ... give an entry whose parameters cannot be read (unverified, never skipped)."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    out = []
+    for i, item in enumerate(items):
+        label, sep, value = item.partition(":")
+        if not sep or label.strip() != str(i):
+            return (UNREADABLE,)
+        out.append(value.strip())
+    return tuple(out)
+
+
 def history_entries(text: str, form: str | None = None) -> list[ShownEntry]:
     """Every history entry in a prompt, in the order printed: of the prompt ``form`` (``chat``,
     in either parameter style, or ``document``), or of any form when None."""
@@ -91,7 +104,9 @@ def history_entries(text: str, form: str | None = None) -> list[ShownEntry]:
     for name in names:
         for m in _entry_pattern(name).finditer(text):
             groups = m.groupdict()
-            if groups.get("params") is not None:
+            if groups.get("params") is not None and name == "document_entry":
+                params = _labelled_params(groups["params"])
+            elif groups.get("params") is not None:
                 params = tuple(v.strip() for v in groups["params"].split(",") if v.strip())
             else:
                 params = _indexed_params(groups["indexed"])
