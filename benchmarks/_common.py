@@ -139,7 +139,7 @@ def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **ove
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg)
     k = cfg.top_k if top_k is None else top_k
-    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, param_digits=cfg.digits(form), **overrides)
+    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
     return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, seed=cfg.seed, form=form), cands  # type: ignore[arg-type]
 
 
