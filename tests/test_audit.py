@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppprops import seeding
 from ppprops.cli import main
 from ppprops.client.codec import encode_feedback
 from ppprops.client.context import prompt_context
@@ -22,7 +21,8 @@ from ppprops.client.hardening import codec_for
 from ppprops.client.secrets import Secrets
 from ppprops.errors import StoreError
 from ppprops.evaluation import Feedback
-from ppprops.llm.client import Exchange
+from ppprops.llm.client import ChatClient, Exchange
+from ppprops.llm.embedded import MODEL_ALIAS
 from ppprops.privacy.audit import audit_run, renders, token_value
 from ppprops.privacy.simulate import offline_llm
 from ppprops.runner import create_run, start
@@ -54,6 +54,7 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
     store, secrets = create_run(cfg, run_dir, secrets)
     codec = codec_for(secrets, task, cfg)
     ctx = prompt_context(task, cfg, codec)
+    client = ChatClient(cfg.llm, base_url="http://127.0.0.1:9/v1", model=MODEL_ALIAS, api_key="x", grammar_ok=True)  # the real body
     rng = np.random.default_rng(5)
     entries = []
     for i in range(12):
@@ -66,8 +67,9 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
         if i >= 6:  # the request that produced candidate i shows the history so far
             it = i - 6
             prompt = build_prompt(ctx, top_k(entries, cfg.top_k))
-            body = {"model": "m", "messages": [{"role": "user", "content": prompt}], "seed": seeding.llm_seed(cfg.seed, it, 0)}
-            store.add_llm_call(it, 0, Exchange(json.dumps(body), None, "{}", None, len(prompt), None, None, 0.0, True), None)
+            body = client.body([{"role": "user", "content": prompt}], D=task.D, seed=codec.sampling_seed(cfg.seed, it, 0))
+            answer = json.dumps({"params": [round(float(v), 2) for v in codec.encode(theta)]})
+            store.add_llm_call(it, 0, Exchange(json.dumps(body), None, answer, None, len(prompt), None, None, 0.0, True), None)
         store.add_candidate(c)
         detailed = cfg.mechanisms.detailed_feedback
         entries.append(codec.entry(i, c.params_enc, enc.ret, enc.components if detailed else {}, enc.diagnostics if detailed else {}))
@@ -118,22 +120,23 @@ def test_token_precision_covers_every_notation() -> None:
     assert renders(47.6449, *token_value("47.64")) and not renders(47.646, *token_value("47.64"))  # type: ignore[misc]
 
 
-def test_a_clean_pp_transcript_passes_and_names_its_known_channels(pp_run: Path) -> None:
+def test_a_pp_transcript_sends_no_raw_value_but_fails_on_the_papers_channels(pp_run: Path) -> None:
     r = audit_run(pp_run)
     assert r.requests == 6 and r.entries > 30 and r.checked["params"] == 10 * r.entries and r.checked["components"] > 0
-    assert r.leaks == [] and r.unverified == [] and r.exit_code() == 0
-    assert r.verdict().startswith("CLEAN")
+    assert r.leaks == [] and r.unverified == []
+    # episode_length = the raw CartPole return and integer returns under a pure scale: attacks recover c within 1%
+    assert {"diagnostic", "lattice"} <= {f.kind for f in r.exposed} and all(f.by_design for f in r.exposed)
+    assert r.exit_code() == 1 and r.verdict().startswith("EXPOSED") and "channels PP-ProPS keeps as the paper defines it" in r.verdict()
     kinds = {f.kind for f in r.channels}
-    # episode_length = the raw CartPole return: a known channel of the paper's scheme, not silently ignored
     assert {"diagnostic_return", "diagnostic_determines", "warmup_scale", "run_seed", "reward_lattice"} <= kinds
     assert any("episode_length equals the raw return" in f.detail for f in r.channels)
     assert any("episode_length equals the raw component alive" in f.detail for f in r.channels)
-    assert r.exit_code(strict=True) == 1
+    assert "not checked: request timing" in r.format()
 
 
 def test_a_factor_of_one_is_a_coincidence_not_a_leak(tmp_path: Path) -> None:
     r = audit_run(build_run(tmp_path, "pp", a_one=True))
-    assert r.clean and r.coincidences >= r.entries  # params[0] equals its raw value in every entry
+    assert not r.leaks and not r.unverified and r.coincidences >= r.entries  # params[0] equals its raw value in every entry
 
 
 def test_planted_raw_parameter_is_found_at_its_place(pp_run: Path) -> None:
@@ -186,7 +189,7 @@ def test_planted_raw_component_is_found(pp_run: Path) -> None:
 def test_planted_optimum_in_the_prose_is_found(pp_run: Path, sentence: str) -> None:
     plant(pp_run, "\n\n4. How we will interact:", f" {sentence}\n\n4. How we will interact:")
     r = audit_run(pp_run)
-    assert [f.kind for f in r.leaks] == ["optimum"] and not r.leaks[0].by_design
+    assert {f.kind for f in r.leaks} == {"optimum"} and not r.leaks[0].by_design
 
 
 def test_planted_raw_return_in_the_prose_is_found(pp_run: Path) -> None:
@@ -208,7 +211,7 @@ def test_an_entry_the_audit_cannot_account_for_fails_it(pp_run: Path) -> None:
 def test_the_audit_reads_the_props_params_form_and_either_layout(tmp_path: Path, layout: str) -> None:
     run = build_run(tmp_path, "pp", prompt_params="indexed", prompt_layout=layout)
     r = audit_run(run)
-    assert r.clean and r.entries >= 6 * 5 and r.checked["params"] == r.entries * get_task("CartPole").D, r.format()
+    assert not r.leaks and not r.unverified and r.entries >= 6 * 5 and r.checked["params"] == r.entries * get_task("CartPole").D, r.format()
     c = next(c for c in open_store(run).candidates()[:11] if f"params[0]: {fmt(c.params_enc[0], 2)}, params[1]:" in _last_request(run)[1])
     plant(run, f"params[2]: {fmt(c.params_enc[2], 2)},", f"params[2]: {fmt(c.params[2], 2)},")
     r = audit_run(run)
@@ -249,15 +252,17 @@ def test_pp_runs_through_the_runner_audit_clean(tmp_path: Path) -> None:
         with offline_llm():
             start(make_config(task, "pp", warmup=8, iterations=6, final_episodes=0), tmp_path / task, secrets=secrets)
         r = audit_run(tmp_path / task)
-        assert r.requests == 6 and r.clean, r.format()
-        if task == "Acrobot":  # return = -episode_length + success, found as a run-level channel
-            assert any("episode_length, success determine the raw return" in f.detail for f in r.channels)
+        assert r.requests == 6 and not r.leaks and not r.unverified, r.format()
+        assert "diagnostic" in {f.kind for f in r.exposed}  # c = printed return / episode length (formula on Acrobot)
+        if task == "Acrobot":  # return = -episode_length + success gives c; the -500 cap (success=0) too
+            assert {"diagnostic", "known-cap"} <= {f.kind for f in r.exposed}
 
 
 def test_cli_audit_exit_codes_and_the_self_audit_after_a_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pp = build_run(tmp_path, "pp")
-    assert main(["audit", str(pp)]) == 0
-    assert main(["audit", str(pp), "--strict"]) == 1
+    assert main(["audit", str(pp)]) == 1  # EXPOSED: the paper's channels give c within 1%
+    assert main(["audit", str(build_run(tmp_path, "pp-hardened"))]) == 0
+    assert main(["audit", str(build_run(tmp_path, "pp-hardened", name="h2")), "--strict"]) == 0
     assert main(["audit", str(build_run(tmp_path, "vanilla")), "--json"]) == 1
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert doc["exit_code"] == 1 and doc["findings"][0]["severity"] == "leak"

@@ -200,7 +200,10 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
 @pytest.mark.llm
 def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
     report = audit_run(run_dir)
-    assert report.clean, report.format()
+    # nothing raw sent and every byte accounted for; a pp run is EXPOSED by the channels the paper's
+    # scheme keeps (issue 16: lattice, the small run seed's warm-up), which the form does not change
+    assert not report.leaks and not report.unverified, report.format()
+    assert {f.kind for f in report.exposed} <= {"lattice", "seed-replay", "diagnostic", "cap"}, report.format()
     store = open_store(run_dir)
     try:
         prompts = [json.loads(c["request"])["prompt"] for c in store.llm_calls()]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppprops.cli import _run_config, build_parser
+from ppprops.cli import build_parser, run_config
 from ppprops.client.secrets import LOG_HIGH, LOG_LOW, Secrets
 from ppprops.config import RunConfig
 from ppprops.errors import ConfigError
@@ -28,7 +28,7 @@ TEN = ["Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joint
 
 
 def _cli_config(*argv: str) -> RunConfig:
-    return _run_config(build_parser().parse_args(["run", *argv]))
+    return run_config(build_parser().parse_args(["run", *argv]))
 
 
 def test_main_results_spec_is_the_papers_grid() -> None:
@@ -72,8 +72,11 @@ def test_smoke_yaml_spec_parses() -> None:
 
 
 def test_a_grid_run_is_configured_exactly_as_ppprops_run() -> None:
-    spec = build_spec(flags_table(["CartPole", "Acrobot"], ["vanilla", "pp", "r2po", "cmaes"], 2),
+    spec = build_spec(flags_table(["CartPole", "Acrobot"], ["vanilla", "pp", "cmaes"], 2),
                       overrides={"warmup": 3, "top_k": 0, "encode_params": True})  # fmt: skip
+    # r2po with encoded parameters is refused in a grid exactly as by ppprops run (issue 16)
+    with pytest.raises(ConfigError, match="--method r2po shows the critic raw states"):
+        build_spec(flags_table(["CartPole"], ["r2po"], 1), overrides={"encode_params": True})
     for r in spec.runs:
         expected = _cli_config("--env", r.task, "--method", r.method, "--seed", str(r.seed), "--warmup", "3", "--top-k", "0",
                                "--encode-params", "on")  # fmt: skip

@@ -157,16 +157,62 @@ def test_integer_returns_lose_their_lattice() -> None:
     assert np.allclose(np.diff([paper.scale(k) for k in range(8, 40)]), paper.scale(1.0))
 
 
-def test_hidden_diagnostics_never_reach_an_entry_and_components_share_the_reward_map() -> None:
+def test_hidden_diagnostics_never_reach_an_entry_and_components_get_maps_of_their_own() -> None:
     s = _hardened(3, 1)
     codec = _codec(s)
     fb = Feedback(ret=40.0, components={"alive": 40.0, "ctrl": -2.0}, diagnostics={"episode_length": 40.0, "termination": "pole_fell"},
                   episode_returns=(40.0,))
     enc = encode_feedback(codec, fb)
     assert "episode_length" not in enc.diagnostics and enc.diagnostics["termination"] == "pole_fell"
-    assert enc.components["alive"] == enc.ret == codec.scale(40.0)
+    # the same raw value through the return's map and a component's: different maps, so anchors never add up
+    assert enc.ret == codec.scale(40.0) and enc.components["alive"] == codec.scale(40.0, "alive") != enc.ret
+    for name in ("alive", "ctrl"):  # each component's map is increasing, and fixed by the key
+        xs = np.linspace(-300, 300, 61)
+        ys = [codec.scale(x, name) for x in xs]
+        assert np.all(np.diff(ys) > 0) and ys == [_codec(s).scale(x, name) for x in xs]
     entry = codec.entry(0, codec.encode(np.zeros(3)), enc.ret, enc.components, fb.diagnostics)
     assert dict(entry.diagnostics) == {"termination": "pole_fell"}
+
+
+def test_integer_returns_are_dithered_below_one_step_so_no_integer_survives_the_warp() -> None:
+    """Decoded with the true c, s, p, a hardened return is r + d with d in (-1/2, 1/2) keyed by the value:
+    ties stay ties, distinct integers keep their order, and the decoded values are not integers."""
+    s = _hardened(2, 3)
+    codec = Codec(s, encode_params=True, scale_rewards=True, offsets=True, warp_params=True, warp_rewards=True, box=BOX,
+                  resolution={"return": 1.0})
+    r = np.arange(8, 500)
+    enc = np.array([codec.scale(float(k)) for k in r])
+    assert np.all(np.diff(enc) > 0) and codec.scale(37.0) == codec.scale(37.0)
+    p, c, s0 = s.exponent, s.c, s.reward_origin
+    w = lambda x, q: np.sign(x) * np.abs(x) ** q  # noqa: E731
+    decoded = w(enc / c + w(s0, p), 1 / p)
+    frac = decoded - r
+    assert np.all(np.abs(frac) < 0.5) and np.std(frac) > 0.2  # spread over the whole step, not near 0
+    # a mean over 4 episodes has step 1/4: its dither stays below that, so 10.25 < 10.5 still holds
+    four = Codec(s, encode_params=True, scale_rewards=True, offsets=True, warp_params=True, warp_rewards=True, box=BOX,
+                 resolution={"return": 1.0}, episodes=4)
+    assert four.scale(10.25) < four.scale(10.5) < four.scale(10.75)
+    # the paper's pure scale is untouched
+    paper = Codec(s, encode_params=True, scale_rewards=True, resolution={"return": 1.0})
+    assert paper.scale(37.0) == s.c * 37.0
+
+
+def test_hardened_locomotion_hides_the_survive_component() -> None:
+    from ppprops.client.hardening import residual_component
+
+    ant = get_task("Ant-Ultra")
+    assert residual_component(ant) == frozenset({"reward_survive"})
+    cfg = make_config("Ant-Ultra", "pp-hardened")
+    codec = codec_for(generate_secrets("h", ant, cfg), ant, cfg)
+    fb = Feedback(ret=900.0, components={"reward_forward": 100.0, "reward_survive": 1000.0, "reward_ctrl": -199.0, "reward_contact": -1.0},
+                  diagnostics={"episode_length": 1000.0, "termination": "time_limit"}, episode_returns=(900.0,))
+    enc = encode_feedback(codec, fb)
+    assert set(enc.components) == {"reward_forward", "reward_ctrl", "reward_contact"}
+    text = build_prompt(prompt_context(ant, cfg, codec), [codec.entry(0, codec.encode(np.zeros(ant.D)), enc.ret, enc.components,
+                                                                         enc.diagnostics)])
+    assert "reward_survive" not in text and "episode_length" not in text
+    pp = make_config("Ant-Ultra", "pp")
+    assert "reward_survive" in encode_feedback(codec_for(generate_secrets("p", ant, pp), ant, pp), fb).components
 
 
 def test_warmup_shows_the_same_numbers_whatever_the_secrets() -> None:

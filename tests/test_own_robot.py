@@ -609,7 +609,8 @@ def test_register_by_task_file_and_name(tmp_path: Path, monkeypatch: pytest.Monk
 
 
 def test_api_errors_and_a_light_import(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"^unknown method 'ppp'; choose one of vanilla, pe, df, pp, pp-hardened, r2po, random, cmaes$"):
+    with pytest.raises(ConfigError, match=r"^unknown method 'ppp'; choose one of vanilla, r2po, pe, df, pp, pp-hardened, random, cmaes "
+                       r"\(RL baselines: ppprops baseline rl --algo ppo\|a2c\|sac\|td3\|ddpg\|trpo\|dqn\)$"):
         ppprops.search("CartPole", method="ppp", out=tmp_path / "r")
     with pytest.raises(ConfigError, match=r"^unknown task 'CartPol-v1'; did you mean CartPole-v1"):
         ppprops.search("CartPol-v1", method="random", out=tmp_path / "r")

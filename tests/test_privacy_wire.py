@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -84,25 +85,44 @@ def _same_entry(c, shown: list[float], decimals: int) -> bool:  # type: ignore[n
 
 
 def _proxied_run(  # type: ignore[no-untyped-def]
-    tmp_path: Path, embedded_server, method: str, task: str, iterations: int = 5
+    tmp_path: Path, embedded_server, method: str, task: str, iterations: int = 5, warmup: int = 6, **settings
 ) -> tuple[list[bytes], Path]:
     t = get_task(task)
     rng = np.random.default_rng(11)
     secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193) if method != "pp-hardened" else None
     with recording_proxy(embedded_server.base_url.removesuffix("/v1")) as (url, captured):
         llm = LLMConfig(base_url=url + "/v1", model=MODEL_ALIAS, structured="grammar")
-        cfg = make_config(task, method, warmup=6, iterations=iterations, final_episodes=0, llm=llm)
+        if method == "r2po":
+            cfg = replace(make_config(task, "vanilla", warmup=warmup, iterations=iterations, final_episodes=0, llm=llm, **settings),
+                          method="r2po")
+        else:
+            cfg = make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, llm=llm, **settings)
         start(cfg, tmp_path / method, secrets=secrets)
     return list(captured), tmp_path / method
 
 
-def _recorded_is_what_was_sent(posts: list[bytes], run_dir: Path) -> None:
-    """The audit reads the store's llm_calls; they must hold exactly the messages that crossed the wire."""
+@pytest.mark.parametrize("method", ["vanilla", "pe", "df", "pp", "pp-hardened", "r2po"])
+def test_the_proxy_sees_exactly_the_requests_the_store_holds(tmp_path: Path, embedded_server, method: str) -> None:  # type: ignore[no-untyped-def]
+    """Every LLM method, R2PO's critic and its context checks included: nothing leaves unrecorded."""
+    extra = {"episodes": 2} if method == "r2po" else {}
+    requests, run_dir = _proxied_run(tmp_path, embedded_server, method, "CartPole", iterations=2, warmup=3, **extra)
+    assert len(requests) >= 2
+    _recorded_is_what_was_sent(requests, run_dir)
+    if method == "r2po":
+        assert any(b"You are a critic" in r for r in requests)
+        report = audit_run(run_dir)  # the critic's raw evidence is read and reported (raw by design of this baseline)
+        assert any(f.kind == "raw_trajectory" and f.by_design for f in report.leaks), report.format()
+
+
+def _recorded_is_what_was_sent(requests: list[bytes], run_dir: Path) -> None:
+    """Every request that crossed the wire (any method, any path) is a recorded one, byte for byte, and
+    the store holds no request that was not sent: the audit reads exactly what the provider received."""
     store = open_store(run_dir)
-    recorded = [json.loads(c["request"])["messages"] for c in store.llm_calls()]
+    recorded = [c["request"] for c in store.llm_calls()]
     store.close()
-    sent = [json.loads(r.split(b"\r\n\r\n", 1)[1])["messages"] for r in posts]
-    assert sent == recorded
+    assert len(requests) == len(recorded) and all(r.startswith(b"POST /v1/chat/completions ") for r in requests)
+    sent = [json.loads(r.split(b"\r\n\r\n", 1)[1]) for r in requests]
+    assert sent == [json.loads(r) for r in recorded]
 
 
 @pytest.mark.parametrize("task", ["CartPole", "Acrobot"])
@@ -112,9 +132,10 @@ def test_pp_sends_no_raw_value(tmp_path: Path, embedded_server, task: str) -> No
     assert len(posts) >= 5
     assert sum(b"params: [" in r for r in posts) == len(posts)  # the check did read history entries
     assert leaks(posts, run_dir, get_task(task).optimal_return) == []
-    _recorded_is_what_was_sent(posts, run_dir)
-    report = audit_run(run_dir)  # the audit agrees, and names the known channels instead of ignoring them
-    assert report.exit_code() == 0 and report.entries > 0, report.format()
+    _recorded_is_what_was_sent(requests, run_dir)
+    report = audit_run(run_dir)  # no raw value was sent, but the paper's channels give c within 1%: the audit fails
+    assert not report.leaks and not report.unverified and report.entries > 0, report.format()
+    assert report.exit_code() == 1 and "diagnostic" in {f.kind for f in report.exposed}, report.format()
     if task == "CartPole":  # episode_length = the raw return, reported as a channel rather than ignored
         assert any(f.kind == "diagnostic_return" for f in report.channels)
 
@@ -124,7 +145,7 @@ def test_pp_hardened_sends_no_raw_value_and_no_known_channel(tmp_path: Path, emb
     posts = [r for r in requests if r.startswith(b"POST")]
     assert leaks(posts, run_dir, 500.0) == []
     assert all(b"episode_length" not in r for r in posts)
-    _recorded_is_what_was_sent(posts, run_dir)
+    _recorded_is_what_was_sent(requests, run_dir)
     report = audit_run(run_dir)
     assert report.exit_code(strict=True) == 0, report.format()
 

@@ -70,11 +70,11 @@ def test_overflow_is_detected_before_sending() -> None:
         p.ask(1)  # chat is None: reaching the LLM would fail differently
 
 
-@pytest.mark.llm
 def test_overflow_stops_the_run_and_reports_the_best_so_far(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "r"
-    # 1100 tokens hold the search prompt (~900 with the compact parameter form) but not the critic's
-    # once a longer rollout is shown (measured: the third call needs ~1130)
+    # before any answer the prompt size is a local, conservative estimate (one token per two
+    # characters): ~2500 characters plus the answer's 104 tokens do not fit 1100, so the run stops
+    # before sending anything (the LLM is never started) and reports the best warm-up policy
     code = main(["run", "--env", "CartPole", "--method", "r2po", "--warmup", "4", "--iterations", "6", "--episodes", "3",
                  "--final-episodes", "2", "--context-size", "1100", "--out", str(out), "--quiet"])
     assert code == 0
@@ -82,11 +82,9 @@ def test_overflow_stops_the_run_and_reports_the_best_so_far(tmp_path: Path, caps
     store = open_store(out)
     status, cands, calls, fe = store.status(), store.candidates(), store.llm_calls(), store.final_eval()
     store.close()
-    assert status.startswith("stopped: context overflow")
-    assert 4 <= len(cands) < 10
+    assert status.startswith("stopped: context overflow at LLM call 0")
+    assert len(cands) == 4 and calls == []  # nothing was sent for the overflowing prompt
     assert fe is not None and fe.candidate_index == max(cands, key=lambda c: c.ret).index
-    assert all(json.loads(c["request"])["max_tokens"] > 0 for c in calls)
-    assert len({c["iteration"] for c in calls}) == len(cands) - 4  # nothing was sent for the overflowing prompt
     assert json.loads((out / "best_policy.json").read_text())["search"]["candidate"] == fe.candidate_index
     assert main(["resume", str(out), "--quiet"]) == 0  # a stopped run is finished, not continued
     assert len(open_store(out).candidates()) == len(cands)

@@ -97,20 +97,6 @@ class SearchResult:
         return None if self.policy is None else self.policy.b
 
 
-def _mechanisms(method: str, overrides: Mapping[str, bool | None]) -> Any:
-    from .methods import PRESETS, Mechanisms, resolve
-    from .strategies import BLACK_BOX
-
-    if method in BLACK_BOX:  # no prompt: only whether the optimizer works in the encoded space matters
-        encode = bool(overrides.get("encode_params"))
-        return Mechanisms(encode, encode, False, False, False)
-    if method == "r2po":
-        return resolve("vanilla", **overrides)
-    if method not in PRESETS:
-        raise ConfigError(f"unknown method {method!r}; choose one of {', '.join([*PRESETS, 'r2po', *BLACK_BOX])}")
-    return resolve(method, **overrides)
-
-
 def _default_out(task: str, method: str, seed: int) -> Path:
     safe = re.sub(r"[^A-Za-z0-9_.+-]", "_", task)
     return Path("runs") / f"{safe}__{method}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
@@ -146,6 +132,7 @@ def search(
     warp_rewards: bool | None = None,
     hide_return_diagnostics: bool | None = None,
     encoded_warmup: bool | None = None,
+    describe_task: bool | None = None,
     prompt_params: str = "list",
     param_digits: int | None = None,
     prompt_layout: str = "static-first",
@@ -174,20 +161,55 @@ def search(
             A factory with no importable name (a lambda, a local function) works in this process
             only; one defined at the top level of a module (or of the script being run) also works
             with ``workers > 1``, ``resume`` and ``policy eval`` from a fresh process.
-        method: ``vanilla``, ``pe``, ``df``, ``pp`` (default), ``pp-hardened``, ``r2po``, ``random``
-            or ``cmaes``.
-        warmup, iterations, top_k, episodes, final_episodes, seed, box, decimals, workers: as the
-            ``ppprops run`` flags (``episodes`` defaults to 1, 20 for r2po; ``box`` is (low, high)).
+        method: a search method of the registry (``ppprops.methods``): ``vanilla``, ``pe``, ``df``,
+            ``pp`` (default), ``pp-hardened``, ``r2po``, ``random`` or ``cmaes``.
+        warmup: random warm-up policies (``--warmup``).
+        iterations: LLM proposals (r2po: LLM calls; random, cmaes: samples) after the warm-up.
+        top_k: history entries in the prompt, best last (Eq. 7); 0 keeps every entry.
+        episodes: episodes per candidate (default: the method's, 1; 20 for r2po).
+        final_episodes: fresh episodes for the best policy at the end.
+        seed: the run seed (episode seeds, warm-up, fallbacks; never the secrets).
         out: the run directory (default ``runs/<task>__<method>__<seed>__<time>``); it must not
             hold anything yet.
-        env_kwargs, max_episode_steps, gym_packages, obs_keys, components, diagnostics: the quick
-            task options of ``ppprops run`` (``--env-kwargs`` ...); they win over a task file.
-        encode_params ... encoded_warmup: switch one mechanism of the preset on or off (None keeps it).
-        prompt_params, param_digits, prompt_layout, prompt_form: the prompt form flags of ``ppprops run``
-            (``prompt_form`` ``auto``: the document form for the embedded model, the paper's chat prompt otherwise).
-        base_url, model, api_key_env, temperature, max_tokens, timeout, reasoning_effort,
-            structured, context_size, retries: the LLM endpoint (default: the embedded model;
-            ``temperature`` None: 1.0 for the chat form; the document form alternates 0.6 and 1.0).
+        box: (low, high), the feasible range of every raw parameter.
+        decimals: decimals of the numbers in the prompt.
+        workers: processes that run episodes in parallel (results identical to one).
+        env_kwargs: keyword arguments of the env's constructor (win over a task file's).
+        max_episode_steps: time limit of an episode (needed when the env has none).
+        gym_packages: modules to import before the env is made (e.g. one that registers it).
+        obs_keys: for a Dict observation, the entries the policy sees, in this order.
+        components: info keys summed over an episode as reward components.
+        diagnostics: info keys reported as diagnostics (last value of an episode).
+        encode_params: switch Eq. 3 (theta~ = A theta) on or off; None keeps the preset's.
+        scale_rewards: switch Eq. 5-6 (r~ = c r) on or off; None keeps the preset's.
+        detailed_feedback: switch component and diagnostic feedback (Sec. II-C); None keeps the preset's.
+        disclose_optimum: state the optimal return (Vanilla ProPS); None keeps the preset's.
+        disclose_reward_structure: state the numeric reward definition; None keeps the preset's.
+        secret_offsets: hardening switch (docs/threat-model.md); None keeps the preset's.
+        warp_params: hardening switch (docs/threat-model.md); None keeps the preset's.
+        warp_rewards: hardening switch (docs/threat-model.md); None keeps the preset's.
+        hide_return_diagnostics: hardening switch (docs/threat-model.md); None keeps the preset's.
+        encoded_warmup: hardening switch (docs/threat-model.md); None keeps the preset's.
+        describe_task: the task description in the prompt (ProPS+ on, ProPS off); None keeps on.
+        prompt_params: history parameters as one ``list`` or ProPS ``indexed`` pairs.
+        param_digits: significant digits of each listed parameter (0: fixed decimals; None: the
+            form's default, 3 in the chat form, 2 in the document form).
+        prompt_layout: ``static-first`` (fixed sections first) or ``history-first``.
+        prompt_form: ``auto`` (the document form for the embedded model, the paper's chat prompt
+            otherwise), ``chat`` or ``document`` (a completions-endpoint document the model continues).
+        parse_retries: corrections asked for before a fallback candidate.
+        on_llm_failure: ``stop`` (resumable) or ``skip`` (fallback candidate) when the endpoint stays down.
+        base_url: OpenAI-compatible API root (default: the embedded model).
+        model: the model name at ``base_url``.
+        api_key_env: the environment variable holding the API key (never stored).
+        temperature: sampling temperature, 0 to 2 (None: 1.0 for the chat form; the document form
+            alternates 0.6 and 1.0).
+        max_tokens: answer budget in tokens (default: room for D numbers, and for reasoning).
+        timeout: seconds per request.
+        reasoning_effort: ``none``, ``minimal``, ``low``, ``medium`` or ``high`` (reasoning models).
+        structured: ``auto``, ``json_schema``, ``grammar`` or ``none``.
+        context_size: the embedded model's context window, in tokens.
+        retries: retries of one request after a transient fault.
         chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
             a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
             keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With
@@ -204,13 +226,16 @@ def search(
         LLMError: the endpoint stayed down past the retry bound (the run is saved: ``resume`` it).
         StoreError: the run directory cannot be written.
     """
+    from .methods import get_method
     from .tasks import is_builtin, load_task
 
     overrides = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
                      disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
                      secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
-                     hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup)  # fmt: skip
-    mechanisms = _mechanisms(method, overrides)  # a bad method fails before the env is made
+                     hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
+                     describe_task=describe_task)  # fmt: skip
+    entry = get_method(method)  # a bad method fails before the env is made
+    mechanisms = entry.mechanisms(**overrides)
     t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
                   obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
     config = RunConfig(
@@ -221,7 +246,7 @@ def search(
         warmup=warmup,
         iterations=iterations,
         top_k=top_k,
-        episodes=episodes if episodes is not None else (20 if method == "r2po" else 1),
+        episodes=episodes if episodes is not None else entry.default_episodes,
         final_episodes=final_episodes,
         seed=seed,
         box=(float(box[0]), float(box[1])),
@@ -246,20 +271,38 @@ def search(
     return load_run(run_dir)
 
 
-def resume(run_dir: Pathish, *, chat: Any = None, progress: bool = False) -> SearchResult:
+def resume(
+    run_dir: Pathish,
+    *,
+    base_url: str | None = None,
+    model: str | None = None,
+    api_key_env: str | None = None,
+    chat: Any = None,
+    progress: bool = False,
+) -> SearchResult:
     """Continue an interrupted run with its own secrets and task, then return it (as ``search``).
 
     The task is rebuilt from the declaration stored with the run: no registration code needs to
-    run first. ``chat`` replaces the run's LLM endpoint for this session.
+    run first.
+
+    Args:
+        run_dir: the run directory.
+        base_url: continue against this endpoint instead of the run's (recorded with the run).
+        model: the model name there (default: the run's).
+        api_key_env: the environment variable holding its API key ("" for none; default: the run's).
+        chat: a chat object (as in ``search``) that replaces the run's LLM for this session.
+        progress: show a progress bar on stderr.
 
     Raises:
         StoreError, KeyFileError: not a run directory, or its store / key file is damaged.
         ConfigError, LLMError: as ``search``.
     """
+    from .runner import Endpoint
     from .runner import resume as _resume
 
+    endpoint = Endpoint(base_url=base_url, model=model, api_key_env=api_key_env)
     with _progress(progress, str(run_dir)) as events:
-        _resume(Path(run_dir), events, chat=chat)
+        _resume(Path(run_dir), events, endpoint=endpoint, chat=chat)
     return load_run(run_dir)
 
 
@@ -292,12 +335,14 @@ def load_run(run_dir: Pathish) -> SearchResult:
                         final=final, policy=policy)  # fmt: skip
 
 
-def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int = 0, workers: int = 1) -> Evaluation:
+def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int = 0, workers: int = 1,
+                    progress: bool = False) -> Evaluation:
     """Run a policy file on fresh episodes of its task, with no encoding involved.
 
     The episode seeds are ``ppprops.seeding.final_eval_seeds(seed, episodes)``: with a run's seed
     and its ``final_episodes`` this reproduces the run's final evaluation. The task is rebuilt from
-    the declaration in the file (older files: from the task's name).
+    the declaration in the file (older files: from the task's name). ``progress`` shows a bar of
+    episodes on stderr.
 
     Raises:
         ConfigError: ``episodes`` < 1, or the file does not fit its task.
@@ -314,9 +359,12 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
     task = task_from_json(doc["task_spec"]) if doc.get("task_spec") else get_task(str(doc.get("task")))
     if (task.n_s, task.n_a) != (pol.n_s, pol.n_a):
         raise ConfigError(f"policy file {pol.path} has n_s={pol.n_s}, n_a={pol.n_a}; task {task.name} needs {task.n_s}, {task.n_a}")
+    from .progress import episode_events
+    from .runner import final_returns
+
     seeds = seeding.final_eval_seeds(seed, episodes)
-    with Evaluator(task, workers=workers) as ev:
-        returns = ev.evaluate(pol.theta, seeds).episode_returns
+    with Evaluator(task, workers=workers) as ev, episode_events(enabled=progress, label=f"{task.name} policy eval") as events:
+        returns = final_returns(ev, pol.theta, seeds, events)
     return Evaluation(task=task.name, returns=tuple(float(r) for r in returns), seeds=tuple(int(s) for s in seeds), seed=seed)
 
 

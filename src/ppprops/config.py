@@ -155,6 +155,9 @@ class RunConfig:
         for ok, msg in checks:
             if not ok:
                 raise ConfigError(msg)
+        from .methods import get_method
+
+        get_method(self.method).check(self)  # what this method refuses (e.g. prompt switches for a black box)
         lo, hi = self.box
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
@@ -232,11 +235,14 @@ def defaults_from_file(path: Path, actions: Iterable[argparse.Action], *, skip: 
             close = difflib.get_close_matches(key.replace("_", "-"), names, n=1)
             hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(names)}"
             raise ConfigError(f"config file {path}: unknown key {key!r} ({hint})")
-        out[act.dest] = _file_value(path, key, value, act)
+        out[act.dest] = file_value(path, key, value, act)
     return out
 
 
-def _file_value(path: Path, key: str, value: Any, act: argparse.Action) -> Any:
+def file_value(path: Path, key: str, value: Any, act: argparse.Action) -> Any:
+    """A file's ``key = value`` as the parsed value of the flag ``act``, checked as the command
+    line would check it (type, choices, on/off, lists); ``path`` only names the file in errors.
+    Raises ConfigError."""
     bad = ConfigError(f"config file {path}: {key} = {value!r} is not a valid value")
     conv = act.type
     if act.nargs == 0:  # store_true

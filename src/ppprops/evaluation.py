@@ -147,6 +147,9 @@ _worker: dict[str, Any] = {}
 
 
 def _init_worker(ref: Any) -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent decides
     # A failure here would kill the pool with a traceback; keep it, and report it as one line instead.
     try:
         from .tasks import resolve_task

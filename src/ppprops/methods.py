@@ -1,16 +1,32 @@
-"""The paper's four configurations as combinations of independent privacy/feedback mechanisms.
+"""Every method ppprops runs, in one registry, and the mechanisms the prompted ones combine.
 
-``pp-hardened`` adds five switches that close the side channels measured in
-docs/threat-model.md; the four paper presets keep every new switch off, so they behave exactly
-as the paper defines them.
+The paper's four configurations (vanilla, pe, df, pp) are combinations of independent
+privacy/feedback mechanisms (``Mechanisms``); ``pp-hardened`` adds five switches that close the
+side channels measured in docs/threat-model.md (the four paper presets keep every new switch off,
+so they behave exactly as the paper defines them). ``describe_task`` is the ProPS / ProPS+
+distinction: off, the prompt carries no task description, only the policy structure.
+
+``METHODS`` is the one place that knows each method (``Method``): its kind (a prompted search, a
+black-box optimizer at the same budget, or an RL baseline), its mechanisms, its defaults, which
+settings it refuses, and how its search phase is built (``ppprops.strategies``). The CLI, the
+experiment specs, the runner and the reports ask it instead of keeping lists of their own.
+Adding a method is one ``Method`` entry here plus, for a search, one phase builder there.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
-from typing import Any
+from collections.abc import Iterator
+from dataclasses import MISSING, asdict, dataclass, fields, replace
+from enum import StrEnum
+from typing import TYPE_CHECKING, Any
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .baselines.algorithms import Algorithm
+    from .config import RunConfig
+    from .loop import Phase
+    from .strategies import SearchSetup
 
 
 @dataclass(frozen=True)
@@ -28,19 +44,23 @@ class Mechanisms:
     warp_rewards: bool = False  # r~ = c w_p(r): a secret increasing power warp instead of a pure scale
     hide_return_diagnostics: bool = False  # drop diagnostics that pin the return or a reward component
     encoded_warmup: bool = False  # warm-up drawn uniformly in the encoded space, then decoded
+    # ProPS+ (on) or ProPS (off): the task description (environment, state and action meanings,
+    # reward text, hints) in the prompt. Off leaves the policy structure, feedback, interaction, history.
+    describe_task: bool = True
 
     def to_json(self) -> dict[str, bool]:
         return asdict(self)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Mechanisms:
-        """Reads stored configs, including those written before the hardening switches existed."""
+        """Reads stored configs, including those written before a switch with a default existed
+        (the hardening switches: off; ``describe_task``: on, as every earlier run described its task)."""
         values: dict[str, bool] = {}
         for f in fields(cls):
             if f.name in d:
                 values[f.name] = bool(d[f.name])
-            elif f.default is False:
-                values[f.name] = False
+            elif f.default is not MISSING:
+                values[f.name] = bool(f.default)
             else:
                 raise KeyError(f.name)
         return cls(**values)
@@ -81,14 +101,226 @@ PRESETS: dict[str, Mechanisms] = {
 }
 
 
+# Every switch, in declaration order; each is a `--<name with dashes> on|off` flag of `ppprops run`.
+SWITCHES: tuple[str, ...] = tuple(f.name for f in fields(Mechanisms))
+
+
+def switch_flag(name: str) -> str:
+    """The command-line flag of a mechanism switch: ``encode_params`` -> ``--encode-params``."""
+    return "--" + name.replace("_", "-")
+
+
+# Switches that hide something from the provider. A method whose prompts show raw trajectory
+# evidence (R2PO's critic reads raw states and the actions the policy took in them) refuses them:
+# for a linear policy u = W^T s + b a least-squares fit of those actions on those states gives the
+# raw W and b (so every a_j, coordinate by coordinate, against the encoded parameters beside them),
+# and the public dynamics and reward definition give the raw return from the rollout (CartPole: its
+# number of steps). Encoding states and actions with secrets of their own would not hold either:
+# public dynamics pin a diagonal state scale (initial-state range, termination thresholds,
+# x' = x + tau x_dot). See docs/threat-model.md.
+PRIVACY_SWITCHES = ("encode_params", "scale_rewards", *HARDENING)
+
+
+def check_method(method: str, mech: Mechanisms) -> None:
+    """Refuse mechanisms ``method`` cannot run with (``Method.check_mechanisms``), as one ConfigError line."""
+    get_method(method).check_mechanisms(mech)
+
+
 def resolve(method: str, **overrides: bool | None) -> Mechanisms:
-    """A preset, with any mechanism switched on or off individually."""
-    if method not in PRESETS:
-        raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(PRESETS)}")
-    changes = {k: v for k, v in overrides.items() if v is not None}
-    unknown = set(changes) - set(Mechanisms.__dataclass_fields__)
+    """The mechanisms of a search method (a preset, R2PO's, or a black-box method's), with any
+    switch turned on or off individually: ``get_method(method).mechanisms(**overrides)``.
+
+    ``overrides`` maps switch names to True/False; None leaves the method's value. Raises
+    ConfigError for an unknown method or switch, or a combination the method refuses.
+    """
+    return get_method(method).mechanisms(**overrides)
+
+
+def _changes(overrides: dict[str, bool | None]) -> dict[str, bool]:
+    changes = {k: bool(v) for k, v in overrides.items() if v is not None}
+    unknown = set(changes) - set(SWITCHES)
     if unknown:
         raise ConfigError(f"unknown mechanism(s): {', '.join(sorted(unknown))}")
-    mech = replace(PRESETS[method], **changes)
-    mech.check()
-    return mech
+    return changes
+
+
+# -- the registry of methods -------------------------------------------------------------------
+class MethodKind(StrEnum):
+    """How a method finds its policy."""
+
+    PROMPTED = "prompted"  # an LLM proposes candidates from a prompt (the ProPS presets, R2PO)
+    BLACK_BOX = "black-box"  # a classical optimizer at the same evaluation budget (random search, CMA-ES)
+    RL = "rl"  # a Stable-Baselines3 agent trained on the task (`ppprops baseline rl`)
+
+
+@dataclass(frozen=True)
+class Method:
+    """One method: what it is, how it is configured, and how its search phase is built.
+
+    ``name`` is the ``--method`` value and what a run stores as its method (RL baselines:
+    ``rl-<algo>``). ``preset`` is the mechanisms a prompted method starts from. A search runs
+    ``warmup`` uniform samples, then ``iterations`` asks of the phase ``strategies.<phase>``
+    builds; ``iterations`` counts what ``iteration_unit`` says.
+    """
+
+    name: str
+    kind: MethodKind
+    title: str
+    preset: Mechanisms | None = None
+    default_episodes: int = 1  # episodes per candidate when --episodes is not given
+    iteration_unit: str = "LLM iterations"
+    phase: str | None = None  # the builder in ppprops.strategies (None: an RL baseline)
+    top_k_prompt: bool = False  # one LLM call per iteration over a top-K history (history-cost figures)
+    raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
+    algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
+
+    @property
+    def algorithm(self) -> Algorithm:
+        """An RL baseline's library class and the action spaces it takes."""
+        from .baselines.algorithms import ALGORITHMS
+
+        if self.algo is None:
+            raise ConfigError(f"{self.name} is not an RL baseline")
+        return ALGORITHMS[self.algo]
+
+    @property
+    def is_search(self) -> bool:
+        """Run by `ppprops run` (warm-up and a search phase), not trained by `ppprops baseline rl`."""
+        return self.kind is not MethodKind.RL
+
+    @property
+    def uses_llm(self) -> bool:
+        return self.kind is MethodKind.PROMPTED
+
+    def mechanisms(self, **overrides: bool | None) -> Mechanisms:
+        """The run's mechanisms: the preset with ``overrides`` (switch name -> on/off, None = keep).
+
+        A black-box method sends no prompt: only ``encode_params`` applies (it picks the space
+        the optimizer searches) and any other switch given is refused. RL baselines have none.
+        Raises ConfigError with the flag to change.
+        """
+        changes = _changes(overrides)
+        if self.kind is MethodKind.RL:
+            raise ConfigError(f"{self.name} is an RL baseline: train it with 'ppprops baseline rl --algo {self.algo}'")
+        if self.kind is MethodKind.BLACK_BOX:
+            other = sorted(k for k in changes if k != "encode_params")
+            if other:
+                flags = ", ".join(switch_flag(k) for k in other)
+                raise ConfigError(f"{flags} does not apply to --method {self.name}: it sends no prompt "
+                                  "(only --encode-params does, choosing the space it searches)")  # fmt: skip
+            enc = changes.get("encode_params", False)
+            return Mechanisms(enc, enc, False, False, False)
+        assert self.preset is not None
+        mech = replace(self.preset, **changes)
+        mech.check()
+        return mech
+
+    def check(self, config: RunConfig) -> None:
+        """Settings this method refuses, each as one ConfigError line (``RunConfig.validate`` calls it)."""
+        if self.kind is MethodKind.RL:
+            raise ConfigError(f"{self.name} is an RL baseline: train it with 'ppprops baseline rl --algo {self.algo}'")
+        self.check_mechanisms(config.mechanisms)
+
+    def check_mechanisms(self, m: Mechanisms) -> None:
+        """Mechanisms this method cannot run with, each as one ConfigError line: a combination that
+        reveals what it hides, prompt switches for a black box, privacy switches for a method whose
+        prompts show raw evidence (``raw_evidence``)."""
+        m.check()
+        if self.kind is MethodKind.BLACK_BOX:
+            if m.detailed_feedback or m.disclose_optimum or m.disclose_reward_structure or m.hardened:
+                raise ConfigError(f"--method {self.name} sends no prompt: only --encode-params applies to it")
+        if self.raw_evidence:
+            on = [k for k in PRIVACY_SWITCHES if getattr(m, k)]
+            if on:
+                flags = ", ".join(switch_flag(k) + " on" for k in on)
+                raise ConfigError(
+                    f"--method {self.name} shows the critic raw states and actions, from which a least-squares fit gives the raw "
+                    f"policy (hence A) and the rollout gives the raw return, so it cannot run with {flags}; "
+                    "use --method pp or pp-hardened for a private search"
+                )
+
+    def search_phase(self, setup: SearchSetup) -> Phase:
+        """The phase that follows the warm-up (``config.iterations`` asks), built by ``strategies``."""
+        if self.phase is None:
+            raise ConfigError(f"{self.name} is an RL baseline; it has no search phase")
+        from . import strategies
+
+        build = getattr(strategies, self.phase)
+        return build(setup)  # type: ignore[no-any-return]
+
+
+def _prompted(name: str, title: str, preset: str) -> Method:
+    return Method(name, MethodKind.PROMPTED, title, PRESETS[preset], phase="props_phase", top_k_prompt=True)
+
+
+def _rl(algo: str) -> Method:
+    from .baselines.algorithms import ALGORITHMS  # plain data: no torch
+
+    title = f"{ALGORITHMS[algo].title} (Stable-Baselines3, default hyperparameters)"
+    return Method(f"rl-{algo}", MethodKind.RL, title, algo=algo, iteration_unit="timesteps")
+
+
+# In the order of the paper's tables (and of the report's columns).
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
+        Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
+               default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
+               raw_evidence=True),
+        _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
+        _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
+        _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),
+        _prompted("pp-hardened", "PP-ProPS with the side channels of docs/threat-model.md closed", "pp-hardened"),
+        Method("random", MethodKind.BLACK_BOX, "random search: uniform samples in the box", iteration_unit="samples",
+               phase="random_phase"),
+        Method("cmaes", MethodKind.BLACK_BOX, "CMA-ES (pycma), raw or encoded space", iteration_unit="samples",
+               phase="cmaes_phase"),
+        _rl("ppo"),
+        _rl("a2c"),
+        _rl("sac"),
+        _rl("td3"),
+        _rl("ddpg"),
+        _rl("trpo"),
+        _rl("dqn"),
+    )
+}  # fmt: skip
+
+
+def methods(kind: MethodKind | None = None, *, search: bool | None = None) -> Iterator[Method]:
+    """The registered methods in table order, optionally of one kind, or only searches (``search=True``)."""
+    for m in METHODS.values():
+        if (kind is None or m.kind is kind) and (search is None or m.is_search == search):
+            yield m
+
+
+def search_method_names() -> list[str]:
+    """The ``ppprops run --method`` choices."""
+    return [m.name for m in methods(search=True)]
+
+
+def find_method(name: str) -> Method | None:
+    """The method a run stores as ``name`` (``rl-<algo>`` for RL baselines), or None if unknown."""
+    return METHODS.get(name)
+
+
+def get_method(name: str) -> Method:
+    """Like ``find_method``; an unknown name is a ConfigError listing the choices."""
+    m = METHODS.get(name)
+    if m is None:
+        raise ConfigError(f"unknown method {name!r}; choose one of {', '.join(search_method_names())} "
+                          f"(RL baselines: ppprops baseline rl --algo {'|'.join(rl_algos())})")  # fmt: skip
+    return m
+
+
+def rl_algos() -> list[str]:
+    """The ``ppprops baseline rl --algo`` choices."""
+    return [m.algo for m in methods(MethodKind.RL) if m.algo is not None]
+
+
+def rl_method(algo: str) -> Method:
+    """The RL baseline trained by ``--algo algo``; unknown algos are a ConfigError."""
+    m = METHODS.get(f"rl-{algo}")
+    if m is None or m.kind is not MethodKind.RL:
+        raise ConfigError(f"--algo must be one of {', '.join(rl_algos())}, got {algo!r}")
+    return m

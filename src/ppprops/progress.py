@@ -1,7 +1,11 @@
-"""A tqdm progress bar on stderr: iteration, best return so far, last return, LLM latency."""
+"""Progress on stderr (tqdm): the search (iteration, best return so far, last return, LLM latency),
+the embedded model's start, and the final evaluation's episodes. stdout stays for results."""
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from .runner import RunEvents
@@ -9,23 +13,34 @@ from .store import Candidate, FinalEval
 
 
 class ProgressEvents:
+    """``hooks()`` for ``runner.start``/``resume``; nothing is printed when not ``enabled``."""
+
     def __init__(self, *, enabled: bool, label: str) -> None:
         self.enabled = enabled
         self.label = label
         self.bar: Any = None
+        self.final_bar: Any = None
 
     def __enter__(self) -> ProgressEvents:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.close()
+        for bar in (self.bar, self.final_bar):
+            if bar is not None:
+                bar.close()
+        self.bar = self.final_bar = None
+
+    def _write(self, text: str) -> None:
+        if self.enabled:
+            from tqdm import tqdm
+
+            tqdm.write(text, file=sys.stderr)
 
     def _start(self, done: int, total: int) -> None:
         if self.enabled:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=total, initial=done, desc=self.label, unit="eval", dynamic_ncols=True)
+            self.bar = tqdm(total=total, initial=done, desc=self.label, unit="eval", dynamic_ncols=True, file=sys.stderr)
 
     def _candidate(self, c: Candidate, latency: float | None, best: float) -> None:
         if self.bar is None:
@@ -36,10 +51,48 @@ class ProgressEvents:
         self.bar.set_postfix(post, refresh=False)
         self.bar.update(1)
 
-    def _final(self, fe: FinalEval) -> None:
+    def _llm_loading(self) -> None:
+        self._write("loading the embedded model (Gemma 3 270M in a llama.cpp server)...")
+
+    def _llm_ready(self, seconds: float) -> None:
+        self._write(f"embedded model ready in {seconds:.1f} s")
+
+    def _final_start(self, episodes: int) -> None:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.final_bar = tqdm(total=episodes, desc=f"{self.label} final evaluation", unit="episode", dynamic_ncols=True,
+                                  file=sys.stderr)  # fmt: skip
+
+    def _final_episode(self, done: int) -> None:
+        if self.final_bar is not None:
+            self.final_bar.update(done - self.final_bar.n)
+
+    def _final(self, fe: FinalEval) -> None:
+        for bar in (self.bar, self.final_bar):
+            if bar is not None:
+                bar.close()
+        self.bar = self.final_bar = None
 
     def hooks(self) -> RunEvents:
-        return RunEvents(on_start=self._start, on_candidate=self._candidate, on_final=self._final)
+        return RunEvents(on_start=self._start, on_candidate=self._candidate, on_final=self._final,
+                         on_llm_loading=self._llm_loading, on_llm_ready=self._llm_ready,
+                         on_final_start=self._final_start, on_final_episode=self._final_episode)  # fmt: skip
+
+
+@contextmanager
+def episode_events(*, enabled: bool, label: str) -> Iterator[RunEvents]:
+    """Hooks that show one bar of episodes (``runner.final_returns``), e.g. for ``policy eval``."""
+    progress = ProgressEvents(enabled=enabled, label=label)
+    with progress:
+        yield RunEvents(on_final_start=lambda n: _episodes_bar(progress, n), on_final_episode=progress._final_episode)
+
+
+def _episodes_bar(progress: ProgressEvents, episodes: int) -> None:
+    if progress.enabled:
+        from tqdm import tqdm
+
+        progress.final_bar = tqdm(total=episodes, desc=progress.label, unit="episode", dynamic_ncols=True, file=sys.stderr)

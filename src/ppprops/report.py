@@ -7,9 +7,10 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
-from .baselines.record import format_rl_summary, is_rl_config, rl_summary
+from .baselines.record import format_rl_summary, rl_summary
 from .config import RunConfig
 from .loop import best_candidate
+from .status import RunKind
 from .store import open_store
 
 
@@ -48,10 +49,14 @@ def _fault_counts(cands: list[Any], calls: list[dict[str, Any]]) -> dict[str, An
 
 
 def run_summary(run_dir: Path) -> dict[str, Any]:
-    """The `ppprops show --json` object. Raw values: this stays on the client."""
+    """The `ppprops show --json` object. Raw values: this stays on the client.
+
+    Keys: run_id, status, env, method, mechanisms, seed, config, endpoint_changes (LLM endpoints
+    changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
+    too). Raises StoreError for a directory that holds no readable run."""
     store = open_store(run_dir)
     try:
-        if is_rl_config(store.config()):  # an RL baseline run: same keys, no candidates, plus "training"
+        if RunKind.of_config(store.config()) is RunKind.RL:  # same keys, no candidates, plus "training"
             return rl_summary(store)
         config = RunConfig.from_json(store.config())
         cands = store.candidates()
@@ -67,6 +72,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
             "mechanisms": config.mechanisms.to_json(),
             "seed": config.seed,
             "config": config.to_json(),
+            "endpoint_changes": store.endpoint_changes(),
             "best": {"return": best.ret, "index": best.index} if best else None,
             "final_eval": {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "returns": list(fe.returns)}
             if fe is not None and fe.returns
@@ -118,7 +124,15 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         store.close()
 
 
+def _endpoint(e: dict[str, Any]) -> str:
+    if not e.get("base_url"):
+        return "the embedded model"
+    key = f", key from ${e['api_key_env']}" if e.get("api_key_env") else ""
+    return f"{e['base_url']} ({e.get('model')}{key})"
+
+
 def format_summary(s: dict[str, Any]) -> str:
+    """The text ``ppprops show`` prints for ``run_summary``'s object."""
     if s.get("training") is not None:
         return format_rl_summary(s)
     lines = [
@@ -145,6 +159,8 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append("fallback " + ", ".join(f"{k} x{v}" for k, v in c["fallback_reasons"].items()))
     if c.get("numerical_faults"):
         lines.append(f"numeric  {c['numerical_faults']} candidates hit NaN/Inf (episode ended, kept out of the prompt)")
+    for ch in s.get("endpoint_changes") or []:
+        lines.append(f"endpoint changed on resume after {ch['candidates']} candidates: {_endpoint(ch['from'])} -> {_endpoint(ch['to'])}")
     if s["best"] and s["best"]["return"] is not None:
         lines.append(f"best     return {s['best']['return']:.2f} (candidate {s['best']['index']})")
     if s["final_eval"]:

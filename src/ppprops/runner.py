@@ -12,11 +12,10 @@ After that every step is a committed store row or an atomic file rename, so ``re
 from __future__ import annotations
 
 import errno
-import json
 import math
 import os
 import shutil
-import urllib.request
+import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing, contextmanager, nullcontext
@@ -28,21 +27,19 @@ from typing import Protocol
 import numpy as np
 
 from . import seeding
-from .client.context import prompt_context
 from .client.hardening import codec_for, generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
 from .evaluation import EpisodeLimitError, Evaluator, Feedback, WorkerError, check_parallel
-from .llm.client import ChatClient, Exchange, default_max_tokens
+from .llm.client import ChatClient, Exchange
 from .loop import Phase, StopSearch, best_candidate, run_loop
+from .methods import get_method
 from .policy_file import policy_document, write_json_atomic
-from .proposers import LLMProposer
-from .proposers.r2po import R2POProposer
 from .proposers.uniform import warmup_sampler
-from .rollout import record_rollout
+from .status import RunStatus
 from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
-from .strategies import BLACK_BOX, black_box_phase
+from .strategies import SearchSetup, prompt_form  # noqa: F401  (prompt_form: re-exported)
 from .tasks import FeedbackKeyError, Task
 
 KEY_NAME = "secrets.key"
@@ -52,13 +49,27 @@ CHAT_TEMPLATE_MARGIN = 32  # tokens the chat template adds around a single user 
 POLICY_NAME = "best_policy.json"
 
 
+def _ignore(*args: object) -> None:
+    return None
+
+
 @dataclass(frozen=True)
 class RunEvents:
-    """Hooks for progress display; the runner itself prints nothing."""
+    """Hooks for progress display; the runner itself prints nothing.
 
-    on_start: Callable[[int, int], None] = lambda done, total: None
-    on_candidate: Callable[[Candidate, float | None, float], None] = lambda c, latency, best: None
-    on_final: Callable[[FinalEval], None] = lambda fe: None
+    on_start(done, total): candidates recorded and planned; on_candidate(candidate, LLM latency in
+    seconds or None, best return so far); on_llm_loading() and on_llm_ready(seconds) around the
+    start of the embedded model; on_final_start(episodes) and on_final_episode(done) during the
+    final evaluation; on_final(final evaluation) at the end.
+    """
+
+    on_start: Callable[[int, int], None] = _ignore
+    on_candidate: Callable[[Candidate, float | None, float], None] = _ignore
+    on_final: Callable[[FinalEval], None] = _ignore
+    on_llm_loading: Callable[[], None] = _ignore
+    on_llm_ready: Callable[[float], None] = _ignore
+    on_final_start: Callable[[int], None] = _ignore
+    on_final_episode: Callable[[int], None] = _ignore
 
 
 class ChatModel(Protocol):
@@ -94,19 +105,6 @@ def use_chat(factory: Callable[[RunConfig], ChatModel]) -> Iterator[None]:
         yield
     finally:
         _CHAT_FACTORY.reset(token)
-
-
-def prompt_form(config: RunConfig, chat: object) -> str:
-    """The form the run's proposer uses: ``config.form``, except that ``auto`` falls back to chat for
-    a chat model that cannot continue documents. ``--prompt-form document`` with such a model is a
-    ConfigError."""
-    form = config.form
-    if form == "document" and not callable(getattr(chat, "complete_document", None)):
-        if config.prompt_form == "document":
-            raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
-                              "grammar); this one has only complete(): use --prompt-form chat or auto")
-        return "chat"
-    return form
 
 
 def new_run_id(config: RunConfig) -> str:
@@ -173,14 +171,19 @@ def load_run(run_dir: Path) -> tuple[RunStore, RunConfig, Secrets]:
 
 
 @contextmanager
-def chat_client(config: RunConfig) -> Iterator[ChatClient]:
-    """The configured endpoint, or the embedded llama.cpp server started for the duration."""
+def chat_client(config: RunConfig, events: RunEvents = RunEvents()) -> Iterator[ChatClient]:
+    """The configured endpoint, or the embedded llama.cpp server started for the duration
+    (``events.on_llm_loading`` / ``on_llm_ready`` around its start). Raises ConfigError when the
+    named API-key variable is empty, LLMError when the embedded server fails to start."""
     llm = config.llm
     with ExitStack() as stack:
         if llm.embedded:
             from .llm.embedded import MODEL_ALIAS, EmbeddedServer
 
+            events.on_llm_loading()
+            t0 = time.monotonic()
             server = stack.enter_context(EmbeddedServer(context_size=llm.context_size))
+            events.on_llm_ready(time.monotonic() - t0)
             client = ChatClient(llm, base_url=server.base_url, model=MODEL_ALIAS, api_key="not-needed", grammar_ok=True)
         else:
             api_key = "not-needed"
@@ -208,97 +211,99 @@ def execute(
 ) -> FinalEval | None:
     """Run (or continue) the search, then the final evaluation, then write the policy file.
 
-    ``chat`` replaces the configured LLM (the caller keeps and closes it). An env that turns out
-    to break its declaration mid-run (an info key gone, an episode that never ends) stops the run
-    cleanly (status ``stopped: ...``) and raises that one-line error.
+    ``chat`` replaces the configured LLM (the caller keeps and closes it). Returns the final
+    evaluation (None when ``final_episodes`` is 0). A run that stopped on purpose
+    (``stopped: <reason>``) is finished without continuing its search. Raises LLMError when the
+    endpoint stays down (the run is left resumable); a KeyboardInterrupt marks the run
+    ``interrupted`` (resumable) and propagates. An env that breaks its declaration mid-run (an
+    info key gone, an episode that never ends) stops the run (status ``stopped: ...``) and
+    raises that one-line error.
     """
     task = config.make_task()
+    method = get_method(config.method)
     codec = codec_for(secrets, task, config)  # every mechanism of the config, hardening included
     done = store.candidates()
     total = config.warmup + config.iterations
     events.on_start(len(done), total)
-    status = store.status()
-    if not status.startswith("stopped"):
-        status = "finished"
-    elif len(done) < total:
+    stored, reason = RunStatus.parse(store.status())
+    status, why = (RunStatus.STOPPED, reason) if stored is RunStatus.STOPPED else (RunStatus.FINISHED, "")
+    if status is RunStatus.STOPPED and len(done) < total:
         total = len(done)  # a run stopped on purpose (e.g. context overflow) is not continued
-    with Evaluator(task, workers=config.workers) as evaluator, ExitStack() as stack:
+    if stored is RunStatus.INTERRUPTED:
+        store.set_status(RunStatus.RUNNING)
+    try:
+        with Evaluator(task, workers=config.workers) as evaluator, ExitStack() as stack:
 
-        def evaluate(theta: np.ndarray, index: int) -> tuple[Feedback, Sequence[int]]:
-            seeds = seeding.episode_seeds(config.seed, index, config.episodes)
-            return evaluator.evaluate(theta, seeds), seeds
+            def evaluate(theta: np.ndarray, index: int) -> tuple[Feedback, Sequence[int]]:
+                seeds = seeding.episode_seeds(config.seed, index, config.episodes)
+                return evaluator.evaluate(theta, seeds), seeds
 
-        if len(done) < total:
-            warmup = warmup_sampler(task.D, config, codec)  # the paper's raw box, or an encoded one (hardened)
-            phases = [Phase("warmup", warmup, config.warmup)]
-            proposer: LLMProposer | None = None
-            if config.iterations > 0 and config.method in BLACK_BOX:
-                phases.append(black_box_phase(task, config, codec))
-            elif config.iterations > 0:
-                if chat is None:
-                    factory = _CHAT_FACTORY.get()
-                    chat = stack.enter_context(closing(factory(config) if factory is not None else LazyChat(config, llm_gate)))
-                common = dict(
-                    chat=chat,
-                    codec=codec,
-                    context=prompt_context(task, config, codec),
-                    top_k=config.top_k,
-                    box=config.box,
-                    seed=config.seed,
-                    parse_retries=config.parse_retries,
-                    on_exchange=lambda it, att, ex, err: store.add_llm_call(it, att, ex, err),
-                )
-                if config.method == "r2po":
-                    r2po = R2POProposer(
-                        rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
-                        count_tokens=chat.count_tokens,
-                        context_window=config.llm.context_size,
-                        max_tokens=config.llm.max_tokens or default_max_tokens(task.D),
-                        **common,  # type: ignore[arg-type]
-                    )
-                    proposer = r2po  # type: ignore[assignment]
-                    phases.append(Phase("r2po", r2po, config.iterations))
-                else:
-                    proposer = LLMProposer(on_llm_failure=config.on_llm_failure, form=prompt_form(config, chat),
-                                           temperature=config.llm.temperature, **common)  # type: ignore[arg-type]
-                    phases.append(Phase("llm", proposer, config.iterations))
-            best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
+            if len(done) < total:
+                warmup = warmup_sampler(task.D, config, codec)  # the paper's raw box, or an encoded one (hardened)
+                phases = [Phase("warmup", warmup, config.warmup)]
+                if config.iterations > 0:
+                    chat_fn = None
+                    if method.uses_llm:
+                        model = chat
+                        if model is None:
+                            factory = _CHAT_FACTORY.get()
+                            made = factory(config) if factory is not None else LazyChat(config, llm_gate, events)
+                            model = stack.enter_context(closing(made))
+                        chat_fn = lambda: model  # noqa: E731
+                    setup = SearchSetup(task=task, config=config, codec=codec, evaluator=evaluator, store=store, chat=chat_fn)
+                    phases.append(method.search_phase(setup))
+                search = phases[-1].proposer if len(phases) > 1 else None
+                best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
-            def on_candidate(c: Candidate) -> None:
-                if math.isfinite(c.ret):  # a numerical fault is never the best so far
-                    best_so_far[0] = max(best_so_far[0], c.ret)
-                latency = proposer.last_latency if (proposer is not None and c.source != "warmup") else None
-                events.on_candidate(c, latency, best_so_far[0])
+                def on_candidate(c: Candidate) -> None:
+                    if math.isfinite(c.ret):  # a numerical fault is never the best so far
+                        best_so_far[0] = max(best_so_far[0], c.ret)
+                    latency = getattr(search, "last_latency", None) if c.source != "warmup" else None
+                    events.on_candidate(c, latency, best_so_far[0])
 
+                try:
+                    done = run_loop(phases, evaluate=evaluate, codec=codec, store=store, done=done, on_candidate=on_candidate)
+                except StopSearch as stop:
+                    done = store.candidates()
+                    status, why = RunStatus.STOPPED, stop.reason
+                except LLMError as e:  # the endpoint stayed down past the retry bound: stop, resumable
+                    raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {run_dir}'") from e
+                except BROKEN_TASK as e:  # the env broke its declaration
+                    store.set_status(RunStatus.STOPPED, str(e))
+                    raise
             try:
-                done = run_loop(phases, evaluate=evaluate, codec=codec, store=store, done=done, on_candidate=on_candidate)
-            except StopSearch as stop:
-                done = store.candidates()
-                status = f"stopped: {stop.reason}"
-            except LLMError as e:  # the endpoint stayed down past the retry bound: stop, resumable
-                raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {run_dir}'") from e
-            except BROKEN_TASK as e:  # the env broke its declaration
-                store.set_status(f"stopped: {e}")
+                fe = finish(run_dir, store, config, task, evaluator, done, status=status, reason=why, events=events)
+            except BROKEN_TASK as e:
+                store.set_status(RunStatus.STOPPED, str(e))
                 raise
-        try:
-            fe = finish(run_dir, store, config, task, evaluator, done, status=status)
-        except BROKEN_TASK as e:
-            store.set_status(f"stopped: {e}")
-            raise
+    except KeyboardInterrupt:
+        _mark_interrupted(store)
+        raise
     events.on_final(fe) if fe is not None else None
     return fe
 
 
+def _mark_interrupted(store: RunStore) -> None:
+    """Best effort: ``show`` says interrupted instead of running; resume continues it either way."""
+    try:
+        if RunStatus.parse(store.status())[0] is RunStatus.RUNNING:
+            store.set_status(RunStatus.INTERRUPTED)
+    except (StoreError, KeyboardInterrupt):
+        pass
+
+
 def finish(
     run_dir: Path, store: RunStore, config: RunConfig, task: Task, evaluator: Evaluator, done: list[Candidate],
-    *, status: str = "finished",
+    *, status: RunStatus = RunStatus.FINISHED, reason: str = "", events: RunEvents = RunEvents(),
 ) -> FinalEval | None:
+    """Final evaluation of the best candidate (``config.final_episodes`` fresh seeds), the policy
+    file, then ``status`` in the store. A final evaluation already stored for the same candidate
+    is kept. Raises StoreError when the policy file cannot be written (the run stays resumable)."""
     best = best_candidate(done)
     fe = store.final_eval()
     if fe is None or fe.candidate_index != best.index:
         seeds = seeding.final_eval_seeds(config.seed, config.final_episodes)
-        returns = evaluator.evaluate(best.params, seeds).episode_returns if seeds else ()
-        fe = FinalEval(candidate_index=best.index, returns=tuple(returns), seeds=tuple(seeds))
+        fe = FinalEval(candidate_index=best.index, returns=final_returns(evaluator, best.params, seeds, events), seeds=tuple(seeds))
         store.set_final_eval(fe)
     final = {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "seed": config.seed} if fe.returns else None
     search = {"run_id": store.run_id(), "method": config.method, "seed": config.seed, "return": best.ret, "candidate": best.index}
@@ -310,22 +315,41 @@ def finish(
                                                   final_eval=final))
     except OSError as e:
         raise StoreError(f"cannot write {path}: {e.strerror or e}; then continue with 'ppprops resume {run_dir}'") from None
-    store.set_status(status)
+    store.set_status(status, reason)
     return fe
+
+
+def final_returns(evaluator: Evaluator, theta: np.ndarray, seeds: Sequence[int], events: RunEvents = RunEvents()) -> tuple[float, ...]:
+    """Episode returns of ``theta`` on ``seeds``, in order, reported to ``events`` as they come.
+
+    Episodes run in chunks of ``evaluator.workers`` (one per worker at a time); each episode
+    depends only on its seed, so the returns equal one ``evaluate(theta, seeds)`` call.
+    """
+    if not seeds:
+        return ()
+    events.on_final_start(len(seeds))
+    returns: list[float] = []
+    chunk = max(1, evaluator.workers)
+    for i in range(0, len(seeds), chunk):
+        returns += evaluator.evaluate(theta, seeds[i : i + chunk]).episode_returns
+        events.on_final_episode(len(returns))
+    return tuple(returns)
 
 
 class LazyChat:
     """Starts the LLM only when the first LLM iteration asks, so warm-up never waits for it."""
 
-    def __init__(self, config: RunConfig, gate: AbstractContextManager[object] | None = None) -> None:
+    def __init__(self, config: RunConfig, gate: AbstractContextManager[object] | None = None,
+                 events: RunEvents = RunEvents()) -> None:  # fmt: skip
         self.config = config
         self.gate = gate if gate is not None else nullcontext()  # a grid's cap on concurrent LLM calls
+        self.events = events
         self._stack = ExitStack()
         self._client: ChatClient | None = None
 
     def _get(self) -> ChatClient:
         if self._client is None:
-            self._client = self._stack.enter_context(chat_client(self.config))
+            self._client = self._stack.enter_context(chat_client(self.config, self.events))
         return self._client
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
@@ -340,17 +364,10 @@ class LazyChat:
             return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
 
     def count_tokens(self, text: str) -> int:
-        """Exact with a llama.cpp server (its /tokenize endpoint); otherwise a conservative
-        estimate of one token per two characters (digit-heavy prompts tokenize densely)."""
-        client = self._get()
-        root = str(client._client.base_url).rstrip("/").removesuffix("/v1")
-        try:
-            req = urllib.request.Request(root + "/tokenize", data=json.dumps({"content": text}).encode(),
-                                         headers={"Content-Type": "application/json"}, method="POST")
-            with urllib.request.urlopen(req, timeout=30) as resp:
-                return len(json.loads(resp.read())["tokens"]) + CHAT_TEMPLATE_MARGIN
-        except (OSError, ValueError, KeyError):
-            return len(text) // 2 + CHAT_TEMPLATE_MARGIN
+        """A local estimate, nothing sent: one token per two characters (digit-heavy prompts tokenize
+        densely; no tokenizer of the endpoint's model is known here). Every byte that leaves goes
+        through the recording ``ChatClient``; R2PO refines this with the usage counts of its answers."""
+        return len(text) // 2 + CHAT_TEMPLATE_MARGIN
 
     def close(self) -> None:
         self._stack.close()
@@ -375,14 +392,67 @@ def start(
         store.close()
 
 
+@dataclass(frozen=True)
+class Endpoint:
+    """LLM endpoint settings given to ``resume``; None keeps the run's own. An empty
+    ``api_key_env`` removes the key variable (an endpoint that needs no key)."""
+
+    base_url: str | None = None
+    model: str | None = None
+    api_key_env: str | None = None
+
+    @property
+    def given(self) -> bool:
+        return any(v is not None for v in (self.base_url, self.model, self.api_key_env))
+
+
+def change_endpoint(store: RunStore, config: RunConfig, endpoint: Endpoint) -> RunConfig:
+    """The run's config with ``endpoint`` applied, validated, stored, and the change recorded.
+
+    The store's config gets the new ``llm.base_url``, ``model`` and ``api_key_env`` (so a later
+    plain ``resume`` keeps them), and ``endpoint_changes`` gets one entry (when, after how many
+    candidates and LLM calls, from, to). Secrets and key file are untouched. Raises ConfigError
+    for settings ``LLMConfig.validate`` refuses; returns ``config`` unchanged if nothing differs.
+    """
+    llm = replace(
+        config.llm,
+        base_url=config.llm.base_url if endpoint.base_url is None else endpoint.base_url,
+        model=config.llm.model if endpoint.model is None else endpoint.model,
+        api_key_env=config.llm.api_key_env if endpoint.api_key_env is None else (endpoint.api_key_env or None),
+    )
+    llm.validate()
+    if llm == config.llm:
+        return config
+    new = replace(config, llm=llm)
+    keys = ("base_url", "model", "api_key_env")
+    store.change_config(new.to_json(), {
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "candidates": len(store.candidates()),
+        "llm_calls": len(store.llm_calls()),
+        "from": {k: getattr(config.llm, k) for k in keys},
+        "to": {k: getattr(llm, k) for k in keys},
+    })  # fmt: skip
+    return new
+
+
 def resume(
-    run_dir: Path, events: RunEvents = RunEvents(), *, llm_gate: AbstractContextManager[object] | None = None,
+    run_dir: Path,
+    events: RunEvents = RunEvents(),
+    *,
+    llm_gate: AbstractContextManager[object] | None = None,
+    endpoint: Endpoint | None = None,
     chat: ChatModel | None = None,
 ) -> FinalEval | None:
+    """Continue a run with its own secrets: every recorded candidate is kept, the rest is run,
+    then the final evaluation. ``endpoint`` continues it against a corrected or different LLM
+    endpoint (``change_endpoint``). Raises StoreError for a missing or foreign directory or key
+    file, ConfigError for a bad endpoint, LLMError when the endpoint stays down."""
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
     try:
+        if endpoint is not None and endpoint.given:
+            config = change_endpoint(store, config, endpoint)
         return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate, chat=chat)
     finally:
         store.close()

@@ -1,7 +1,9 @@
 """Every random stream of a run derives from the run seed, so a resumed run replays it exactly.
 
 Streams are separated by a fixed tag so that, e.g., the episodes of candidate 3 never share
-seeds with the final evaluation. Secrets are *not* derived from here: they come from the OS.
+seeds with the final evaluation. Secrets are *not* derived from here: they come from the OS (or
+a grid's master key), and so does everything a provider must not be able to replay: the
+request's sampling seed is keyed by the secrets (``Codec.sampling_seed``).
 """
 
 from __future__ import annotations
@@ -36,5 +38,9 @@ def final_eval_seeds(seed: int, episodes: int) -> list[int]:
 
 
 def llm_seed(seed: int, iteration: int, attempt: int) -> int:
-    """A per-request sampling seed, so the embedded model's answers repeat for the same run seed."""
+    """The per-request sampling seed runs sent before issue 16, derived from the run seed alone.
+
+    No longer sent: a provider could search run seeds for it (docs/threat-model.md). Requests now
+    carry ``Codec.sampling_seed``, keyed by the secrets; this stays so the audit and the attacks
+    recognise old transcripts."""
     return int(_seq(seed, LLM_SAMPLING, iteration * 1000 + attempt).generate_state(1, dtype=np.uint32)[0] >> 1)

@@ -28,6 +28,7 @@ import numpy as np
 
 from .errors import StoreError
 from .evaluation import Feedback
+from .status import RunStatus
 
 SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 60.0
@@ -229,7 +230,7 @@ class RunStore:
             raise StoreError(f"{self.path} already holds run {self._meta('run_id')}")
         with self._tx() as db:
             for k, v in (("run_id", run_id), ("config", json.dumps(config)), ("key_fingerprint", key_fingerprint),
-                         ("status", "running"), ("created", str(time.time()))):
+                         ("status", RunStatus.RUNNING.value), ("created", str(time.time()))):
                 db.execute("INSERT INTO meta (key, value) VALUES (?, ?)", (k, v))
 
     def run_id(self) -> str:
@@ -244,14 +245,33 @@ class RunStore:
             raise StoreError(f"{self.path} holds no run configuration")
         return dict(json.loads(raw))
 
+    def change_config(self, config: dict[str, Any], change: dict[str, Any]) -> None:
+        """Replace the stored config and append ``change`` to ``endpoint_changes``, in one transaction."""
+        changes = self.endpoint_changes() + [change]
+        with self._tx() as db:
+            db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('config', ?)", (json.dumps(config),))
+            db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('endpoint_changes', ?)", (json.dumps(changes),))
+
+    def endpoint_changes(self) -> list[dict[str, Any]]:
+        """LLM endpoint changes made by ``ppprops resume --base-url/--model/--api-key-env``, oldest first."""
+        raw = self._meta("endpoint_changes")
+        return list(json.loads(raw)) if raw else []
+
     def key_fingerprint(self) -> str:
         return self._meta("key_fingerprint") or ""
 
     def status(self) -> str:
-        return self._meta("status") or "unknown"
+        """The stored status text: ``running``, ``finished``, ``stopped: <reason>``, ``interrupted``
+        (``RunStatus.parse`` splits it), or ``unknown`` when none is stored."""
+        return self._meta("status") or RunStatus.UNKNOWN.value
 
-    def set_status(self, status: str) -> None:
-        self._set_meta("status", status)
+    def run_status(self) -> tuple[RunStatus, str]:
+        """``(status, reason)``; the reason is empty unless the run stopped on purpose."""
+        return RunStatus.parse(self.status())
+
+    def set_status(self, status: RunStatus, reason: str = "") -> None:
+        """Record where the run stands; ``reason`` goes with ``RunStatus.STOPPED``."""
+        self._set_meta("status", RunStatus(status).stored(reason))
 
     # -- candidates -----------------------------------------------------------------------
     def add_candidate(self, c: Candidate) -> None:

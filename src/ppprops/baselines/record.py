@@ -18,9 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, StoreError
+from ..status import RunKind
 from ..store import DB_NAME, RunStore
 
-KIND = "rl"
+KIND = RunKind.RL.value  # the stored config's "kind"
 MODEL_NAME = "model.zip"
 # A FinalEval belongs to a candidate; an RL run's belongs to the trained model, which is none.
 NO_CANDIDATE = -1
@@ -97,7 +98,8 @@ class TrainingLog:
 
 
 def is_rl_config(config: dict[str, Any]) -> bool:
-    return config.get("kind") == KIND
+    """True for the stored config of an RL baseline run (``RunKind.of_config``)."""
+    return RunKind.of_config(config) is RunKind.RL
 
 
 def rl_summary(store: RunStore) -> dict[str, Any]:

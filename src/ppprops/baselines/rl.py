@@ -28,9 +28,11 @@ from numpy.typing import NDArray
 from .. import seeding
 from ..errors import ConfigError, MissingExtraError
 from ..evaluation import run_episode
+from ..methods import rl_algos, rl_method
+from ..status import RunKind, RunStatus
 from ..store import DB_NAME, FinalEval, open_store
 from ..tasks import Task, get_task
-from .algorithms import ALGORITHMS, Algorithm
+from .algorithms import Algorithm
 from .record import KIND, MODEL_NAME, NO_CANDIDATE, TrainingLog
 
 if TYPE_CHECKING:
@@ -56,11 +58,12 @@ class RLConfig:
 
     @property
     def method(self) -> str:
-        return f"rl-{self.algo}"
+        """The registry name the run is stored under: ``rl-<algo>``."""
+        return rl_method(self.algo).name
 
     def validate(self) -> None:
         checks = [
-            (self.algo in ALGORITHMS, f"--algo must be one of {', '.join(ALGORITHMS)}, got {self.algo!r}"),
+            (self.algo in rl_algos(), f"--algo must be one of {', '.join(rl_algos())}, got {self.algo!r}"),
             (self.timesteps >= 1, f"--timesteps must be >= 1, got {self.timesteps}"),
             (self.final_episodes >= 0, f"--final-episodes must be >= 0, got {self.final_episodes}"),
             (0 <= self.seed < 2**32, f"--seed must be in [0, 2^32) (Stable-Baselines3 seeds numpy with it), got {self.seed}"),
@@ -122,9 +125,9 @@ def load_model(run_dir: Path) -> BaseAlgorithm:
         config = store.config()
     finally:
         store.close()
-    if config.get("kind") != KIND:
+    if RunKind.of_config(config) is not RunKind.RL:
         raise ConfigError(f"{run_dir} is not an RL baseline run")
-    cls = _sb3().algorithm_class(ALGORITHMS[config["algo"]])
+    cls = _sb3().algorithm_class(rl_method(config["algo"]).algorithm)
     return cls.load(Path(run_dir) / MODEL_NAME, device="cpu")
 
 
@@ -147,7 +150,7 @@ def run_baseline(config: RLConfig, run_dir: Path, *, progress: bool = False) -> 
     """Train, save ``model.zip``, run the final evaluation; everything recorded in ``run_dir``."""
     config.validate()
     task = get_task(config.task)
-    algo = ALGORITHMS[config.algo]
+    algo = rl_method(config.algo).algorithm
     check_applicable(algo, task)
     sb3 = _sb3()
     cls = sb3.algorithm_class(algo)
@@ -173,10 +176,10 @@ def run_baseline(config: RLConfig, run_dir: Path, *, progress: bool = False) -> 
             if seeds:
                 fe = FinalEval(candidate_index=NO_CANDIDATE, returns=evaluate_model(model, task, seeds), seeds=tuple(seeds))
                 store.set_final_eval(fe)
-            store.set_status("finished")
+            store.set_status(RunStatus.FINISHED)
             return fe
         except BaseException:  # Ctrl-C or a crash: show must not call the run "running" forever
-            store.set_status("interrupted")
+            store.set_status(RunStatus.INTERRUPTED)
             raise
         finally:
             log.close()

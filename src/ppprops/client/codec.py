@@ -8,13 +8,23 @@ The paper's maps (Sec. II-B, II-C) are theta~ = A theta and r~ = c r. The harden
   whole real line (T(u) = W/pi tan(pi (u - lo)/W - pi/2), slope 1 at the centre). Every encoded
   value decodes strictly inside the box, so no answer is ever clipped, and encoded values are
   clamped to +-ENCODED_LIMIT, a public bound, so an extreme answer never echoes back a secret;
-- warped rewards: r~ = c (w_p(r) - w_p(s)), w_p(x) = sign(x) |x|^p, an increasing map (ranking
-  kept) whose differences are not multiples of one constant.
+- warped rewards: r~ = c (w_p(r + d(r)) - w_p(s)), w_p(x) = sign(x) |x|^p, an increasing map
+  (ranking kept). d(r) is a secret dither, a keyed pseudo-random function of the value in
+  (-h/2, h/2) for a quantity whose public resolution is h (integer returns: h = 1 per episode), so
+  no integer structure survives the warp (the warped-lattice attack) while distinct values keep
+  their order and equal values stay equal. Each reward component gets a map of its own
+  (c_k, s_k, p_k, derived from the key), so anchors and relations of different components never
+  add up to one map (the additivity attack);
+- hidden components: one reward component (the task's residual) is never shown, so the return is
+  not the sum of what is shown.
 Every map is increasing in each coordinate, so larger encoded values still mean larger raw ones.
+The request's sampling seed is derived from the key as well, never from the run seed alone.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import math
 from collections.abc import Mapping
 
@@ -23,7 +33,7 @@ from numpy.typing import NDArray
 
 from ..evaluation import Feedback
 from ..wire.encoded import EncodedEntry
-from .secrets import Secrets
+from .secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 
 ENCODED_LIMIT = 1.0e6  # public clamp of warped encoded parameters (answers beyond it decode as if at it)
 
@@ -42,7 +52,14 @@ class Codec:
         warp_rewards: bool = False,
         box: tuple[float, float] | None = None,
         hidden_diagnostics: frozenset[str] = frozenset(),
+        hidden_components: frozenset[str] = frozenset(),
+        resolution: Mapping[str, float] | None = None,
+        episodes: int = 1,
+        reward_scale: float = 1000.0,
     ) -> None:
+        """``resolution``: public step of each reward quantity per episode ("return" or a component
+        name; integer returns: 1), dithered under ``warp_rewards``; a mean over ``episodes``
+        episodes has step 1/episodes of it. ``reward_scale``: bound of the component offsets s_k."""
         D = len(secrets.a)
         self._a = np.asarray(secrets.a, dtype=np.float64) if encode_params else np.ones(D)
         self._c = float(secrets.c) if scale_rewards else 1.0
@@ -55,6 +72,13 @@ class Codec:
         self.warp_params = warp_params and encode_params
         self.warp_rewards = warp_rewards and scale_rewards
         self.hidden_diagnostics = frozenset(hidden_diagnostics)
+        self.hidden_components = frozenset(hidden_components)
+        self._resolution = {k: float(v) for k, v in (resolution or {}).items()} if self.warp_rewards else {}
+        self._episodes = max(1, int(episodes))
+        self._reward_scale = abs(float(reward_scale))
+        self._seed_key = secrets.subkey("sampling-seed")
+        self._reward_key = secrets.subkey("rewards")
+        self._maps: dict[str, tuple[float, float, float]] = {}
         if self.warp_params:
             if box is None:
                 raise ValueError("warped parameters need the public box")
@@ -90,18 +114,50 @@ class Codec:
         return x / self._a + self._m
 
     # -- rewards --------------------------------------------------------------------------
-    def _w(self, r: float) -> float:
-        return r if self._p == 1.0 else math.copysign(abs(r) ** self._p, r)
+    def _prf(self, *parts: str) -> float:
+        """A keyed pseudo-random number in [0, 1), fixed by ``parts`` (HMAC-SHA256 of the reward key)."""
+        digest = hmac.new(self._reward_key, "\x00".join(parts).encode(), hashlib.sha256).digest()
+        return int.from_bytes(digest[:8], "big") / 2.0**64
 
-    def scale(self, r: float) -> float:
-        """Encode one reward-valued number (a return, a component, the optimum when disclosed)."""
+    def _map(self, quantity: str) -> tuple[float, float, float]:
+        """(c, s, p) of one reward quantity: the key's own for the return, one of its own per component
+        when rewards are warped (drawn like c, s and p from the key), else the return's."""
+        if quantity == "return" or not self.warp_rewards:
+            return self._c, self._s, self._p
+        if quantity not in self._maps:
+            u = [self._prf("component", quantity, k) for k in ("c", "s", "p-sign", "p")]
+            c = math.exp(LOG_LOW + (LOG_HIGH - LOG_LOW) * u[0])
+            s = (2.0 * u[1] - 1.0) * self._reward_scale if self.offsets else 0.0
+            lo, hi = HARDENED_P_LOG
+            p = math.exp((1.0 if u[2] < 0.5 else -1.0) * (lo + (hi - lo) * u[3]))
+            self._maps[quantity] = (c, s, p)
+        return self._maps[quantity]
+
+    def _dither(self, r: float, quantity: str, step: float) -> float:
+        """r + d, d in (-step/2, step/2): a keyed function of the exact value (ties stay ties)."""
+        if step <= 0 or not math.isfinite(r):
+            return r
+        return r + (self._prf("dither", quantity, repr(r)) - 0.5) * step
+
+    def scale(self, r: float, quantity: str = "return", *, per_episode: bool = False) -> float:
+        """Encode one reward-valued number: a return (mean over the episodes, or one episode's with
+        ``per_episode``), a component (``quantity`` = its name), the optimum when disclosed."""
         r = float(r)
-        if self._p == 1.0:
-            return self._c * (r - self._s)
-        return self._c * (self._w(r) - self._w(self._s))
+        c, s, p = self._map(quantity)
+        step = self._resolution.get(quantity, 0.0) / (1 if per_episode else self._episodes)
+        if p == 1.0 and step == 0.0:
+            return c * (r - s)
+        return c * (_w(self._dither(r, quantity, step), p) - _w(s, p))
 
     def scale_components(self, components: Mapping[str, float]) -> dict[str, float]:
-        return {k: self.scale(v) for k, v in components.items()}
+        """Every shown component through its map; hidden components are left out."""
+        return {k: self.scale(v, k) for k, v in components.items() if k not in self.hidden_components}
+
+    def sampling_seed(self, run_seed: int, iteration: int, attempt: int) -> int:
+        """The request's sampling seed: keyed by the secrets, so it repeats on resume (and for the
+        same key and run seed) but cannot be traced back to the run seed (docs/threat-model.md)."""
+        msg = f"{int(run_seed)}/{int(iteration)}/{int(attempt)}".encode()
+        return int.from_bytes(hmac.new(self._seed_key, msg, hashlib.sha256).digest()[:4], "big") >> 1
 
     def visible_diagnostics(self, diagnostics: Mapping[str, float | str]) -> dict[str, float | str]:
         """Diagnostics minus those that would pin the return or a reward component (hardened only)."""
@@ -131,5 +187,10 @@ def encode_feedback(codec: Codec, fb: Feedback) -> Feedback:
         ret=codec.scale(fb.ret),
         components=codec.scale_components(fb.components),
         diagnostics=codec.visible_diagnostics(fb.diagnostics),
-        episode_returns=tuple(codec.scale(r) for r in fb.episode_returns),
+        episode_returns=tuple(codec.scale(r, per_episode=True) for r in fb.episode_returns),
     )
+
+
+def _w(x: float, p: float) -> float:
+    """The power warp sign(x) |x|^p (the identity for p = 1)."""
+    return x if p == 1.0 else math.copysign(abs(x) ** p, x)

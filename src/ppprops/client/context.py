@@ -47,7 +47,7 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         detailed_feedback=m.detailed_feedback,
         param_range=None if m.encode_params else config.box,
         optimum=optimum,
-        component_notes=tuple((k, text.components.get(k, k)) for k in task.components),
+        component_notes=tuple((k, text.components.get(k, k)) for k in task.components if k not in codec.hidden_components),
         diagnostic_notes=tuple((k, text.diagnostics.get(k, k)) for k in diagnostics),
         decimals=config.decimals,
         params_style=config.prompt_params,
@@ -58,4 +58,5 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         param_encoding=param_words,
         reward_encoding=reward_words,
         warmup_range=warmup_box(config) if (m.encoded_warmup and m.encode_params) else None,
+        describe_task=m.describe_task,
     )

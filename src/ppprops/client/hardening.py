@@ -8,8 +8,11 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
+
+from ..privacy.knowledge import facts_for
 from .codec import Codec
-from .secrets import Secrets
+from .secrets import Secrets, os_rng
 
 if TYPE_CHECKING:
     from ..config import RunConfig
@@ -27,8 +30,25 @@ REWARD_SCALE: dict[str, float] = {"Acrobot": 500.0, "FetchReachDense": 50.0}
 DEFAULT_REWARD_SCALE = 1000.0
 
 
+# The reward component left out of the history when return-determining feedback is hidden: with it
+# shown, the printed return equals the sum of the printed components once decoded, an equation per
+# entry in the reward secrets (the additivity attack). The locomotion tasks leave out the survive
+# term, which is also the one whose value is public (healthy reward x episode length, and exactly
+# healthy reward x time limit at the time limit); other tasks their first component.
+RESIDUAL_COMPONENT: dict[str, str] = {"Ant": "reward_survive", "Humanoid": "reward_survive"}
+
+
 def return_determining(task_name: str) -> frozenset[str]:
     return RETURN_DETERMINING["*"] | RETURN_DETERMINING.get(task_name, frozenset())
+
+
+def residual_component(task: Task) -> frozenset[str]:
+    """The component hidden with ``hide_return_diagnostics`` (none for tasks without components)."""
+    if not task.components:
+        return frozenset()
+    family = task.name.split("-")[0]
+    name = RESIDUAL_COMPONENT.get(family)
+    return frozenset({name if name in task.components else task.components[0]})
 
 
 def reward_scale(task: Task) -> float:
@@ -37,21 +57,25 @@ def reward_scale(task: Task) -> float:
     return REWARD_SCALE.get(task.name, DEFAULT_REWARD_SCALE)
 
 
-def generate_secrets(run_id: str, task: Task, config: RunConfig) -> Secrets:
-    """The paper's secrets, plus what each hardening switch that is on needs (and nothing more).
+def generate_secrets(run_id: str, task: Task, config: RunConfig, rng: np.random.Generator | None = None) -> Secrets:
+    """The one routine that draws a run's secrets: the paper's, plus what each hardening switch on needs.
 
-    The hardened range of a_j is used only with warped parameters, where a_j is the warped
-    coordinate's scale; otherwise a_j keeps the paper's distribution.
+    ``rng`` None draws from the OS entropy source (``ppprops run``); a grid passes a generator
+    keyed by its master key and the run's name, so the same routine serves both. Draw order:
+    paper runs a, c; hardened runs the hardened a, m, c, s, p and then, when parameters are not
+    warped (a_j is then the paper's scale, not the warped coordinate's), the paper's a. Each
+    switch keeps only the secret it needs (secret_offsets: m, s; warp_rewards: p).
     """
     m = config.mechanisms
-    paper = Secrets.generate(run_id, task.D)
+    rng = os_rng() if rng is None else rng
     if not m.hardened:
-        return paper
-    h = Secrets.generate_hardened(run_id, task.D, box=config.box, reward_scale=reward_scale(task))
+        return Secrets.generate(run_id, task.D, rng=rng)
+    h = Secrets.generate_hardened(run_id, task.D, box=config.box, reward_scale=reward_scale(task), rng=rng)
+    a = h.a if m.warp_params else Secrets.generate(run_id, task.D, rng=rng).a
     return Secrets(
         run_id=run_id,
-        a=h.a if m.warp_params else paper.a,
-        c=paper.c,
+        a=a,
+        c=h.c,
         m=h.m if m.secret_offsets else None,
         s=h.s if m.secret_offsets else None,
         p=h.p if m.warp_rewards else None,
@@ -70,4 +94,8 @@ def codec_for(secrets: Secrets, task: Task, config: RunConfig) -> Codec:
         warp_rewards=m.warp_rewards,
         box=config.box,
         hidden_diagnostics=return_determining(task.name) if m.hide_return_diagnostics else frozenset(),
+        hidden_components=residual_component(task) if m.hide_return_diagnostics else frozenset(),
+        resolution=facts_for(task.name).resolution,
+        episodes=config.episodes,
+        reward_scale=reward_scale(task),
     )

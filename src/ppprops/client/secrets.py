@@ -13,6 +13,7 @@ and keep their fingerprint.
 from __future__ import annotations
 
 import hashlib
+import hmac
 import json
 import math
 import os
@@ -27,6 +28,7 @@ from ..errors import KeyFileError
 
 LOG_LOW, LOG_HIGH = math.log(0.1), math.log(10.0)
 KEY_FORMAT = "ppprops.secrets/1"
+SUBKEY_TAG = b"ppprops.subkey/1\x00"
 
 # pp-hardened: a_j is a scale of the warped coordinate (slope at the box centre); a narrower range
 # keeps the warm-up's raw spread useful (see docs/threat-model.md, "cost").
@@ -34,6 +36,11 @@ HARDENED_A_LOG = (math.log(1 / 3), math.log(3.0))
 # |ln p| ~ U(ln 1.25, ln 2) with a random sign: p is never near 1, so integer returns never keep
 # a lattice that the gcd attack could read.
 HARDENED_P_LOG = (math.log(1.25), math.log(2.0))
+
+
+def os_rng() -> np.random.Generator:
+    """A generator seeded with 128 bits from the operating system's entropy source."""
+    return np.random.default_rng(_os_secrets.randbits(128))
 
 
 @dataclass(frozen=True, repr=False, eq=False)
@@ -68,21 +75,23 @@ class Secrets:
         return 1.0 if self.p is None else float(self.p)
 
     @classmethod
-    def generate(cls, run_id: str, D: int) -> Secrets:
-        """The paper's secrets: A and c only."""
-        rng = np.random.default_rng(_os_secrets.randbits(128))
+    def generate(cls, run_id: str, D: int, *, rng: np.random.Generator | None = None) -> Secrets:
+        """The paper's secrets: A and c only. ``rng`` None: from the OS entropy source."""
+        rng = os_rng() if rng is None else rng
         a = np.exp(rng.uniform(LOG_LOW, LOG_HIGH, size=D))
         c = float(np.exp(rng.uniform(LOG_LOW, LOG_HIGH)))
         return cls(run_id=run_id, a=a, c=c)
 
     @classmethod
-    def generate_hardened(cls, run_id: str, D: int, *, box: tuple[float, float], reward_scale: float) -> Secrets:
-        """pp-hardened secrets, also from the OS entropy source.
+    def generate_hardened(
+        cls, run_id: str, D: int, *, box: tuple[float, float], reward_scale: float, rng: np.random.Generator | None = None
+    ) -> Secrets:
+        """pp-hardened secrets (``rng`` None: from the OS entropy source).
 
         a_j log-uniform on [1/3, 3]; m_j uniform on the central half of the box; c log-uniform on
         [0.1, 10]; s uniform on [-reward_scale, reward_scale]; p = exp(+-U(ln 1.25, ln 2)).
         """
-        rng = np.random.default_rng(_os_secrets.randbits(128))
+        rng = os_rng() if rng is None else rng
         lo, hi = box
         mid, quarter = (lo + hi) / 2.0, (hi - lo) / 4.0
         a = np.exp(rng.uniform(*HARDENED_A_LOG, size=D))
@@ -91,6 +100,17 @@ class Secrets:
         s = float(rng.uniform(-abs(reward_scale), abs(reward_scale)))
         p = float(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*HARDENED_P_LOG)))
         return cls(run_id=run_id, a=a, c=c, m=m, s=s, p=p)
+
+    def subkey(self, purpose: str) -> bytes:
+        """A 32-byte key for one purpose, derived from every secret value (never from the run seed).
+
+        Used for what must be secret but need not be stored: the request's sampling seed, the
+        reward dither and the per-component reward maps of pp-hardened (docs/threat-model.md).
+        Deterministic for a key file, so ``resume`` derives the same; distinct from
+        ``fingerprint()`` (which the store keeps) by a tag, so the fingerprint does not give it.
+        """
+        blob = json.dumps(self._payload(), sort_keys=True).encode()
+        return hmac.new(hashlib.sha256(SUBKEY_TAG + blob).digest(), purpose.encode(), hashlib.sha256).digest()
 
     def _payload(self) -> dict[str, object]:
         out: dict[str, object] = {"format": KEY_FORMAT, "run_id": self.run_id, "a": [float(v) for v in self.a], "c": self.c}

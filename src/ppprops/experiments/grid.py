@@ -10,7 +10,7 @@ Layout of ``DIR``::
 
 Secrets: a run's A and c (and, for hardened runs, its origins and warp exponent) are drawn from
 ``numpy.random.default_rng(HMAC-SHA256(master key, "ppprops.grid-secrets/1" NUL name))`` with
-exactly the distributions and draw order of ``Secrets.generate`` / ``Secrets.generate_hardened``
+``client.hardening.generate_secrets``, the routine every run draws its secrets with
 (docs/privacy.md). The same key and name therefore give the same secrets on any machine, which is
 what makes a grid repeat exactly on Ray or elsewhere; whoever holds ``master.key`` holds every
 run's secrets, so it is created 0600 and never leaves ``DIR``.
@@ -22,7 +22,6 @@ resumed, so an unfinished one is trained again from scratch (same seed).
 
 from __future__ import annotations
 
-import dataclasses
 import fcntl
 import hashlib
 import hmac
@@ -87,39 +86,17 @@ def derived_rng(master_key: bytes, name: str) -> np.random.Generator:
 
 
 def derive_secrets(master_key: bytes, name: str, config: Any) -> Any:
-    """The run's secrets, drawn as ``client.hardening.generate_secrets`` draws them, from a
-    generator keyed by the master key and the run's name instead of the OS."""
-    from ..client import secrets as sec
-    from ..client.hardening import generate_secrets, reward_scale
+    """The run's secrets, drawn by ``client.hardening.generate_secrets`` (the one routine runs use
+    too) from a generator keyed by the master key and the run's name instead of the OS."""
+    from ..client.hardening import generate_secrets
 
-    task = config.make_task()
-    rng = derived_rng(master_key, name)
-    if getattr(config.mechanisms, "hardened", False):
-        lo, hi = config.box
-        mid, quarter = (lo + hi) / 2.0, (hi - lo) / 4.0
-        a = np.exp(rng.uniform(*sec.HARDENED_A_LOG, size=task.D))
-        m = rng.uniform(mid - quarter, mid + quarter, size=task.D)
-        c = float(np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH)))
-        scale = abs(reward_scale(task))
-        s = float(rng.uniform(-scale, scale))
-        p = float(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*sec.HARDENED_P_LOG)))
-        out = sec.Secrets(run_id=name, a=a, c=c, m=m, s=s, p=p)
-    else:
-        a = np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH, size=task.D))
-        c = float(np.exp(rng.uniform(sec.LOG_LOW, sec.LOG_HIGH)))
-        out = sec.Secrets(run_id=name, a=a, c=c)
-    # Secrets may gain fields; one drawn the ordinary way must have the same ones set, or this
-    # mirror is out of date (a run would silently lack a secret it should have).
-    ref = generate_secrets(name, task, config)
-    for f in dataclasses.fields(sec.Secrets):
-        if (getattr(ref, f.name) is None) != (getattr(out, f.name) is None):
-            raise ConfigError(f"grid secrets do not derive Secrets.{f.name}; update ppprops.experiments.grid.derive_secrets")
-    return out
+    return generate_secrets(name, config.make_task(), config, rng=derived_rng(master_key, name))
 
 
 # -- run state and locks ---------------------------------------------------------------------
 def run_state(run_dir: Path, kind: str) -> str:
     """done (finished, or stopped on purpose), partial (resumable), or pending (nothing usable)."""
+    from ..status import RunKind, is_complete
     from ..store import DB_NAME, open_store
 
     if not (Path(run_dir) / DB_NAME).exists():
@@ -132,9 +109,9 @@ def run_state(run_dir: Path, kind: str) -> str:
         status = store.status()
     finally:
         store.close()
-    if status == "finished" or (kind != RL and status.startswith("stopped")):
+    if is_complete(status, RunKind(kind)):
         return DONE
-    return PARTIAL if kind != RL else PENDING
+    return PARTIAL if kind != RL else PENDING  # an RL baseline cannot be continued: trained again
 
 
 @contextmanager
@@ -182,8 +159,20 @@ class Outcome:
 
 
 def _same_config(stored: dict[str, Any], planned: dict[str, Any]) -> bool:
-    """A stored config matches when every planned key has the planned value (RL stores extra keys)."""
+    """A stored config matches when every planned key has the planned value (RL stores extra keys).
+
+    A search config is first read back through ``RunConfig.from_json``, so one written before a
+    setting existed (e.g. ``describe_task``) compares with that setting's default."""
+    from ..config import RunConfig
+    from ..status import RunKind
+
+    if RunKind.of_config(stored) is RunKind.SEARCH:
+        try:
+            stored = RunConfig.from_json(stored).to_json()
+        except (KeyError, TypeError, ValueError):
+            pass  # not a config this version reads: compare as it is
     norm = json.loads(json.dumps(planned))
+    stored = json.loads(json.dumps(stored))
     return all(stored.get(k) == v for k, v in norm.items())
 
 

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..status import RunKind
+
 if TYPE_CHECKING:
     from .report import Group, RunRecord
 
@@ -50,9 +52,9 @@ def reward_curves(out: Path, groups: dict[tuple[str, str], Group]) -> list[Path]
 
     plt = _plt()
     paths = []
-    tasks = sorted({t for (t, _), g in groups.items() if g.kind == "search"}, key=_task_key)
+    tasks = sorted({t for (t, _), g in groups.items() if g.kind == RunKind.SEARCH}, key=_task_key)
     for task in tasks:
-        cols = sorted((c for (t, c), g in groups.items() if t == task and g.kind == "search"), key=_column_key)
+        cols = sorted((c for (t, c), g in groups.items() if t == task and g.kind == RunKind.SEARCH), key=_column_key)
         fig, ax = plt.subplots(figsize=(7.0, 4.2), dpi=110)
         warm = 0
         for c in cols:

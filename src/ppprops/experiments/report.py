@@ -30,16 +30,24 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, MissingExtraError, StoreError
+from ..methods import MethodKind, find_method, methods
+from ..status import RunKind, is_complete
 from . import paper_values as pv
 from .tables import Cell, Table, write_csv, write_table
 
 PAPER_TASKS = ("Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joints", "Humanoid-Torso",
                "Acrobot", "CartPole", "FetchReachDense", "Highway")  # fmt: skip
-METHOD_ORDER = ("vanilla", "r2po", "pe", "df", "pp", "pp-hardened", "random", "cmaes",
-                "rl-ppo", "rl-a2c", "rl-sac", "rl-td3", "rl-ddpg", "rl-trpo", "rl-dqn")  # fmt: skip
-BLACK_BOX = ("random", "cmaes")
-PROMPT_METHODS = ("vanilla", "pe", "df", "pp", "pp-hardened")  # one LLM call per iteration over a top-K history
+METHOD_ORDER = tuple(m.name for m in methods())  # the registry's order: the paper's tables
+PROMPT_METHODS = tuple(m.name for m in methods() if m.top_k_prompt)  # one LLM call per iteration over a top-K history
 DEFAULT_K = 10
+
+
+def method_kind(method: str, kind: str) -> MethodKind:
+    """A run's method kind from the registry; a search method this version does not know counts as prompted."""
+    m = find_method(method)
+    if m is not None:
+        return m.kind
+    return MethodKind.RL if kind == RunKind.RL else MethodKind.PROMPTED
 
 
 @dataclass
@@ -48,7 +56,7 @@ class RunRecord:
 
     name: str
     path: Path
-    kind: str  # search | rl
+    kind: RunKind
     task: str
     method: str
     top_k: int | None
@@ -63,7 +71,7 @@ class RunRecord:
 
     @property
     def done(self) -> bool:
-        return self.status == "finished" or (self.kind == "search" and self.status.startswith("stopped"))
+        return is_complete(self.status, self.kind)
 
     @property
     def column(self) -> str:
@@ -72,11 +80,12 @@ class RunRecord:
     @property
     def score(self) -> float | None:
         """The number a table compares: the search-time best; an RL run's final evaluation."""
-        return self.final if self.kind == "rl" else self.best
+        return self.final if self.kind == RunKind.RL else self.best
 
 
 def column_name(method: str, top_k: int | None, kind: str) -> str:
-    if kind == "rl" or method in BLACK_BOX or top_k in (None, DEFAULT_K):
+    """A table column: the method, with the history bound when a prompted method ran with K != 10."""
+    if method_kind(method, kind) is not MethodKind.PROMPTED or top_k in (None, DEFAULT_K):
         return method
     return f"{method} (unbounded)" if top_k == 0 else f"{method} (K={top_k})"
 
@@ -107,13 +116,13 @@ def read_run(path: Path) -> RunRecord:
 
     s = run_summary(path)
     cfg = s["config"]
-    kind = "rl" if s.get("training") is not None else "search"
+    kind = RunKind.of_config(cfg)
     fe = s.get("final_eval")
     rec = RunRecord(
         name=path.name, path=path, kind=kind, task=str(s["env"]), method=str(s["method"]),
-        top_k=None if kind == "rl" else int(cfg.get("top_k", DEFAULT_K)), seed=int(s["seed"]), status=str(s["status"]),
-        best=(s["best"] or {}).get("return") if kind == "search" else None, final=fe["mean"] if fe else None,
-        warmup=int(cfg.get("warmup", 0)) if kind == "search" else 0,
+        top_k=None if kind == RunKind.RL else int(cfg.get("top_k", DEFAULT_K)), seed=int(s["seed"]), status=str(s["status"]),
+        best=(s["best"] or {}).get("return") if kind == RunKind.SEARCH else None, final=fe["mean"] if fe else None,
+        warmup=int(cfg.get("warmup", 0)) if kind == RunKind.SEARCH else 0,
         returns=[c["return"] for c in s["candidates"]],
         calls=[{k: c[k] for k in ("iteration", "latency_s", "prompt_chars", "ok")} for c in s["llm_calls"]],
     )  # fmt: skip
@@ -141,8 +150,12 @@ class Group:
     column: str
     method: str
     top_k: int | None
-    kind: str
+    kind: RunKind
     runs: list[RunRecord]
+
+    @property
+    def method_kind(self) -> MethodKind:
+        return method_kind(self.method, self.kind)
 
     def stats(self) -> dict[str, Any]:
         bm, bs, bn = _mean_std([r.best for r in self.runs])
@@ -189,7 +202,7 @@ STAT_COLUMNS = ["task", "column", "method", "top_k", "kind", "n", "seeds", "scor
 
 def main_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[dict[str, Any]]] | None:
     """Rows: tasks; per method: search-time best (best per row in bold), final evaluation, paper."""
-    sel = {k: g for k, g in groups.items() if g.kind == "search" and g.method not in BLACK_BOX}
+    sel = {k: g for k, g in groups.items() if g.method_kind is MethodKind.PROMPTED}
     if not sel:
         return None
     tasks = sorted({t for t, _ in sel}, key=_task_key)
@@ -230,8 +243,8 @@ def bounded_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[dic
     """K = 10 against unbounded (K = 0), for every task and method that has both."""
     pairs = []
     for (t, _), g in groups.items():
-        if g.kind == "search" and g.top_k == DEFAULT_K and g.method not in BLACK_BOX:
-            unb = groups.get((t, column_name(g.method, 0, "search")))
+        if g.method_kind is MethodKind.PROMPTED and g.top_k == DEFAULT_K:
+            unb = groups.get((t, column_name(g.method, 0, RunKind.SEARCH)))
             if unb is not None:
                 pairs.append((g, unb))
     if not pairs:
@@ -272,9 +285,9 @@ def history_cost_rows(groups: dict[tuple[str, str], Group]) -> list[dict[str, An
     """Final prompt size and mean response time, K = 10 against unbounded, with reductions."""
     out = []
     for (t, _), g in sorted(groups.items(), key=lambda kv: (_task_key(kv[0][0]), _column_key(kv[0][1]))):
-        if g.kind != "search" or g.top_k != DEFAULT_K or g.method not in PROMPT_METHODS:
+        if g.kind != RunKind.SEARCH or g.top_k != DEFAULT_K or g.method not in PROMPT_METHODS:
             continue
-        unb = groups.get((t, column_name(g.method, 0, "search")))
+        unb = groups.get((t, column_name(g.method, 0, RunKind.SEARCH)))
         if unb is None:
             continue
 
@@ -312,14 +325,14 @@ def history_cost_table(rows: list[dict[str, Any]]) -> Table | None:
 
 def baselines_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[dict[str, Any]]] | None:
     """Rows: methods (RL, black-box, ProPS); columns: tasks, as the paper's baselines table."""
-    if not any(g.kind == "rl" or g.method in BLACK_BOX for g in groups.values()):
+    baselines = (MethodKind.RL, MethodKind.BLACK_BOX)
+    if not any(g.method_kind in baselines for g in groups.values()):
         return None
-    tasks = sorted({g.task for g in groups.values() if g.kind == "rl" or g.method in BLACK_BOX}, key=_task_key)
+    tasks = sorted({g.task for g in groups.values() if g.method_kind in baselines}, key=_task_key)
     cols = sorted({c for (t, c), g in groups.items() if t in tasks and (g.top_k in (None, DEFAULT_K))}, key=_column_key)
     stats = {k: g.stats() for k, g in groups.items() if k[0] in tasks and k[1] in cols}
     top = {t: max((s["score_mean"] for (tt, _), s in stats.items() if tt == t and s["score_mean"] is not None), default=None)
            for t in tasks}  # fmt: skip
-    from ..baselines.algorithms import ALGORITHMS
     from ..tasks import get_task
 
     header = ["Approach"] + [h for t in tasks for h in (t, f"{t} paper")]
@@ -328,7 +341,8 @@ def baselines_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[d
         row = [Cell(c)]
         for t in tasks:
             st = stats.get((t, c))
-            algo = ALGORITHMS.get(c.removeprefix("rl-")) if c.startswith("rl-") else None
+            m = find_method(c)
+            algo = m.algorithm if m is not None and m.kind is MethodKind.RL else None
             if st is None:
                 na = algo is not None and not algo.applies_to(get_task(t).action_type)
                 row.append(Cell("--" if na else ""))

@@ -3,7 +3,7 @@
 A spec (TOML, or YAML with the ``experiments`` extra) names tasks x methods x seeds in groups,
 with run settings keyed like the flags of ``ppprops run`` (``top-k = 0``, ``base-url = ...``), so a
 grid run is configured exactly as the same ``ppprops run`` command would be: settings go through
-the ``run`` parser and ``cli._run_config`` (the one place a method becomes a RunConfig). RL
+the ``run`` parser and ``cli.run_config`` (the one place flags become a RunConfig). RL
 baselines (``ppprops baseline rl``) form groups of their own; combinations the paper marks "--"
 (SAC/TD3/DDPG on discrete actions, DQN on continuous ones) are skipped and listed.
 
@@ -38,6 +38,7 @@ from typing import Any
 
 from ..config import read_text
 from ..errors import ConfigError, MissingExtraError
+from ..status import RunKind
 
 # `ppprops run` flags a grid sets itself, per run or for the whole grid.
 RESERVED = frozenset({"env", "method", "seed", "out", "config", "quiet", "help"})
@@ -46,8 +47,8 @@ GROUP_KEYS = ("tasks", "methods", "label", "seeds", "run")
 RL_KEYS = ("tasks", "algos", "timesteps", "seeds", "final-episodes", "device", "threads")
 EXECUTION_KEYS = ("jobs", "llm-threads", "llm-concurrency")
 _LABEL = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+]*$")
-SEARCH = "search"
-RL = "rl"
+SEARCH = RunKind.SEARCH  # kept as names: grid.json and callers use them
+RL = RunKind.RL
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class PlannedRun:
     """One run of a grid: its directory name and the full configuration it is started with."""
 
     name: str
-    kind: str  # "search" (ppprops run) or "rl" (ppprops baseline rl)
+    kind: RunKind  # a search (ppprops run) or an RL baseline (ppprops baseline rl)
     task: str
     method: str  # a `ppprops run` method, or rl-<algo>
     label: str  # variant label of its group ("" when none)
@@ -174,14 +175,13 @@ def _int(table: Mapping[str, Any], key: str, where: str, default: int | None = N
 
 # -- the `ppprops run` parser as the one source of run settings --------------------------------
 class RunFlags:
-    """Turns flag-keyed settings into RunConfigs through the `run` parser and ``cli._run_config``."""
+    """Turns flag-keyed settings into RunConfigs through the `run` parser and ``cli.run_config``."""
 
     def __init__(self) -> None:
-        from ..cli import build_parser
+        from ..cli import run_parser
+        from ..methods import search_method_names
 
-        parser = build_parser()
-        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-        self.parser: argparse.ArgumentParser = sub.choices["run"]
+        self.parser: argparse.ArgumentParser = run_parser()
         self.by_key: dict[str, argparse.Action] = {}
         for act in self.parser._actions:
             if act.dest in RESERVED or not act.option_strings:
@@ -190,13 +190,12 @@ class RunFlags:
                 if opt.startswith("--"):
                     self.by_key[opt[2:]] = act
             self.by_key[act.dest] = act
-        method = next(a for a in self.parser._actions if a.dest == "method")
-        self.methods: tuple[str, ...] = tuple(method.choices or ())
+        self.methods: tuple[str, ...] = tuple(search_method_names())
 
     def values(self, table: Mapping[str, Any], where: str) -> dict[str, Any]:
         """Spec values (TOML/YAML types) as parsed flag values (dest -> value), checked like
         a ``ppprops run --config`` file."""
-        from ..config import _file_value  # the checks of `run --config`, so both read a key alike
+        from ..config import file_value  # the checks of `run --config`, so both read a key alike
 
         if not isinstance(table, Mapping):
             raise ConfigError(f"{where} must be a table of run settings, got {table!r}")
@@ -208,12 +207,12 @@ class RunFlags:
             if act is None:
                 known = ", ".join(sorted(k for k in self.by_key if "_" not in k))
                 raise ConfigError(f"{where}: unknown run setting {key!r} (known: {known})")
-            out[act.dest] = _file_value(Path(where), key, value, act)
+            out[act.dest] = file_value(Path(where), key, value, act)
         return out
 
     def config(self, task: str, method: str, seed: int, settings: Mapping[str, Any]) -> Any:
         """The RunConfig that ``ppprops run --env task --method method --seed seed <settings>`` builds."""
-        from ..cli import _run_config
+        from ..cli import run_config
 
         if method not in self.methods:
             raise ConfigError(f"unknown method {method!r}; choose from {', '.join(self.methods)} (RL baselines go in [[rl]] groups)")
@@ -221,7 +220,7 @@ class RunFlags:
         for dest, value in settings.items():
             setattr(ns, dest, value)
         ns.env, ns.method, ns.seed = task, method, seed
-        config = _run_config(ns)
+        config = run_config(ns)
         config.validate()
         return config
 
@@ -290,14 +289,16 @@ def build_spec(
     for ri, group in enumerate(rl_groups):
         rw = f"{where} [[rl]] #{ri + 1}"
         _check_keys(group, RL_KEYS, rw)
-        from ..baselines.algorithms import ALGORITHMS
         from ..baselines.rl import RLConfig
+        from ..methods import rl_method
 
         tasks = [get_task(t).name for t in _names(group.get("tasks"), f"{rw} tasks")]
         algos = _names(group.get("algos"), f"{rw} algos")
         for algo in algos:
-            if algo not in ALGORITHMS:
-                raise ConfigError(f"{rw}: unknown algo {algo!r}; choose from {', '.join(ALGORITHMS)}")
+            try:
+                rl_method(algo)
+            except ConfigError as e:
+                raise ConfigError(f"{rw}: {e}") from None
         timesteps = _int(group, "timesteps", rw)
         if timesteps is None:
             raise ConfigError(f"{rw}: timesteps is required (the paper does not state its RL budgets)")
@@ -308,7 +309,7 @@ def build_spec(
         for seed in group_seeds:
             for task in tasks:
                 for algo in algos:
-                    if not ALGORITHMS[algo].applies_to(get_task(task).action_type):
+                    if not rl_method(algo).algorithm.applies_to(get_task(task).action_type):
                         if seed == group_seeds[0]:
                             skipped.append(f"{task} rl-{algo}")
                         continue

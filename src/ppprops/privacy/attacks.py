@@ -8,89 +8,39 @@ compared with the true secrets afterwards, by ``ppprops.privacy.report``.
 
 Reward scale c: ``diagnostic`` (a diagnostic that determines the return, e.g. CartPole's
 episode length), ``lattice`` (integer returns: the gcd of differences of printed returns),
-``known-cap`` (a return at a public cap, e.g. CartPole's 500 at the time limit).
+``warped-lattice`` (integer returns through an unknown power warp and offset), ``known-cap`` (a
+return at a public cap, e.g. CartPole's 500 at the time limit), ``additivity`` (the return is the
+sum of the components), ``survive-length`` and ``saturated-ctrl`` (locomotion components with
+public per-step values); the last four are in ``reward_attacks``.
 Parameter scales a: ``warmup-range`` (uniform warm-up from the public box: max |theta~_j| / 6),
 ``stated-range`` (a range stated in the prompt for the shown coordinates), ``clip-edge``
-(answers clipped to the box re-encode to exactly a_j times the bound, and repeat), and
-``seed-replay`` (the request's sampling seed gives away a small run seed; the warm-up drawn from
-it is then replayed, raw, and divided into the shown values).
+(answers clipped to the box re-encode to exactly a_j times the bound, and repeat),
+``seed-replay`` (a run seed found from the request's sampling seed or by trying small seeds
+against the warm-up's signs; the warm-up drawn from it is then replayed, raw, and divided into
+the shown values) and ``fallback-spread`` (fallback candidates: the best policy plus noise of a
+public width, replayed from the run seed or measured by its spread).
 """
 
 from __future__ import annotations
 
+import functools
 import re
+import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
 from .. import seeding
-from .audit import token_value
-from .knowledge import PublicFacts, facts_for
+from ..proposers.llm import FALLBACK_SIGMA
+from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
+from .tokens import token_value
 from .transcript import Request
+from .view import Estimate, Shown, View, same_marker, view_of
 
 SEED_SEARCH = 1 << 16  # run seeds tried against the request's sampling seed
 SEED_SEARCH_BLIND = 2048  # run seeds tried when no sampling seed was sent (matched on signs)
 WARMUP_REPLAY = 32  # warm-up samples replayed per seed
-
-
-@dataclass(frozen=True)
-class Shown:
-    """One distinct history entry as the provider saw it."""
-
-    params: np.ndarray
-    tols: np.ndarray
-    ret: float
-    ret_tol: float
-    diagnostics: dict[str, str]
-    first_call: int
-
-
-@dataclass(frozen=True)
-class View:
-    """Everything an attack may use: the transcript and public facts."""
-
-    requests: tuple[Request, ...]
-    entries: tuple[Shown, ...]
-    warmup: tuple[Shown, ...]  # the entries of the first request: the warm-up, as Algorithm 1 starts
-    facts: PublicFacts
-    box: tuple[float, float]
-    D: int
-
-
-@dataclass(frozen=True)
-class Estimate:
-    attack: str
-    target: str  # "c" or "a"
-    value: float | np.ndarray | None  # None: the attack found nothing; a: NaN where not estimated
-    detail: str = ""
-
-    @property
-    def applicable(self) -> bool:
-        if self.value is None:
-            return False
-        return bool(np.any(np.isfinite(np.atleast_1d(self.value))))
-
-
-def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) -> View:
-    seen: dict[tuple[tuple[str, ...], str], Shown] = {}
-    first: list[Shown] = []
-    D = 0
-    for k, r in enumerate(requests):
-        for e in r.entries:
-            parsed = [token_value(t) for t in e.params]
-            ret = token_value(e.ret)
-            if ret is None or any(p is None for p in parsed) or not parsed:
-                continue
-            D = max(D, len(parsed))
-            key = (e.params, e.ret)
-            if key not in seen:
-                seen[key] = Shown(np.array([p[0] for p in parsed if p]), np.array([p[1] for p in parsed if p]),
-                                  ret[0], ret[1], dict(e.diagnostics), k)
-            if k == 0:
-                first.append(seen[key])
-    entries = tuple(s for s in seen.values() if len(s.params) == D)
-    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(task), box, D)
+BLIND_SAMPLES = 12  # warm-up samples per seed compared when searching blind (warm-ups are rarely longer)
 
 
 # -- reward scale ----------------------------------------------------------------------------
@@ -153,14 +103,14 @@ def lattice(v: View) -> Estimate:
             # how likely a step this large fits every difference by chance, over the steps tried so far
             chance = (4 * tol / c_est) ** (len(vals) - 2) * tried
             if chance < 0.01:
-                return Estimate("lattice", "c", c_est, f"{len(vals)} distinct returns on a lattice of step {c_est:.6g}")
+                return Estimate("lattice", "c", c_est, f"{len(vals)} distinct returns on one lattice")
     return Estimate("lattice", "c", None, "the printed returns lie on no lattice")
 
 
 def known_cap(v: View) -> Estimate:
     """c = printed return / cap, for entries a diagnostic (or a tie at the extreme) marks as capped."""
     for side, cap, diag, marker in v.facts.caps:
-        hits = [e.ret for e in v.entries if _same(e.diagnostics.get(diag), marker)]
+        hits = [e.ret for e in v.entries if same_marker(e.diagnostics.get(diag), marker)]
         how = f"{diag}={marker}"
         if not hits:
             rets = [e.ret for e in v.entries]
@@ -175,15 +125,6 @@ def known_cap(v: View) -> Estimate:
             if c > 0:
                 return Estimate("known-cap", "c", c, f"{len(hits)} entries at the public cap {cap:g} ({how})")
     return Estimate("known-cap", "c", None, "no entry is known to sit at a public cap")
-
-
-def _same(printed: str | None, marker: str) -> bool:
-    if printed is None:
-        return False
-    if printed == marker:
-        return True
-    a, b = token_value(printed), token_value(marker)
-    return a is not None and b is not None and a[0] == b[0]
 
 
 # -- parameter scales ------------------------------------------------------------------------------
@@ -245,48 +186,150 @@ def clip_edge(v: View) -> Estimate:
     return Estimate("clip-edge", "a", a, f"{found} of {v.D} coordinates sit at a repeated edge")
 
 
+def find_run_seed(v: View) -> tuple[int | None, str]:
+    """The run seed, if the transcript gives it away: from the request's sampling seed when that was
+    derived from the run seed (``seeding.llm_seed``, before issue 16), else by trying small seeds
+    against the sign pattern of the warm-up (drawn from the run seed under the paper's warm-up)."""
+    if "run_seed" not in v.memo:
+        v.memo["run_seed"] = _find_run_seed(v)
+    return v.memo["run_seed"]  # type: ignore[return-value]
+
+
+@functools.cache
+def _seed_field_table() -> dict[int, int]:
+    """``llm_seed(s, 0, 0) -> s`` for every run seed searched (built once per process)."""
+    return {seeding.llm_seed(s, 0, 0): s for s in range(SEED_SEARCH)}
+
+
+@functools.cache
+def _warmup_draws(D: int, lo: float, hi: float) -> np.ndarray:
+    """The first BLIND_SAMPLES warm-up draws of every run seed searched blind, shape (seeds, samples, D)."""
+    return np.array([[seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=D) for m in range(BLIND_SAMPLES)]
+                     for s in range(SEED_SEARCH_BLIND)])
+
+
+def _find_run_seed(v: View) -> tuple[int | None, str]:
+    first = v.requests[0] if v.requests else None
+    if first is not None and first.seed is not None:
+        if (first.iteration, first.attempt) == (0, 0):
+            found = _seed_field_table().get(first.seed)
+        else:
+            found = next((s for s in range(SEED_SEARCH) if seeding.llm_seed(s, first.iteration, first.attempt) == first.seed), None)
+        if found is not None:
+            return found, f"run seed {found} recovered from the request's sampling seed"
+    if not v.warmup:
+        return None, "no warm-up entries"
+    lo, hi = v.box
+    W = np.array([e.params for e in v.warmup])[:3]
+    tol = np.array([e.tols for e in v.warmup])[:3]
+    signs = np.sign(_warmup_draws(v.D, lo, hi))  # (seeds, samples, D)
+    ok = np.ones(SEED_SEARCH_BLIND, dtype=bool)
+    for i, w in enumerate(W):
+        live = np.abs(w) > tol[i]
+        ok &= np.any(np.all(signs[:, :, live] == np.sign(w[live]), axis=2), axis=1)
+    hits = np.flatnonzero(ok)
+    if len(hits):
+        s = int(hits[0])
+        return s, f"run seed {s} found by trying seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs"
+    return None, f"tried run seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs: none matches"
+
+
 def seed_replay(v: View) -> Estimate:
     """Find the run seed (from the request's sampling seed, else by trying small seeds), replay the warm-up."""
     if not v.warmup:
         return Estimate("seed-replay", "a", None, "no warm-up entries")
     lo, hi = v.box
-    first = v.requests[0]
-    seeds: Sequence[int] = range(SEED_SEARCH_BLIND)
-    how = f"tried run seeds 0..{SEED_SEARCH_BLIND - 1} on signs"
-    if first.seed is not None:
-        found = next((s for s in range(SEED_SEARCH) if seeding.llm_seed(s, first.iteration, first.attempt) == first.seed), None)
-        if found is not None:
-            seeds, how = [found], f"run seed {found} recovered from the request's sampling seed"
+    seed, how = find_run_seed(v)
+    if seed is None:
+        return Estimate("seed-replay", "a", None, how)
     W = np.array([e.params for e in v.warmup])
     tol = np.array([e.tols for e in v.warmup])
-    for s in seeds:
-        raw = np.array([seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])
-        pairs = []
-        for i, w in enumerate(W):
-            live = np.abs(w) > tol[i]
-            match = [m for m in range(len(raw)) if np.all(np.sign(raw[m][live]) == np.sign(w[live]))]
-            if len(match) == 1:
-                pairs.append((i, match[0]))
-        if len(pairs) < min(3, len(W)):
-            continue
-        num = sum(W[i] * raw[m] for i, m in pairs)
-        den = sum(raw[m] ** 2 for _, m in pairs)
-        a = num / den
-        resid = max(float(np.max(np.abs(W[i] - a * raw[m]) - 2 * tol[i] - 0.02 * np.abs(W[i]))) for i, m in pairs)
-        if resid <= 0 and np.all(a > 0):
-            return Estimate("seed-replay", "a", a, f"{how}; {len(pairs)} warm-up entries replayed")
-    return Estimate("seed-replay", "a", None, f"{how}: no replay matches the warm-up")
+    raw = np.array([seeding.rng(seed, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])
+    pairs = []
+    for i, w in enumerate(W):
+        live = np.abs(w) > tol[i]
+        match = [m for m in range(len(raw)) if np.all(np.sign(raw[m][live]) == np.sign(w[live]))]
+        if len(match) == 1:
+            pairs.append((i, match[0]))
+    if len(pairs) < min(3, len(W)):
+        return Estimate("seed-replay", "a", None, f"{how}; the replay does not match the warm-up")
+    num = sum(W[i] * raw[m] for i, m in pairs)
+    den = sum(raw[m] ** 2 for _, m in pairs)
+    a = num / den
+    resid = max(float(np.max(np.abs(W[i] - a * raw[m]) - 2 * tol[i] - 0.02 * np.abs(W[i]))) for i, m in pairs)
+    if resid <= 0 and np.all(a > 0):
+        return Estimate("seed-replay", "a", a, f"{how}; {len(pairs)} warm-up entries replayed")
+    return Estimate("seed-replay", "a", None, f"{how}; the replay does not scale onto the warm-up")
+
+
+def fallback_spread(v: View) -> Estimate:
+    """a_j from fallback candidates: the best shown policy plus noise of a public width (5% of the box).
+
+    Fallbacks are the entries that follow an iteration whose last answer was unusable (the provider
+    knows: it gave that answer). Drawn in raw space, their encoded offsets from the best are a_j times the noise: with the
+    run seed the noise itself is replayed (seeding.FALLBACK), else its spread gives a_j. Drawn in the
+    encoded space, both give the public width back, i.e. a_j = 1 whatever a_j is.
+    """
+    shown_before: list[Shown] = []
+    offsets, iters = [], []
+    warm = {id(e) for e in v.warmup}
+    by_call: dict[int, list[Shown]] = {}
+    for e in v.entries:
+        by_call.setdefault(e.first_call, []).append(e)
+    for k, r in enumerate(v.requests):
+        # the candidate new in request k came from the iteration before: the provider's own answer
+        # unless its last answer there was unusable (then the client sent a fallback)
+        before = [q for q in v.requests[:k] if q.iteration == r.iteration - 1]
+        fallback = bool(before) and _answer_vector(before[-1].answer, v.D) is None
+        for e in by_call.get(k, []):
+            if id(e) in warm or not shown_before or not fallback:
+                continue
+            best = max(shown_before, key=lambda x: x.ret)
+            offsets.append(e.params - best.params)
+            iters.append(r.iteration - 1)
+        shown_before += by_call.get(k, [])
+    if not offsets:
+        return Estimate("fallback-spread", "a", None, "no fallback candidate in the history")
+    lo, hi = v.box
+    sigma = FALLBACK_SIGMA * (hi - lo)
+    X = np.array(offsets)
+    seed, how = find_run_seed(v)
+    if seed is not None:
+        Z = np.array([seeding.rng(seed, seeding.FALLBACK, it).normal(0.0, sigma, size=v.D) for it in iters])
+        with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # coordinates without a usable draw stay NaN
+            ratio = np.where(np.abs(Z) > 0.2 * sigma, X / Z, np.nan)
+            a = np.nanmedian(np.where(ratio > 0, ratio, np.nan), axis=0)
+        return Estimate("fallback-spread", "a", a, f"{len(X)} fallbacks, noise replayed ({how})")
+    if len(X) < 3:
+        return Estimate("fallback-spread", "a", None, f"only {len(X)} fallbacks and no run seed to replay their noise")
+    a = np.sqrt(np.mean(X**2, axis=0)) / sigma
+    return Estimate("fallback-spread", "a", a, f"spread of {len(X)} fallbacks around the best shown policy")
+
+
+def _answer_vector(answer: str | None, D: int) -> np.ndarray | None:
+    """The vector an answer gives, read as the client reads it (``wire.parse_answer``), or None."""
+    from ..wire import parse_answer
+
+    result = parse_answer(answer or "", D)
+    return None if result.values is None else np.array(result.values)
 
 
 ATTACKS: dict[str, Callable[[View], Estimate]] = {
     "diagnostic": diagnostic,
     "lattice": lattice,
+    "warped-lattice": warped_lattice,
     "known-cap": known_cap,
+    "additivity": additivity,
+    "survive-length": survive_length,
+    "saturated-ctrl": saturated_ctrl,
     "warmup-range": warmup_range,
     "stated-range": stated_range,
     "clip-edge": clip_edge,
     "seed-replay": seed_replay,
+    "fallback-spread": fallback_spread,
 }
+TARGET: dict[str, str] = {name: ("c" if i < 7 else "a") for i, name in enumerate(ATTACKS)}
 
 
 def run_attacks(requests: Sequence[Request], task: str, box: tuple[float, float]) -> list[Estimate]:

@@ -1,30 +1,34 @@
 """``ppprops audit DIR``: does any recorded request hold a raw value the preset promises to hide?
 
-How it decides (docs/privacy.md, "The audit"): each history entry of each request is matched to
-the candidate it shows through its printed parameters, then every printed field is compared with
-the raw and the encoded value of the same quantity, at the precision it was printed with (any
-number of decimals, trailing zeros dropped, exponent form, integers):
+How it decides (docs/privacy.md, "The audit"). Every byte of every recorded request body is
+accounted for:
 
-- printed value = raw value, but not the encoded one: a **leak** (raw value sent);
-- printed value = raw value = encoded value (zero, or a factor that rounds to 1): a coincidence,
-  counted, not a leak, since the provider cannot tell it apart from any encoded value;
-- printed value = encoded value only: as designed;
-- neither: **unverified** (the audit cannot account for what was sent).
-Fields a preset sends raw by design (vanilla, df) are leaks too, marked "by design". The prose
-around the history is searched for the optimal return at every rendering and for raw returns and
-components printed with at least two decimals. Known side channels of the scheme (a diagnostic
-that equals or determines the raw return, clipped candidates at the box edge, warm-up spread,
-the run seed, integer-return lattices, known caps) are reported as **channels**.
+- every top-level field must be what the client sets (model, sampling settings, the structured
+  output, the key-derived seed); any other field or value is **unverified**, and every number in
+  it, at any precision, integers included, is compared with every raw value (a match: **leak**);
+- every message of any role: the client sends [prompt] or [prompt, the provider's own answer, a
+  correction] as plain strings; anything else is read the same way;
+- the prompt is rebuilt from the public context and the stored encoded values of the candidates
+  it shows (``privacy.reconstruct``), so every stretch the templates do not produce is read;
+- each history entry is matched to the candidate it shows and each printed field compared with
+  the raw and the encoded value of the same quantity at its printed precision: raw but not
+  encoded is a leak, both a counted coincidence, neither unverified. Fields a preset sends raw
+  by design (vanilla, df, R2PO's critic evidence) are leaks marked "by design".
 
-Exit code: 0 when nothing leaked and everything was verified (channels are warnings), 1 with
-the locations otherwise; ``--strict`` also fails on channels.
+Then every transcript-only attack of ``privacy.attacks`` runs on the requests: one that recovers
+a hidden secret within 1% (scored against the key file, or the store for pure scales) makes the
+run **exposed**, marked when the channel is one the paper's scheme keeps. Known side channels
+without such a recovery are reported as **channels** (warnings).
+
+Exit code: 0 when nothing leaked, everything was accounted for and nothing is exposed; 1 with
+the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
+checked (named in every report).
 """
-
 from __future__ import annotations
 
 import itertools
+import json
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,40 +37,29 @@ from typing import Any
 import numpy as np
 
 from .. import seeding
+from ..client.secrets import Secrets
 from ..config import RunConfig
-from ..errors import StoreError
+from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
 from ..store import Candidate, open_store
-from ..wire.document import document_target
-from ..wire.encoded import EncodedEntry
-from ..wire.transcript import ShownEntry, number_tokens, open_target, outside_entries
+from ..wire.document import continuation_grammar, document_target, document_temperature
+from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
+from . import reconstruct as rc
+from .exposure import exposures
 from .knowledge import facts_for
-from .transcript import Request, load_requests
+from .tokens import renders, token_value
+from .transcript import Request, message_text, parse_request
 
-_TOKEN = re.compile(r"([-+]?)(\d*)(?:\.(\d*))?(?:[eE]([-+]?\d+))?")
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
-
-
-def token_value(tok: str) -> tuple[float, float] | None:
-    """A printed number and half its last printed digit (how far the value it renders may lie)."""
-    m = _TOKEN.fullmatch(tok.strip())
-    if m is None or not (m.group(2) or m.group(3)):
-        return None
-    decimals = len(m.group(3) or "")
-    exponent = int(m.group(4) or 0)
-    return float(tok), 0.5 * 10.0 ** (exponent - decimals)
-
-
-def renders(value: float, printed: float, tol: float) -> bool:
-    """Could ``value`` be printed as ``printed`` at that precision (rounding, either tie rule)?"""
-    return abs(value - printed) <= tol * (1 + 1e-9) + 1e-12 * max(1.0, abs(value))
+NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
+               "token counts, and the provider's own answers")
 
 
 @dataclass
 class Finding:
     """One kind of problem in one field, with where it was seen (first few places) and how often."""
 
-    severity: str  # leak | unverified | channel
+    severity: str  # leak | unverified | exposed | channel
     kind: str
     detail: str
     by_design: bool = False
@@ -93,6 +86,7 @@ class AuditReport:
     checked: dict[str, int] = field(default_factory=lambda: {"params": 0, "return": 0, "components": 0, "diagnostics": 0})
     coincidences: int = 0
     findings: list[Finding] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     def _of(self, severity: str) -> list[Finding]:
         return [f for f in self.findings if f.severity == severity]
@@ -110,8 +104,12 @@ class AuditReport:
         return self._of("channel")
 
     @property
+    def exposed(self) -> list[Finding]:
+        return self._of("exposed")
+
+    @property
     def clean(self) -> bool:
-        return not self.leaks and not self.unverified
+        return not self.leaks and not self.unverified and not self.exposed
 
     def exit_code(self, strict: bool = False) -> int:
         return 0 if self.clean and not (strict and self.channels) else 1
@@ -123,7 +121,14 @@ class AuditReport:
             why = f" (by design of preset {self.method})" if design else ""
             return f"LEAK: raw values were sent{why}: {kinds}"
         if self.unverified:
-            return f"UNVERIFIED: {sum(f.count for f in self.unverified)} printed value(s) match neither the raw nor the encoded value"
+            return (f"UNVERIFIED: {sum(f.count for f in self.unverified)} place(s) in the requests hold something the client's "
+                    "code does not produce from encoded values")
+        if self.exposed:
+            what = ", ".join(f"{f.kind} ({f.detail.split(':')[0]})" for f in self.exposed)
+            paper = all(f.by_design for f in self.exposed)
+            why = (" These are channels PP-ProPS keeps as the paper defines it (pp-hardened closes them)."
+                   if paper and self.method == "pp" else "")
+            return f"EXPOSED: no raw value was sent, but transcript-only attacks recover secrets within 1%: {what}.{why}"
         n = len(self.channels)
         tail = f"; {n} known channel(s) remain (warnings)" if n else ""
         if strict and n:
@@ -143,21 +148,30 @@ class AuditReport:
             f"checked {c['params']} parameters, {c['return']} returns, {c['components']} components, {c['diagnostics']} diagnostics "
             f"({self.coincidences} coincidental equalities of raw and encoded values)",
             f"verdict: {self.verdict(strict)}",
+            f"not checked: {NOT_CHECKED}",
         ]
         for f in self.findings:
-            tag = f"{f.severity}{' (by design)' if f.by_design else ''}"
+            design = " (paper's scheme)" if f.severity == "exposed" else " (by design)"
+            tag = f"{f.severity}{design if f.by_design else ''}"
             where = "; ".join(f.locations) + (" ..." if f.count > len(f.locations) else "")
             lines.append(f"  {tag:<18} {f.kind:<22} {f.detail} [{f.count}x: {where}]")
         return "\n".join(lines)
 
 
 class _Auditor:
-    def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], requests: Sequence[Request]) -> None:
+    def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
+                 secrets: Secrets | None = None) -> None:
         self.config = config
         self.mech: Mechanisms = config.mechanisms
         self.task = config.make_task()
         self.cands = list(candidates)
-        self.requests = list(requests)
+        self.calls = list(calls)
+        self.requests = [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"))
+                         for c in self.calls]
+        self.secrets = secrets
+        self.codec = rc.client_codec(self.task, config, secrets)
+        self.ctx = rc.context(self.task, config, self.codec)
+        self.fields = rc.expected_fields(config, self.task)
         self.report = AuditReport(str(run_dir), config.method, self.mech.to_json())
         self._findings: dict[tuple[str, str, str], Finding] = {}
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
@@ -264,18 +278,17 @@ class _Auditor:
         return c
 
     # -- prose: everything outside the history entries --------------------------------------------
-    def target(self, req: Request, shown: list[Candidate | None]) -> int | None:
+    def target(self, req: Request, text: str, shown: list[Candidate | None]) -> int | None:
         """The document form's open block: its return must be ``wire.document.document_target`` of
         the shown candidates' encoded returns (a derived encoded value). Returns its offset when
         it is, so the prose check skips it; otherwise it is unverified and read like any prose."""
-        found = open_target(req.text)
+        found = open_target(text)
         if found is None:
-            if req.form == "document":
-                self.finding("unverified", "target", "a document prompt that does not end in an open block", req.where)
+            self.finding("unverified", "target", "a document prompt that does not end in an open block", req.where)
             return None
         at, tok = found
         parsed = token_value(tok)
-        entries = [EncodedEntry(index=c.index, params=(), ret=float(c.feedback_enc.ret)) for c in shown if c is not None]
+        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
         if parsed is not None and entries and len(entries) == len(shown) and renders(document_target(entries), *parsed):
             return at
         self.finding("unverified", "target", "the open block's return is not the target computed from the shown "
@@ -285,8 +298,8 @@ class _Auditor:
     def prose(self, req: Request, skip: int | None = None) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
-        raw_rewards = [(c.index, "return", c.ret) for c in self.cands]
-        raw_rewards += [(c.index, f"component {k}", v) for c in self.cands for k, v in c.feedback.components.items()]
+        # raw returns and components outside the entries are found by the rebuild (``spans``): text the
+        # templates produce is public, and comparing it with raw values would only find coincidences
         for offset, text in outside_entries(req.text, list(req.entries)):
             for pos, tok in number_tokens(text):
                 if skip is not None and offset + pos == skip:
@@ -298,12 +311,6 @@ class _Auditor:
                 where = f"{req.where}, prose at character {offset + pos}"
                 if optimum is not None and renders(optimum, v, tol) and abs(optimum) >= 1:
                     self.finding("leak", "optimum", f"the optimal return {optimum:g} (printed {tok})", where, by_design=by_design)
-                if "." in tok and len(tok.split(".")[1].split("e")[0].split("E")[0]) >= 2:
-                    for idx, label, raw in raw_rewards:
-                        if abs(raw) >= 0.01 and renders(raw, v, tol):
-                            self.finding("leak", "raw_return" if label == "return" else "raw_component",
-                                         f"raw {label} of candidate {idx} in the prose", where, by_design=not self.mech.scale_rewards)
-                            break
 
     # -- run-level channels -------------------------------------------------------------------
     def channels(self) -> None:
@@ -315,11 +322,9 @@ class _Auditor:
         if mech.encode_params and not mech.encoded_warmup and any(c.source == "warmup" for c in shown):
             self.finding("channel", "warmup_scale", "warm-up drawn uniformly from the public box: max|theta~_j| over it estimates "
                          "a_j times the box bound", f"{sum(c.source == 'warmup' for c in shown)} warm-up entries shown")
-        if mech.encode_params and not mech.encoded_warmup:
-            for r in self.requests:
-                if r.seed is not None and r.seed == seeding.llm_seed(self.config.seed, r.iteration, r.attempt):
-                    self.finding("channel", "run_seed", "the request's sampling seed derives from the run seed; a provider that "
-                                 "finds a small seed can replay the raw warm-up", r.where)
+        if mech.encode_params and not mech.encoded_warmup and any(c.source == "warmup" for c in shown):
+            self.finding("channel", "run_seed", "the raw warm-up is drawn from the run seed: a provider that guesses a small "
+                         "run seed replays it (use a large random --seed)", f"run seed of {self.config.seed.bit_length()} bits")
         rets = [c.ret for c in shown]
         if mech.scale_rewards and not mech.warp_rewards and len(set(rets)) >= 3:
             if facts_for(self.task.name).integer_returns or all(float(r).is_integer() for r in rets):
@@ -365,16 +370,272 @@ class _Auditor:
                 if hits:
                     break
 
+    # -- every byte of a request body -----------------------------------------------------------
+    def body(self, row: dict[str, Any], req: Request) -> None:
+        where = req.where
+        try:
+            doc = json.loads(str(row["request"]))
+        except json.JSONDecodeError:
+            doc = None
+        if not isinstance(doc, dict):
+            self.free(str(row["request"]), "a request body that is not a JSON object", where)
+            return
+        if "prompt" in doc and "messages" not in doc:
+            self.document_body(doc, req)
+            return
+        for key, value in doc.items():
+            at = f"{where}, field {key}"
+            if key == "messages":
+                self.messages(value, row, req)
+            elif key == "seed":
+                self.seed(value, req)
+            elif key in self.fields:
+                if value != self.fields[key]:
+                    self.free(value, f"field {key} differs from what the client sends", at)
+            else:
+                self.free(value, f"field {key}, which the client never sends", at)
+        if "messages" not in doc:
+            self.finding("unverified", "request", "a request without messages", where)
+
+    def document_body(self, doc: dict[str, Any], req: Request) -> None:
+        """A document-form request (the completions endpoint, ``wire.document``): ``prompt`` is the
+        document, rebuilt and compared; ``grammar`` must be the continuation grammar of the history
+        it shows and ``temperature`` the form's for this iteration and attempt; the other fields as
+        for a chat request (no ``response_format``: a continuation is never under a JSON schema)."""
+        where = req.where
+        text = doc["prompt"]
+        shown: list[Candidate | None] = []
+        if isinstance(text, str):
+            shown = self.document(text, req)
+        else:
+            self.free(text, "a document prompt that is not a string", f"{where}, field prompt")
+        expected = {k: v for k, v in self.fields.items() if k not in ("response_format", "grammar", "temperature")}
+        expected["temperature"] = document_temperature(req.iteration, req.attempt, self.config.llm.temperature)
+        if shown and all(c is not None for c in shown):
+            expected["grammar"] = continuation_grammar(self.task.D, [rc.entry_for(self.codec, self.ctx, c) for c in shown
+                                                                     if c is not None], self.ctx)
+        for key, value in doc.items():
+            at = f"{where}, field {key}"
+            if key == "prompt":
+                continue
+            if key == "seed":
+                self.seed(value, req)
+            elif key in expected:
+                if value != expected[key]:
+                    self.free(value, f"field {key} differs from what the client sends", at)
+            elif key == "grammar":
+                self.free(value, "a grammar that cannot be rebuilt (the history it shows is not verified)", at)
+            else:
+                self.free(value, f"field {key}, which the client never sends", at)
+
+    def document(self, text: str, req: Request) -> list[Candidate | None]:
+        """A document-form prompt: its entries matched and checked, its open block's target
+        checked (``target``), the rest read as prose, and the whole rebuilt from the shown
+        candidates (``reconstruct.document_spans``). Returns the candidates shown."""
+        entries = history_entries(text, "document")
+        shown: list[Candidate | None] = []
+        flagged: list[tuple[int, int]] = []
+        for k, e in enumerate(entries):
+            before = sum(f.count for f in self.report.findings if f.severity != "channel")
+            c = self.entry(req, k, e)
+            shown.append(c)
+            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before:
+                flagged.append((e.start, e.end))
+        skip = self.target(req, text, shown)
+        self.prose(req, skip)
+        for a, b in rc.document_spans(self.codec, self.ctx, text, entries, shown):
+            if any(s <= a and b <= e for s, e in flagged):
+                continue  # inside an entry already reported
+            if skip is not None and a <= skip < b:
+                continue  # the target, checked by ``target``
+            self.free(text[a:b], f"text the document template does not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
+        return shown
+
+    def seed(self, value: object, req: Request) -> None:
+        at = f"{req.where}, field seed"
+        if value is None:
+            return
+        if not isinstance(value, int) or isinstance(value, bool):
+            self.free(value, "field seed that is not an integer", at)
+            return
+        if value == seeding.llm_seed(self.config.seed, req.iteration, req.attempt):
+            self.finding("channel", "run_seed", "the request's sampling seed derives from the run seed (runs made before "
+                         "issue 16): trying run seeds finds it", at)
+            return
+        if self.secrets is not None and value != self.codec.sampling_seed(self.config.seed, req.iteration, req.attempt):
+            self.free(value, "field seed that is not the key-derived sampling seed", at)
+        elif self.secrets is None:
+            self.free(value, "", at)  # not verifiable without the key file: still read for raw values
+
+    def messages(self, value: object, row: dict[str, Any], req: Request) -> None:
+        """The client sends [prompt] or [prompt, the provider's answer, a correction], as plain strings."""
+        if not isinstance(value, list):
+            self.free(value, "messages that are not a list", f"{req.where}, messages")
+            return
+        users = 0
+        answer = None
+        for i, m in enumerate(value):
+            at = f"{req.where}, message {i + 1}"
+            if not isinstance(m, dict):
+                self.free(m, "a message that is not an object", at)
+                continue
+            role, content = m.get("role"), m.get("content")
+            for k, v in m.items():
+                if k not in ("role", "content"):
+                    self.free(v, f"message field {k}, which the client never sends", at)
+            if isinstance(content, list):
+                self.finding("unverified", "request", "message content sent as a list of parts (the client sends strings)", at)
+                content = message_text(content)
+            elif not isinstance(content, str):
+                self.free(content, "message content that is not a string", at)
+                continue
+            if role == "user" and users == 0:
+                users += 1
+                self.prompt(content, req)
+            elif role == "assistant" and users == 1 and answer is None:
+                answer = content
+                if content not in self._answers(req):
+                    self.free(content, "an assistant message that is not the provider's own answer", at)
+            elif role == "user" and users == 1 and answer is not None:
+                users += 1
+                errors = [str(c.get("error") or "") for c in self.calls if c["iteration"] == req.iteration]
+                if content not in rc.expected_correction(answer, self.task.D, errors):
+                    self.free(content, "a correction the client's template does not produce", at)
+            else:
+                self.free(content, f"a {role} message at position {i + 1}, which the client never sends", at)
+
+    def _answers(self, req: Request) -> set[str]:
+        """What the provider answered before this attempt of the same iteration (or the empty marker)."""
+        out = {"(empty)"}
+        for c in self.calls:
+            if c["iteration"] == req.iteration and c["attempt"] < req.attempt and c.get("content"):
+                out.add(str(c["content"]))
+        return out
+
+    def prompt(self, text: str, req: Request) -> None:
+        """The first user message: the ProPS prompt (or R2PO's critic prompt), rebuilt and compared."""
+        entries = history_entries(text, "chat")
+        if text.startswith(rc.CRITIC_HEAD):
+            self.critic(text, req)
+            return
+        shown: list[Candidate | None] = []
+        flagged: list[tuple[int, int]] = []
+        for k, e in enumerate(entries):
+            before = sum(f.count for f in self.report.findings if f.severity != "channel")
+            c = self.entry(req, k, e)
+            shown.append(c)
+            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before:
+                flagged.append((e.start, e.end))
+        self.prose(req)
+        for a, b in rc.prompt_spans(self.codec, self.ctx, text, entries, shown):
+            if any(s <= a and b <= e for s, e in flagged):
+                continue  # inside an entry already reported
+            self.free(text[a:b], f"text the prompt templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
+
+    def critic(self, text: str, req: Request) -> None:
+        printed = rc.critic_params(text)
+        c = None
+        if printed is not None:
+            toks = [token_value(t) for t in printed.strip("[]").split(",")]
+            if toks and all(t is not None for t in toks):
+                vals = np.array([t[0] for t in toks if t])
+                tols = np.array([t[1] for t in toks if t])
+                idx, _ = self.match(vals, tols, "")
+                c = self.cands[idx] if idx is not None else None
+        if c is None:
+            self.free(text, "a critic prompt whose candidate matches no evaluated candidate", req.where)
+            return
+        self.shown[c.index] = c
+        self.finding("leak", "raw_trajectory", "raw states and the actions taken in them (R2PO's critic evidence)"
+                     + ("" if not self.mech.encode_params else "; beside encoded parameters, a least-squares fit gives A"),
+                     req.where, by_design=not (self.mech.encode_params or self.mech.scale_rewards))
+        self.spans(rc.expected_critic(self.ctx, c, text), text, [], req.where)
+
+    def spans(self, expected: str, text: str, flagged: list[tuple[int, int]], where: str) -> None:
+        """Read every stretch of ``text`` that the client's templates do not produce."""
+        for a, b in rc.differing_spans(expected, text):
+            if any(s - 2 <= a and b <= e + 2 for s, e in flagged):
+                continue  # inside an entry already reported
+            self.free(text[a:b], f"text the prompt templates do not produce: {text[a:b][:60]!r}", f"{where}, character {a}")
+
+    # -- anything the client's code would not have sent ---------------------------------------------
+    def free(self, value: object, why: str, where: str) -> None:
+        """Read every number in a value (any precision, integers too) against every raw value; what
+        is not raw is unverified (``why``), unless ``why`` is empty."""
+        hits = self.raw_hits(value)
+        for kind, label in hits:
+            self.finding("leak", kind, f"raw {label} where the client sends none", where)
+        if not hits and why:
+            self.finding("unverified", "request", why, where)
+
+    def raw_hits(self, value: object) -> list[tuple[str, str]]:
+        tokens: list[str] = []
+        _numbers(value, tokens)
+        out: list[tuple[str, str]] = []
+        for tok in tokens:
+            parsed = token_value(tok)
+            if parsed is None or parsed[0] == 0:
+                continue
+            v, tol = parsed
+            hit = self._raw_match(v, tol)
+            if hit is not None and hit not in out:
+                out.append(hit)
+        return out
+
+    def _raw_match(self, v: float, tol: float) -> tuple[str, str] | None:
+        opt = self.task.optimal_return
+        if opt is not None and not (self.mech.disclose_optimum or self.mech.disclose_reward_structure) and renders(opt, v, tol):
+            return "optimum", "optimal return"
+        for c in self.cands:
+            if c.ret != 0 and renders(c.ret, v, tol) and (not self.mech.scale_rewards or not renders(c.feedback_enc.ret, v, tol)):
+                return "raw_return", "return"
+            for k, x in c.feedback.components.items():
+                if x != 0 and renders(x, v, tol) and not renders(c.feedback_enc.components.get(k, math.nan), v, tol):
+                    return "raw_component", f"component {k}"
+        if tol < 0.5 or self.mech.encode_params:  # integers collide with small raw parameters too often unless encoded
+            P = self.raw
+            hit = (np.abs(P - v) <= tol * (1 + 1e-9) + 1e-12) & (np.abs(P) >= 10 * tol) & ~(np.abs(self.enc - v) <= tol + 1e-12)
+            if hit.any():
+                return "raw_param", "parameter"
+        return None
+
     def run(self) -> AuditReport:
-        for req in self.requests:
+        for row, req in zip(self.calls, self.requests, strict=True):
             self.report.requests += 1
-            shown = [self.entry(req, k, e) for k, e in enumerate(req.entries)]
-            skip = self.target(req, shown) if req.form == "document" else None
-            self.prose(req, skip)
+            self.body(row, req)
         self.channels()
-        order = {"leak": 0, "unverified": 1, "channel": 2}
+        self.exposure()
+        order = {"leak": 0, "unverified": 1, "exposed": 2, "channel": 3}
         self.report.findings.sort(key=lambda f: order.get(f.severity, 3))
         return self.report
+
+    def exposure(self) -> None:
+        if not self.requests or not (self.mech.encode_params or self.mech.scale_rewards):
+            return
+        found, note = exposures(self.requests, self.task.name, self.config.box, self.mech, self.cands, self.secrets)
+        for x in found:
+            secret = "c" if x.target == "c" else f"a_j on {x.coords} of {self.task.D} coordinates"
+            self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
+                         by_design=x.paper)
+        if note:
+            self.report.notes.append(note)
+
+
+def _numbers(value: object, out: list[str]) -> None:
+    """Every number in a JSON value as printed: JSON numbers, and number tokens inside strings."""
+    if isinstance(value, bool) or value is None:
+        return
+    if isinstance(value, (int, float)):
+        out.append(json.dumps(value))
+    elif isinstance(value, str):
+        out.extend(tok for _, tok in number_tokens(value))
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _numbers(k, out)
+            _numbers(v, out)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _numbers(v, out)
 
 
 def _num(v: object) -> float:
@@ -392,7 +653,11 @@ def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
 
 
 def audit_run(run_dir: Path) -> AuditReport:
-    """Audit every recorded outgoing request of a run against the raw values in its store."""
+    """Audit every recorded outgoing request of a run against the raw values in its store.
+
+    Every field of every request body is read; attacks on the transcript are scored against the
+    key file when it is in the run directory (else against the store, for pure scales).
+    """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise StoreError(f"{run_dir} is not a directory")
@@ -400,6 +665,14 @@ def audit_run(run_dir: Path) -> AuditReport:
     try:
         config = search_config(store.config(), run_dir)
         candidates = store.candidates()
+        calls = store.llm_calls()
+        run_id, fingerprint = store.run_id(), store.key_fingerprint()
     finally:
         store.close()
-    return _Auditor(run_dir, config, candidates, load_requests(run_dir)).run()
+    secrets = None
+    if (run_dir / "secrets.key").exists():
+        try:
+            secrets = Secrets.load(run_dir / "secrets.key", run_id=run_id, D=config.make_task().D, fingerprint=fingerprint)
+        except KeyFileError:
+            secrets = None
+    return _Auditor(run_dir, config, candidates, calls, secrets).run()

@@ -19,19 +19,19 @@ from ..errors import ConfigError
 
 def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
     au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean, 1 leak)")
-    au.add_argument("dir", type=Path)
+    au.add_argument("dir", type=Path, help="a run directory")
     au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
-    au.add_argument("--json", action="store_true")
+    au.add_argument("--json", action="store_true", help="one JSON object with every finding on stdout")
 
     pr = sub.add_parser("privacy-report", help="attacks x scheme (pp, pp-hardened) and their search results")
     pr.add_argument("--runs", type=Path, default=None, metavar="DIR",
                     help="analyse the run directories under DIR instead of starting new runs")
     pr.add_argument("--envs", default="CartPole,Acrobot", help="tasks for new runs (default CartPole,Acrobot)")
     pr.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 for new runs (default 5)")
-    pr.add_argument("--warmup", type=int, default=10)
+    pr.add_argument("--warmup", type=int, default=10, help="warm-up policies per new run (default 10)")
     pr.add_argument("--iterations", type=int, default=10,
                     help="LLM iterations per new run (default 10: short runs; 0: warm-up only, to compare the warm-ups)")
-    pr.add_argument("--final-episodes", type=int, default=20)
+    pr.add_argument("--final-episodes", type=int, default=20, help="fresh episodes for each new run's best policy (default 20)")
     pr.add_argument("--out", type=Path, default=None, help="where new runs and the report go (default runs/privacy-report-<time>)")
     pr.add_argument("--offline", action="store_true",
                     help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")

@@ -22,7 +22,7 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import ConfigError
 from ..store import DB_NAME, open_store
-from .attacks import ATTACKS, run_attacks
+from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
 from .transcript import load_requests
 
@@ -110,6 +110,8 @@ def _model_of(run_dir: Path) -> str:
     finally:
         store.close()
     try:
+        if calls[0]["response"] is None and calls[0]["ok"]:
+            return "offline stand-in (EchoOptimizer)"  # it answers without an HTTP response body
         return str(json.loads(calls[0]["request"]).get("model", ""))
     except (ValueError, IndexError, AttributeError):
         return ""
@@ -181,7 +183,7 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
         head,
         "|" + "---|" * (len(cols) + 2),
     ]
-    rows = [(name, "c" if name in ("diagnostic", "lattice", "known-cap") else "a") for name in ATTACKS]
+    rows = [(name, TARGET[name]) for name in ATTACKS]
     rows += [("prior (c)", "c"), ("prior (a)", "a")]
     for name, target in rows:
         cells = []
@@ -195,8 +197,8 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
     models = ", ".join(sorted({r.model for r in runs if r.model})) or "-"
     lines += ["", f"Search results (best return found during the search; final evaluation of that policy on fresh episodes); "
               f"model: {models}:", "",
-              "| task | scheme | runs | warm-up + iterations | best search return | final evaluation | fallbacks | audit clean |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| task | scheme | runs | warm-up + iterations | best search return | final evaluation | fallbacks | audit clean | audit exposed |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for key in cols:
         rs = groups[key]
         best = np.array([r.best_return for r in rs])
@@ -204,8 +206,9 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
         final = f"{finals.mean():.1f} +- {finals.std():.1f}" if len(finals) else "-"
         budget = ", ".join(sorted({f"{r.warmup} + {r.iterations}" for r in rs}))
         clean = sum(r.audit.startswith("CLEAN") for r in rs)
+        exposed = sum(r.audit.startswith("EXPOSED") for r in rs)
         lines.append(f"| {key[0]} | {key[1]} | {len(rs)} | {budget} | {best.mean():.1f} +- {best.std():.1f} | {final} | "
-                     f"{sum(r.fallbacks for r in rs)} | {clean}/{len(rs)} |")
+                     f"{sum(r.fallbacks for r in rs)} | {clean}/{len(rs)} | {exposed}/{len(rs)} |")
     return "\n".join(lines)
 
 

@@ -26,13 +26,14 @@ class EchoOptimizer:
     def __init__(self, config: Any = None, *, spread: float = 0.5) -> None:
         self.spread = spread
         self.calls = 0
+        self.config = config
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         self.calls += 1
         prompt = messages[0]["content"]
         proposal = self._propose(history_entries(prompt, "chat"), D, seed)
         content = json.dumps({"params": [round(float(v), 2) for v in proposal]})
-        body = {"model": "echo-optimizer", "messages": messages, "seed": seed}
+        body = self._body(messages, D, seed)
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None,
                         prompt_chars=sum(len(m["content"]) for m in messages), prompt_tokens=None, completion_tokens=None,
                         latency_s=0.0, ok=True)
@@ -43,7 +44,7 @@ class EchoOptimizer:
         self.calls += 1
         proposal = self._propose(history_entries(prompt, "document"), D, seed)
         content = ",".join(f"{i}:{v:.2f}" for i, v in enumerate(proposal)) + "]"
-        body = {"model": "echo-optimizer", "prompt": prompt, "seed": seed}
+        body = self._body(None, D, seed, prompt=prompt, grammar=grammar, temperature=temperature)
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None, prompt_chars=len(prompt),
                         prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, finish_reason="stop")
 
@@ -54,6 +55,28 @@ class EchoOptimizer:
         else:
             best = np.zeros(D)
         return best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
+
+    def _body(self, messages: list[dict[str, str]] | None, D: int, seed: int | None, *, prompt: str | None = None,
+              grammar: str | None = None, temperature: float | None = None) -> dict[str, Any]:
+        """The body the real client would send to the embedded model (so the audit reads a real one):
+        a chat body for ``messages``, a completions body for a document ``prompt``."""
+        if self.config is None:
+            if prompt is not None:
+                return {"model": "echo-optimizer", "prompt": prompt, "seed": seed}
+            return {"model": "echo-optimizer", "messages": messages, "seed": seed}
+        from ..llm.client import ChatClient
+        from ..llm.embedded import MODEL_ALIAS
+
+        llm = self.config.llm
+        client = ChatClient(llm, base_url="http://127.0.0.1:9/v1", model=llm.model if llm.base_url else MODEL_ALIAS,
+                            api_key="not-needed", grammar_ok=llm.base_url is None)
+        try:
+            if prompt is not None:
+                return client.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+            assert messages is not None
+            return client.body(messages, D=D, seed=seed)
+        finally:
+            client.close()
 
     def count_tokens(self, text: str) -> int:
         return len(text) // 4
@@ -67,5 +90,5 @@ def offline_llm(spread: float = 0.5) -> Iterator[None]:
     """Within the block, every run started by ``ppprops.runner`` talks to an ``EchoOptimizer``."""
     from ..runner import use_chat
 
-    with use_chat(lambda config: EchoOptimizer(spread=spread)):
+    with use_chat(lambda config: EchoOptimizer(config, spread=spread)):
         yield

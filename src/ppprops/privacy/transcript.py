@@ -22,13 +22,24 @@ class Request:
     seed: int | None
     entries: tuple[ShownEntry, ...]
     form: str = "chat"  # chat (messages) or document (a completions prompt, wire.document)
+    answer: str | None = None  # the provider's own answer to it (it knows what it said)
+    body: str = ""  # the request body as sent
 
     @property
     def where(self) -> str:
         return f"call {self.call_id} (iteration {self.iteration}, attempt {self.attempt})"
 
 
-def parse_request(call_id: int, iteration: int, attempt: int, body: str) -> Request:
+def message_text(content: object) -> str:
+    """A message's text: a string, or the text of every part of a list of parts, joined."""
+    if isinstance(content, str):
+        return content
+    if isinstance(content, list):
+        return "\n\n".join(str(p.get("text", "")) if isinstance(p, dict) else str(p) for p in content)
+    return "" if content is None else str(content)
+
+
+def parse_request(call_id: int, iteration: int, attempt: int, body: str, answer: str | None = None) -> Request:
     """A chat body (its ``messages``) or a completions body (its ``prompt``, the document form)."""
     form = None
     try:
@@ -37,13 +48,13 @@ def parse_request(call_id: int, iteration: int, attempt: int, body: str) -> Requ
             text, form = doc["prompt"], "document"
         else:
             messages = doc.get("messages", [])
-            text = "\n\n".join(str(m.get("content", "")) for m in messages if m.get("role") != "assistant")
+            text = "\n\n".join(message_text(m.get("content")) for m in messages if m.get("role") != "assistant")
             form = "chat"
         seed = doc.get("seed")
     except (json.JSONDecodeError, AttributeError, TypeError):
         text, seed = body, None  # not JSON: audit the bytes as text, reading entries of any form
     return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None,
-                   tuple(history_entries(text, form)), form or "chat")
+                   tuple(history_entries(text, form)), form or "chat", answer, body)
 
 
 def load_requests(run_dir: Path) -> list[Request]:
@@ -55,4 +66,5 @@ def load_requests(run_dir: Path) -> list[Request]:
         calls = store.llm_calls()
     finally:
         store.close()
-    return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"])) for c in calls]
+    return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"))
+            for c in calls]

@@ -144,7 +144,7 @@ class LLMProposer:
         grammar = self.grammar() if self.form == "document" else None
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
-            seed = seeding.llm_seed(self.seed, iteration, attempt)
+            seed = self.codec.sampling_seed(self.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
                 if self.form == "document":  # a retry asks the same document again, with the next seed
                     ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar,
@@ -211,12 +211,24 @@ class LLMProposer:
                 self.on_exchange(iteration, attempt, t, None)
 
     def _fallback(self, iteration: int, reason: str) -> Proposal:
+        """The best policy so far plus Gaussian noise drawn in the encoded space the provider sees,
+        with a public width (5% of the box width), then decoded and clipped: the shown spread of
+        fallbacks is the same whatever the secrets (drawn in raw space, it would state each a_j).
+        With no best yet, a warm-up-like draw (the encoded warm-up box when the warm-up is encoded)."""
         lo, hi = self.box
         rng = seeding.rng(self.seed, seeding.FALLBACK, iteration)
-        if self.best is None:  # every candidate so far had a numerical fault: sample the box
+        if self.best is None:  # every candidate so far had a numerical fault: sample like the warm-up
+            if self.ctx.warmup_range is not None:
+                wlo, whi = self.ctx.warmup_range
+                with np.errstate(over="ignore"):
+                    theta = self.codec.decode(rng.uniform(wlo, whi, size=self.D))
+                theta, clipped = clip_to_box(theta, self.box)
+                return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
             return Proposal(theta=rng.uniform(lo, hi, size=self.D), source="fallback", note=f"after {reason}")
         noise = rng.normal(0.0, FALLBACK_SIGMA * (hi - lo), size=self.D)
-        theta, clipped = clip_to_box(self.best.params + noise, self.box)
+        with np.errstate(over="ignore"):
+            theta = self.codec.decode(self.best.params_enc + noise)
+        theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
 
 

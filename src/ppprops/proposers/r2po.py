@@ -9,16 +9,23 @@ two-stage iterations and 50 LLM calls, as in the paper.
 
 Before each call the prompt's size is checked against the model's context window; a prompt
 that would not fit stops the run (``StopSearch``), which then reports the best policy found.
+The size is estimated locally, never by sending the prompt anywhere: from the tokens-per-character
+ratio of the server's own usage counts of earlier answers (with a 5% margin), and before the first
+answer by ``count_tokens`` (the runner's conservative estimate).
+
+Privacy: the critic is shown raw states and actions, so R2PO runs without any privacy mechanism
+(``methods.check_method`` refuses them; docs/threat-model.md says why encoding them would not hold).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
 
 from ..client.codec import Codec
-from ..llm.client import Chat
+from ..llm.client import Chat, Exchange
 from ..loop import StopSearch
 from ..store import Candidate
 from ..wire import PromptContext
@@ -30,6 +37,7 @@ Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...],
 CountTokens = Callable[[str], int]
 
 SEARCH, CRITIC = "r2po-search", "r2po-critic"
+TEMPLATE_MARGIN = 32  # tokens a chat template adds around the messages
 
 
 class _Critic(LLMProposer):
@@ -59,7 +67,10 @@ class R2POProposer:
         parse_retries: int = 2,
         on_exchange: ExchangeHook | None = None,
     ) -> None:
-        common = dict(chat=chat, codec=codec, context=context, box=box, seed=seed, parse_retries=parse_retries, on_exchange=on_exchange)
+        self._ratio: float | None = None  # prompt tokens per character, from the usage counts so far
+        self._on_exchange = on_exchange
+        common = dict(chat=chat, codec=codec, context=context, box=box, seed=seed, parse_retries=parse_retries,
+                      on_exchange=self._observe)
         self.search = LLMProposer(top_k=top_k, **common)  # type: ignore[arg-type]
         self.critic = _Critic(top_k=top_k, **common)  # type: ignore[arg-type]
         self.rollout = rollout
@@ -72,8 +83,20 @@ class R2POProposer:
     def last_latency(self) -> float | None:
         return self.critic.last_latency or self.search.last_latency
 
+    def _observe(self, iteration: int, attempt: int, ex: Exchange, error: str | None) -> None:
+        if ex.prompt_tokens and ex.prompt_chars:
+            self._ratio = max(self._ratio or 0.0, ex.prompt_tokens / ex.prompt_chars)
+        if self._on_exchange is not None:
+            self._on_exchange(iteration, attempt, ex, error)
+
+    def prompt_tokens(self, prompt: str) -> int:
+        """Tokens the prompt will take: measured ratio x characters (+5%), else the conservative estimate."""
+        if self._ratio is not None:
+            return math.ceil(len(prompt) * self._ratio * 1.05) + TEMPLATE_MARGIN
+        return self.count_tokens(prompt)
+
     def _check_fits(self, prompt: str, iteration: int) -> None:
-        need = self.count_tokens(prompt) + self.max_tokens
+        need = self.prompt_tokens(prompt) + self.max_tokens
         if need > self.context_window:
             raise StopSearch(
                 f"context overflow at LLM call {iteration}: the prompt needs about {need} tokens"

@@ -23,6 +23,10 @@ def _render(name: str, **values: object) -> str:
 
 
 def task_section(ctx: PromptContext) -> str:
+    """The task description (ProPS+), or with ``describe_task`` off only the policy's structure (ProPS)."""
+    action_rule = _render("action_discrete" if ctx.discrete else "action_continuous")
+    if not ctx.describe_task:
+        return _render("task_withheld", n_s=ctx.n_s, n_a=ctx.n_a, action_rule=action_rule)
     obs = "\n".join(f"- s[{i}] {name}: {meaning}" for i, (name, meaning) in enumerate(ctx.observations))
     acts = "\n".join(f"- u[{j}]: {meaning}" for j, meaning in enumerate(ctx.actions))
     return _render(
@@ -32,7 +36,7 @@ def task_section(ctx: PromptContext) -> str:
         n_a=ctx.n_a,
         observations=obs,
         actions=acts,
-        action_rule=_render("action_discrete" if ctx.discrete else "action_continuous"),
+        action_rule=action_rule,
         reward_text=ctx.reward_text,
         hints=ctx.hints,
     ).rstrip()

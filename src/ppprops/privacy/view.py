@@ -1,0 +1,84 @@
+"""The provider's view of a run: the distinct history entries it was shown, and what an attack returns."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .knowledge import PublicFacts, facts_for
+from .tokens import token_value
+from .transcript import Request
+
+
+@dataclass(frozen=True)
+class Shown:
+    """One distinct history entry as the provider saw it."""
+
+    params: np.ndarray
+    tols: np.ndarray
+    ret: float
+    ret_tol: float
+    diagnostics: dict[str, str]
+    first_call: int
+    components: tuple[tuple[str, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class View:
+    """Everything an attack may use: the transcript and public facts."""
+
+    requests: tuple[Request, ...]
+    entries: tuple[Shown, ...]
+    warmup: tuple[Shown, ...]  # the entries of the first request: the warm-up, as Algorithm 1 starts
+    facts: PublicFacts
+    box: tuple[float, float]
+    D: int
+    memo: dict[str, object] = field(default_factory=dict, compare=False, hash=False)  # results attacks share
+
+
+@dataclass(frozen=True)
+class Estimate:
+    attack: str
+    target: str  # "c" or "a"
+    value: float | np.ndarray | None  # None: the attack found nothing; a: NaN where not estimated
+    detail: str = ""
+    extras: dict[str, float] = field(default_factory=dict)  # other secrets it estimated (s, p)
+
+    @property
+    def applicable(self) -> bool:
+        if self.value is None:
+            return False
+        return bool(np.any(np.isfinite(np.atleast_1d(self.value))))
+
+
+def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) -> View:
+    seen: dict[tuple[tuple[str, ...], str], Shown] = {}
+    first: list[Shown] = []
+    D = 0
+    for k, r in enumerate(requests):
+        for e in r.entries:
+            parsed = [token_value(t) for t in e.params]
+            ret = token_value(e.ret)
+            if ret is None or any(p is None for p in parsed) or not parsed:
+                continue
+            D = max(D, len(parsed))
+            key = (e.params, e.ret)
+            if key not in seen:
+                seen[key] = Shown(np.array([p[0] for p in parsed if p]), np.array([p[1] for p in parsed if p]),
+                                  ret[0], ret[1], dict(e.diagnostics), k, tuple(e.components))
+            if k == 0:
+                first.append(seen[key])
+    entries = tuple(s for s in seen.values() if len(s.params) == D)
+    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(task), box, D)
+
+
+
+def same_marker(printed: str | None, marker: str) -> bool:
+    if printed is None:
+        return False
+    if printed == marker:
+        return True
+    a, b = token_value(printed), token_value(marker)
+    return a is not None and b is not None and a[0] == b[0]
