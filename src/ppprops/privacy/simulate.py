@@ -58,25 +58,19 @@ class EchoOptimizer:
 
     def _body(self, messages: list[dict[str, str]] | None, D: int, seed: int | None, *, prompt: str | None = None,
               grammar: str | None = None, temperature: float | None = None) -> dict[str, Any]:
-        """The body the real client would send to the embedded model (so the audit reads a real one):
+        """The body a fresh client of the run's endpoint would send (so the audit reads a real one):
         a chat body for ``messages``, a completions body for a document ``prompt``."""
         if self.config is None:
             if prompt is not None:
                 return {"model": "echo-optimizer", "prompt": prompt, "seed": seed}
             return {"model": "echo-optimizer", "messages": messages, "seed": seed}
-        from ..llm.client import ChatClient
-        from ..llm.embedded import MODEL_ALIAS
+        from ..llm.client import RequestShape
 
-        llm = self.config.llm
-        client = ChatClient(llm, base_url="http://127.0.0.1:9/v1", model=llm.model if llm.base_url else MODEL_ALIAS,
-                            api_key="not-needed", grammar_ok=llm.base_url is None)
-        try:
-            if prompt is not None:
-                return client.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
-            assert messages is not None
-            return client.body(messages, D=D, seed=seed)
-        finally:
-            client.close()
+        shape = RequestShape.for_config(self.config.llm)
+        if prompt is not None:
+            return shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+        assert messages is not None
+        return shape.body(messages, D=D, seed=seed)
 
     def count_tokens(self, text: str) -> int:
         return len(text) // 4

@@ -12,6 +12,8 @@ from .encoded import EncodedEntry, PromptContext
 from .history import top_k
 from .parse import ParseResult, parse_answer, read_continuation
 from .prompt import build_correction, build_prompt
+from .turns import correction_messages, judge_answer, judge_continuation, prompt_messages
 
 __all__ = ["EncodedEntry", "ParseResult", "PromptContext", "build_correction", "build_document", "build_prompt",
-           "continuation_grammar", "document_target", "parse_answer", "read_continuation", "top_k"]
+           "continuation_grammar", "correction_messages", "document_target", "judge_answer", "judge_continuation",
+           "parse_answer", "prompt_messages", "read_continuation", "top_k"]
