@@ -50,12 +50,26 @@ class Section:
 class Context:
     out: Path  # working directory for runs; kept so every figure can be traced to a store
     quick: bool = False  # tiny budgets: checks the suite end to end, figures mean nothing
+    keep: bool = False  # reuse a grid already recorded under ``out`` (resume it) instead of starting afresh
+    collect: bool = False  # with keep: start nothing, report the runs the grid has finished (it may run elsewhere)
     cache: dict[str, Any] = field(default_factory=dict)  # runs one benchmark leaves for another
 
     def dir(self, name: str) -> Path:
         d = self.out / name
         d.mkdir(parents=True, exist_ok=True)
         return d
+
+
+def commit() -> str:
+    """The short git commit of the code measured, ``+changes`` when the work tree differs from it ("" outside git)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return head + ("+changes" if head and dirty else "")
 
 
 def machine() -> str:
@@ -74,14 +88,10 @@ def machine() -> str:
         mem = f", {kb / 2**20:.0f} GiB RAM"
     except (OSError, IndexError, ValueError):
         pass
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                                timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
+    code = commit()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (f"{cpu}, {os.cpu_count()} logical CPUs{mem}, {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, ppprops {__version__}{f' ({commit})' if commit else ''}, "
+            f"Python {platform.python_version()}, ppprops {__version__}{f' ({code})' if code else ''}, "
             f"load average at start {load:.2f}")
 
 

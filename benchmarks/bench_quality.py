@@ -7,6 +7,11 @@ uses the embedded model's default, the document form (``wire.document``). The sa
 in the paper's chat form on CartPole, for benchmark 1's "no loss in search results". The figure
 of merit is the final evaluation: the mean return over 20 fresh episodes of the policy with the
 best single-episode return of the search. Every pp run is also audited (``ppprops audit``).
+
+With ``run_all.py --keep`` a grid already recorded under ``--out`` is reused: ``ppprops
+experiment`` skips its finished runs and resumes the rest. With ``--keep --collect`` nothing is
+started: only the runs the grid has finished are reported (for a grid still running in another
+process), and every row says how many seeds it holds.
 """
 
 from __future__ import annotations
@@ -55,17 +60,25 @@ def median_of(values: list[float]) -> str:
 
 def run(ctx: Context) -> Section:
     out = ctx.out / "quality"
-    if out.exists():
+    reused = ctx.keep and (out / "grid.json").exists()
+    if out.exists() and not ctx.keep:
         shutil.rmtree(out)
+    if ctx.collect and not reused:
+        raise SystemExit(f"--collect reports a recorded grid, and {out} holds none (run with --keep, or without both)")
     cmd = [sys.executable, "-m", "ppprops", "experiment", str(SPEC), "--out", str(out), "--quiet"]
     if ctx.quick:
         cmd += ["--seeds", "2", "--warmup", "3", "--iterations", "2", "--final-episodes", "2"]
-    subprocess.run(cmd, check=True)
+    if not ctx.collect:
+        subprocess.run(cmd, check=True)
     results: dict[tuple[str, str], dict[str, list[Any]]] = defaultdict(lambda: {"best": [], "final": [], "llm": [], "seeds": []})
     dirs: dict[tuple[str, str, int], Path] = {}
-    audits = {"runs": 0, "clean": 0, "not_clean": []}
+    audits: dict[str, Any] = {"runs": 0, "clean": 0, "not_clean": [], "verdicts": defaultdict(int)}
+    unfinished = []
     for run_dir in sorted(p.parent for p in out.glob("runs/*/run.sqlite")):
         s = run_summary(run_dir)
+        if s["status"] != "finished" or not s.get("final_eval"):
+            unfinished.append(run_dir.name)  # still running (or stopped): no final evaluation to report
+            continue
         arm = s["method"] + ("-chat" if s["config"].get("prompt_form") == "chat" else "")
         r = results[(s["env"], arm)]
         r["best"].append(s["best"]["return"])
@@ -76,7 +89,8 @@ def run(ctx: Context) -> Section:
             report = audit_run(run_dir)
             audits["runs"] += 1
             audits["clean"] += int(report.clean)
-            if not report.clean:
+            audits["verdicts"][report.verdict().split(":")[0]] += 1
+            if report.leaks or report.unverified:
                 audits["not_clean"].append(f"{run_dir.name}: {report.verdict()}")
         dirs[(s["env"], arm, s["seed"])] = run_dir
     ctx.cache["cache_cartpole_run"] = dirs.get(("CartPole", "pp-chat", 0))
@@ -90,9 +104,17 @@ def run(ctx: Context) -> Section:
                 continue
             data[f"{task}/{arm}"] = r
             rows.append([task, label, len(r["final"]), mean_std(r["final"]), median_of(r["final"]), mean_std(r["best"])])
-    body = [f"{sum(len(r['final']) for r in results.values())} runs from `ppprops experiment benchmarks/quality.toml` "
-            "(2 jobs, one llama.cpp thread each); final evaluation: mean (std) and median over seeds of the mean return of "
-            "20 fresh episodes of each run's best policy:", "",
+    n_runs = sum(len(r["final"]) for r in results.values())
+    if not reused:
+        source = f"{n_runs} runs from `ppprops experiment benchmarks/quality.toml`"
+    elif ctx.collect:
+        source = (f"{n_runs} finished runs of the grid recorded under `{out}` (reused as recorded, nothing started: "
+                  f"{len(unfinished)} unfinished run(s) left out{', and runs not started yet are missing' if unfinished else ''}; "
+                  "the seeds column says how many each row holds)")
+    else:
+        source = f"{n_runs} runs of the grid recorded under `{out}` (reused: finished runs kept, the rest resumed)"
+    body = [f"{source} (2 jobs, one llama.cpp thread each); final evaluation: mean (std) and median over seeds of the mean "
+            "return of 20 fresh episodes of each run's best policy:", "",
             table(["task", "method", "seeds", "final-evaluation return", "median", "best return in the search"], rows), ""]
     for task in TARGET_TASKS:
         pp, rnd, cma = (results.get((task, a)) for a in ("pp", "random", "cmaes"))
@@ -101,16 +123,19 @@ def run(ctx: Context) -> Section:
         m = statistics.fmean
         met = (m(pp["final"]) > m(rnd["final"]) and statistics.median(pp["final"]) > statistics.median(rnd["final"])
                and m(pp["final"]) >= m(cma["final"]))
+        seeds = f" ({len(pp['final'])}/{len(rnd['final'])}/{len(cma['final'])} seeds)"
         targets.append((f"{task}: PP-ProPS above random (mean and median) and at least CMA-ES (mean), final-evaluation return",
                         f"mean {m(pp['final']):.1f} vs {m(rnd['final']):.1f} vs {m(cma['final']):.1f}; median "
-                        f"{statistics.median(pp['final']):.1f} vs {statistics.median(rnd['final']):.1f}", met))
+                        f"{statistics.median(pp['final']):.1f} vs {statistics.median(rnd['final']):.1f}"
+                        + (seeds if ctx.collect else ""), met))
         body.append(f"- {task}: PP-ProPS mean {m(pp['final']):.1f}, median {statistics.median(pp['final']):.1f}; random search "
                     f"mean {m(rnd['final']):.1f}, median {statistics.median(rnd['final']):.1f}; CMA-ES mean {m(cma['final']):.1f}. "
                     f"Target {'met' if met else 'NOT met'}.")
     ant = [results.get(("Ant-Ultra", a)) for a, _ in ARMS]
     if all(ant):
         targets.append(("Ant-Ultra (D=88), 3 seeds: PP-ProPS vs random vs CMA-ES, final-evaluation return",
-                        " vs ".join(mean_std(r["final"]) for r in ant if r), None))
+                        " vs ".join(mean_std(r["final"]) for r in ant if r)
+                        + (f" ({'/'.join(str(len(r['final'])) for r in ant if r)} seeds)" if ctx.collect else ""), None))
     # what the LLM did and where its time went
     use_rows = []
     for task in TASKS:
@@ -136,9 +161,17 @@ def run(ctx: Context) -> Section:
                                        median_of(doc["final"])],
                                       ["chat (the paper's prompt, list form)", mean_std(chat["best"]), mean_std(chat["final"]),
                                        median_of(chat["final"])]]
+    audits["verdicts"] = dict(audits["verdicts"])
     data["audits"] = audits
-    body += ["", f"- `ppprops audit`: {audits['clean']} of {audits['runs']} pp runs clean."
-             + ("" if not audits["not_clean"] else " Not clean: " + "; ".join(audits["not_clean"]))]
-    targets.append(("`ppprops audit` clean on every pp run of the benchmark", f"{audits['clean']} of {audits['runs']}",
-                    audits["clean"] == audits["runs"]))
+    data["unfinished"] = unfinished
+    verdicts = ", ".join(f"{v} {n}" for v, n in sorted(audits["verdicts"].items()))
+    sent_ok = audits["runs"] - len(audits["not_clean"])
+    body += ["", f"- `ppprops audit` on the {audits['runs']} pp runs: {verdicts or 'none'}. "
+             f"{sent_ok} of {audits['runs']} sent no raw value and nothing the audit cannot account for"
+             + ("." if not audits["not_clean"] else "; not: " + "; ".join(audits["not_clean"]))
+             + (" EXPOSED is the verdict on the channels the paper's scheme keeps under `pp` (integer-return lattice, "
+                "diagnostics, caps, small run seeds; docs/threat-model.md), which only `pp-hardened` closes; the prompt form "
+                "changes none of them." if audits["verdicts"].get("EXPOSED") else "")]
+    targets.append(("`ppprops audit` on every pp run: no raw value sent, nothing unaccounted for (LEAK/UNVERIFIED)",
+                    f"{sent_ok} of {audits['runs']} ({verdicts or 'no runs'})", sent_ok == audits["runs"] and audits["runs"] > 0))
     return Section("quality", "6. Search quality at an equal budget", "\n".join(body), data, targets=targets)

@@ -22,6 +22,7 @@ from ppprops.llm.embedded import default_threads
 from ppprops.store import open_store
 
 TARGET_S = 180.0  # issue 14: at most 3 minutes on 2 idle cores
+IDLE_LOAD = 0.5  # 1-minute load average below which the cores count as idle
 COMMAND = ["ppprops", "run", "--env", "CartPole", "--method", "pp"]
 
 
@@ -54,6 +55,9 @@ def run(ctx: Context) -> Section:
     data = {"wall_s": wall, "llm_s": llm_s, "prefill_s": prefill_s, "decode_s": decode_s, "cached_tokens": cached,
             "processed_tokens": processed, "episodes_s": episodes_s, "rest_s": rest, "requests": len(calls),
             "load_at_start": load, "threads": threads, "met": wall <= TARGET_S}
+    idle = load <= IDLE_LOAD
+    # the target is for idle cores: a run slower than it on busy cores neither meets nor misses it
+    verdict: bool | None = True if data["met"] else (False if idle else None)
     share = (lambda x: f"{100 * x / wall:.0f}%") if wall else (lambda x: "-")
     rows = [["LLM round trips", len(calls), f"{llm_s:.1f}", share(llm_s)],
             ["  of which prefill (llama.cpp)", "", f"{prefill_s:.1f}", share(prefill_s)],
@@ -64,15 +68,15 @@ def run(ctx: Context) -> Section:
     body = [f"`{' '.join(COMMAND)}`{' (quick: ' + ' '.join(extra) + ')' if extra else ''} in a fresh process; load average "
             f"{load:.2f} at its start on {os.cpu_count()} logical CPUs, so the embedded server chose {threads} thread(s):", "",
             table(["part", "count", "seconds", "share of the wall time"], rows), "",
-            f"- Wall time **{wall / 60:.0f} min {wall % 60:.0f} s** (target at most 3 min on 2 idle cores: "
-            f"{'met' if data['met'] else 'NOT met'}); {len(calls)} requests, mean {llm_s / max(1, len(calls)):.2f} s; "
+            f"- Wall time **{int(wall // 60)} min {wall % 60:.0f} s** (target at most 3 min on 2 idle cores: "
+            f"{'met' if data['met'] else ('NOT met' if idle else 'no verdict: the cores were busy')}); {len(calls)} requests, mean {llm_s / max(1, len(calls)):.2f} s; "
             f"{100 * cached / max(1.0, cached + processed):.0f}% of the prompt tokens came from llama.cpp's cache "
             f"({cached:,.0f} of {cached + processed:,.0f})."]
-    if load > 0.5:
+    if not idle:
         body.append(f"- The cores were not idle (load average {load:.2f}): other processes shared them, which slows every "
                     "llama.cpp step; the figure is an upper bound of the idle one.")
     targets = [("README first command (CartPole, pp, 60 evaluations + 20 final episodes) <= 3 min on 2 idle cores",
-                f"{wall / 60:.0f} min {wall % 60:.0f} s at load {load:.1f}; LLM {share(llm_s)} (prefill {share(prefill_s)}, "
+                f"{int(wall // 60)} min {wall % 60:.0f} s at load {load:.1f}; LLM {share(llm_s)} (prefill {share(prefill_s)}, "
                 f"decoding {share(decode_s)}), {100 * cached / max(1.0, cached + processed):.0f}% of prompt tokens cached",
-                data["met"])]
+                verdict)]
     return Section("readme", "7. The README's first command", "\n".join(body), data, targets=targets)
