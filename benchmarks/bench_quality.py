@@ -157,10 +157,10 @@ def run(ctx: Context) -> Section:
                    use_rows)]
     chat, doc = results.get(("CartPole", "pp-chat")), results.get(("CartPole", "pp"))
     if chat and doc:
-        ctx.cache["quality_forms"] = [["document (default for the embedded model)", mean_std(doc["best"]), mean_std(doc["final"]),
-                                       median_of(doc["final"])],
-                                      ["chat (the paper's prompt, list form)", mean_std(chat["best"]), mean_std(chat["final"]),
-                                       median_of(chat["final"])]]
+        ctx.cache["quality_forms"] = [["document (default for the embedded model)", len(doc["final"]), mean_std(doc["best"]),
+                                       mean_std(doc["final"]), median_of(doc["final"])],
+                                      ["chat (the paper's prompt, list form)", len(chat["final"]), mean_std(chat["best"]),
+                                       mean_std(chat["final"]), median_of(chat["final"])]]
     audits["verdicts"] = dict(audits["verdicts"])
     data["audits"] = audits
     data["unfinished"] = unfinished

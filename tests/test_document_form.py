@@ -240,3 +240,63 @@ def test_audit_flags_a_raw_return_or_a_wrong_target_in_a_document(run_dir: Path,
     report = audit_run(copy)
     assert not report.clean
     assert kind in {f.kind for f in report.leaks + report.unverified}
+
+
+# -- the audit of document-form requests, offline (no model): fields replayed, tampering found ---------------
+def _offline_document_run(root: Path, name: str = "off", **kw: object) -> Path:
+    from ppprops.privacy.simulate import offline_llm
+
+    out = root / name
+    with offline_llm():
+        start(replace(_config(), iterations=4, final_episodes=0, seed=123456789, **kw), out)
+    return out
+
+
+def _rewrite_last(run_dir: Path, change: dict[str, object]) -> None:
+    import sqlite3
+
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    call_id, request = db.execute("SELECT id, request FROM llm_calls ORDER BY id DESC LIMIT 1").fetchone()
+    body = json.loads(request)
+    body.update(change)
+    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call_id))
+    db.commit()
+    db.close()
+
+
+def test_offline_document_run_is_accounted_for_byte_by_byte(tmp_path: Path) -> None:
+    run_dir = _offline_document_run(tmp_path)
+    store = open_store(run_dir)
+    try:
+        bodies = [json.loads(c["request"]) for c in store.llm_calls()]
+    finally:
+        store.close()
+    assert bodies and all("prompt" in b and "messages" not in b and "grammar" in b for b in bodies)
+    assert [b["temperature"] for b in bodies] == [document_temperature(i, 0) for i in range(len(bodies))]
+    report = audit_run(run_dir)
+    assert not report.leaks and not report.unverified, report.format()
+    assert report.requests == len(bodies)
+
+
+@pytest.mark.parametrize("field,value,why", [
+    ("temperature", 0.7, "field temperature differs"),  # not the form's temperature for iteration 3
+    ("grammar", 'root ::= "0:1"', "field grammar differs"),  # not the grammar of the history shown
+    ("response_format", {"type": "json_object"}, "field response_format, which the client does not send"),
+    ("user", "x", "field user, which the client never sends"),
+])
+def test_a_document_request_the_client_would_not_send_is_unverified(tmp_path: Path, field: str, value: object, why: str) -> None:
+    run_dir = _offline_document_run(tmp_path)
+    _rewrite_last(run_dir, {field: value})
+    report = audit_run(run_dir)
+    assert any(why in f.detail for f in report.unverified), report.format()
+
+
+def test_a_raw_return_planted_in_a_document_field_is_a_leak(tmp_path: Path) -> None:
+    run_dir = _offline_document_run(tmp_path)
+    store = open_store(run_dir)
+    try:
+        raw = max(c.ret for c in store.candidates())
+    finally:
+        store.close()
+    _rewrite_last(run_dir, {"user": f"best {raw:.4f}"})
+    assert "raw_return" in {f.kind for f in audit_run(run_dir).leaks}
