@@ -295,7 +295,7 @@ def test_a_raw_return_planted_in_a_document_field_is_a_leak(tmp_path: Path) -> N
     run_dir = _offline_document_run(tmp_path)
     store = open_store(run_dir)
     try:
-        raw = max(c.ret for c in store.candidates())
+        raw = min(c.ret for c in store.candidates() if c.ret != 500.0)  # not the optimum (that finding has its own kind)
     finally:
         store.close()
     _rewrite_last(run_dir, {"user": f"best {raw:.4f}"})
