@@ -136,14 +136,15 @@ def search(
     encoded_warmup: bool | None = None,
     describe_task: bool | None = None,
     prompt_params: str = "list",
-    param_digits: int = 3,
+    param_digits: int | None = None,
     prompt_layout: str = "static-first",
+    prompt_form: str = "auto",
     parse_retries: int = 2,
     on_llm_failure: str = "stop",
     base_url: str | None = None,
     model: str | None = None,
     api_key_env: str | None = None,
-    temperature: float = 1.0,
+    temperature: float | None = None,
     max_tokens: int | None = None,
     timeout: float = 300.0,
     reasoning_effort: str | None = None,
@@ -193,14 +194,18 @@ def search(
         encoded_warmup: hardening switch (docs/threat-model.md); None keeps the preset's.
         describe_task: the task description in the prompt (ProPS+ on, ProPS off); None keeps on.
         prompt_params: history parameters as one ``list`` or ProPS ``indexed`` pairs.
-        param_digits: significant digits of each listed parameter (0: fixed decimals).
+        param_digits: significant digits of each listed parameter (0: fixed decimals; None: the
+            form's default, 3 in the chat form, 2 in the document form).
         prompt_layout: ``static-first`` (fixed sections first) or ``history-first``.
+        prompt_form: ``auto`` (the document form for the embedded model, the paper's chat prompt
+            otherwise), ``chat`` or ``document`` (a completions-endpoint document the model continues).
         parse_retries: corrections asked for before a fallback candidate.
         on_llm_failure: ``stop`` (resumable) or ``skip`` (fallback candidate) when the endpoint stays down.
         base_url: OpenAI-compatible API root (default: the embedded model).
         model: the model name at ``base_url``.
         api_key_env: the environment variable holding the API key (never stored).
-        temperature: sampling temperature, 0 to 2.
+        temperature: sampling temperature, 0 to 2 (None: 1.0 for the chat form; the document form
+            alternates 0.6 and 1.0).
         max_tokens: answer budget in tokens (default: room for D numbers, and for reasoning).
         timeout: seconds per request.
         reasoning_effort: ``none``, ``minimal``, ``low``, ``medium`` or ``high`` (reasoning models).
@@ -209,7 +214,9 @@ def search(
         retries: retries of one request after a transient fault.
         chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
             a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
-            keeps it (it is not closed). Its exchanges are recorded like an endpoint's.
+            keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With
+            ``complete_document(prompt, *, D, seed, grammar)`` too it gets the document form under
+            ``prompt_form="auto"``; without, the chat form.
         progress: show a progress bar on stderr.
 
     Returns:
@@ -235,7 +242,7 @@ def search(
     values: dict[str, Any] = dict(
         method=method, warmup=warmup, iterations=iterations, top_k=top_k, final_episodes=final_episodes, seed=seed,
         box=tuple(box), decimals=decimals, workers=workers, prompt_params=prompt_params, param_digits=param_digits,
-        prompt_layout=prompt_layout, parse_retries=parse_retries, on_llm_failure=on_llm_failure, base_url=base_url, model=model,
+        prompt_layout=prompt_layout, prompt_form=prompt_form, parse_retries=parse_retries, on_llm_failure=on_llm_failure, base_url=base_url, model=model,
         api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens, timeout=timeout,
         reasoning_effort=reasoning_effort, structured=structured, context_size=context_size, retries=retries,
         **{k: v for k, v in switches.items() if v is not None},

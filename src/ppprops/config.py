@@ -43,6 +43,11 @@ MAX_DELAY_S = 3600.0
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
+PROMPT_FORMS = ("auto", "chat", "document")  # see RunConfig.form
+# Default significant digits of a parameter per prompt form: the document form's labelled lists need
+# the room (Ant-Ultra's K=10 prompt stays under 8,000 characters) and the small model gains nothing
+# from a third digit; the chat form keeps the list form's 3.
+PARAM_DIGITS = {"chat": 3, "document": 2}
 REASONING_EFFORTS = ("none", "minimal", "low", "medium", "high")
 STRUCTURED = ("auto", "json_schema", "grammar", "none")
 
@@ -260,11 +265,15 @@ class LLMConfig:
     """
 
     base_url: Annotated[str | None, Flag(
-        "OpenAI-compatible API root that /chat/completions is appended to, e.g. http://localhost:11434/v1")] = None
+        "OpenAI-compatible API root that /chat/completions (/completions: document form) is appended to, "
+        "e.g. http://localhost:11434/v1")] = None
     model: Annotated[str | None, Flag("model name at that endpoint (required with --base-url)")] = None
     # the name of the env var holding the key; the key itself is never stored
     api_key_env: Annotated[str | None, Flag("environment variable that holds the API key (never stored)", metavar="VAR")] = None
-    temperature: Annotated[Float, Field(ge=0.0, le=2.0), Flag("sampling temperature, 0 to 2", range_text="[0, 2]")] = 1.0
+    # None: the prompt form's default (1.0 in the chat form; the document form: wire.document.TEMPERATURES)
+    temperature: Annotated[Float | None, Field(ge=0.0, le=2.0), Flag(
+        "sampling temperature, 0 to 2", range_text="[0, 2]",
+        default_text="1.0 for the chat form; the document form alternates 0.6 and 1.0")] = None
     # None: enough for D numbers, plus room for reasoning (ppprops.llm.client.default_max_tokens)
     max_tokens: Annotated[Int | None, Field(ge=1), Flag(
         "answer token budget; reasoning counts against it (default: room for D numbers, plus room for reasoning "
@@ -346,11 +355,17 @@ class RunConfig:
     diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: Annotated[Literal["list", "indexed"], Flag(
         "history parameters as one list (compact) or as ProPS-style params[i]: value pairs")] = "list"
-    param_digits: Annotated[Int, Field(ge=0, le=8), Flag(
-        "list form: significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals",
-        range_text="[0, 8]")] = 3
+    # None: the prompt form's default (PARAM_DIGITS: 3 for chat, 2 for the document form)
+    param_digits: Annotated[Int | None, Field(ge=0, le=8), Flag(
+        "significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals",
+        range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form")] = None
     prompt_layout: Annotated[Literal["static-first", "history-first"], Flag(
         "fixed sections before the history (a server's prefix cache reuses them) or history first")] = "static-first"
+    # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
+    # base model to continue (/completions, wire.document); auto: document for the embedded model, chat otherwise
+    prompt_form: Annotated[Literal["auto", "chat", "document"], Flag(
+        "chat: the paper's instruction prompt; document: the history as a document for a base model to continue "
+        "(completions endpoint); auto: document for the embedded model, chat otherwise")] = "auto"
     # The task's whole declaration (ppprops.tasks.spec.TaskSpec.to_json()): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
@@ -364,7 +379,20 @@ class RunConfig:
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
         get_method(self.method).check(self)  # what this method refuses (e.g. prompt switches for a black box)
+        if self.method == "r2po" and self.prompt_form == "document":
+            raise ConfigError("--prompt-form document does not apply to r2po (its critic is a chat prompt); use auto or chat")
         return self
+
+    def digits(self, form: str | None = None) -> int:
+        """Significant digits of a parameter in the prompt of ``form`` (default: this run's form)."""
+        return self.param_digits if self.param_digits is not None else PARAM_DIGITS[form or self.form]
+
+    @property
+    def form(self) -> str:
+        """The prompt form this run uses: ``chat`` or ``document`` (``auto`` resolved). R2PO always chats."""
+        if self.prompt_form == "auto":
+            return "document" if self.llm.embedded and self.method != "r2po" else "chat"
+        return self.prompt_form
 
     def validate(self) -> None:
         """Check again (construction already did): raises ConfigError naming the flag."""
@@ -391,6 +419,7 @@ class RunConfig:
         for key in ("box", "components", "diagnostics"):
             if key in d:
                 d[key] = tuple(d[key])
+        d.setdefault("prompt_form", "chat")  # runs stored before the document form existed chatted
         try:
             return cls(**d)
         except TypeError as e:  # an unknown key

@@ -33,7 +33,7 @@ from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
 from .evaluation import EpisodeLimitError, Evaluator, WorkerError, check_parallel
 from .fileio import write_json_atomic
-from .llm.client import ChatClient, Exchange
+from .llm.client import ChatClient, Exchange, RequestShape
 from .loop import Phase, best_candidate, run_loop
 from .methods import get_method
 from .policy_file import policy_document
@@ -79,7 +79,9 @@ class ChatModel(Protocol):
 
     ``complete`` sends one prompt (``messages``: OpenAI chat messages) for a vector of ``D`` numbers
     and returns the ``Exchange`` (request and answer text, recorded in the store, so the audit
-    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it.
+    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it. A model
+    that also has ``complete_document(prompt, *, D, seed, grammar)`` (``ChatClient`` does) can be
+    sent the document form; without it, ``--prompt-form auto`` uses the chat form.
     """
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
@@ -194,13 +196,13 @@ def chat_client(config: RunConfig, events: RunEvents = RunEvents()) -> Iterator[
     llm = config.llm
     with ExitStack() as stack:
         if llm.embedded:
-            from .llm.embedded import MODEL_ALIAS, EmbeddedServer
+            from .llm.embedded import EmbeddedServer
 
             events.on_llm_loading()
             t0 = time.monotonic()
             server = stack.enter_context(EmbeddedServer(context_size=llm.context_size))
             events.on_llm_ready(time.monotonic() - t0)
-            client = ChatClient(llm, base_url=server.base_url, model=MODEL_ALIAS, api_key="not-needed", grammar_ok=True)
+            client = ChatClient(llm, base_url=server.base_url, api_key="not-needed", shape=RequestShape.for_config(llm))
         else:
             api_key = "not-needed"
             if llm.api_key_env:
@@ -208,7 +210,7 @@ def chat_client(config: RunConfig, events: RunEvents = RunEvents()) -> Iterator[
                 if not api_key:
                     raise ConfigError(f"--api-key-env names {llm.api_key_env}, but that environment variable is empty or unset")
             assert llm.base_url is not None and llm.model is not None
-            client = ChatClient(llm, base_url=llm.base_url, model=llm.model, api_key=api_key, grammar_ok=False)
+            client = ChatClient(llm, base_url=llm.base_url, api_key=api_key, shape=RequestShape.for_config(llm))
         try:
             yield client
         finally:
@@ -260,6 +262,7 @@ def execute(
                 if config.iterations > 0:
                     chat_fn = None
                     if method.uses_llm:
+                        store.begin_llm_session()  # a fresh client: the audit replays its adaptations from here
                         model = chat
                         if model is None:
                             factory = _CHAT_FACTORY.get()
@@ -373,6 +376,13 @@ class LazyChat:
         client = self._get()
         with self.gate:
             return client.complete(messages, D=D, seed=seed)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """Continue a document-form ``prompt`` (``ChatClient.complete_document``), starting the endpoint on first use."""
+        client = self._get()
+        with self.gate:
+            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
 
     def count_tokens(self, text: str) -> int:
         """A local estimate, nothing sent: one token per two characters (digit-heavy prompts tokenize

@@ -89,11 +89,27 @@ def _llm_common(s: SearchSetup) -> dict[str, Any]:
     )
 
 
+def prompt_form(config: RunConfig, chat: object) -> str:
+    """The form the run's proposer uses: ``config.form``, except that ``auto`` falls back to chat for
+    a chat model that cannot continue documents. ``--prompt-form document`` with such a model is a
+    ConfigError."""
+    form = config.form
+    if form == "document" and not callable(getattr(chat, "complete_document", None)):
+        if config.prompt_form == "document":
+            raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
+                              "grammar); this one has only complete(): use --prompt-form chat or auto")
+        return "chat"
+    return form
+
+
 def props_phase(s: SearchSetup) -> Phase:
-    """ProPS (Algorithm 1): one LLM call per iteration over the top-K history, under the run's mechanisms."""
+    """ProPS (Algorithm 1): one LLM call per iteration over the top-K history, under the run's
+    mechanisms, in the run's prompt form (``prompt_form``: the document form for the embedded model)."""
     from .proposers import LLMProposer
 
-    proposer = LLMProposer(on_llm_failure=s.config.on_llm_failure, **_llm_common(s))
+    common = _llm_common(s)
+    proposer = LLMProposer(on_llm_failure=s.config.on_llm_failure, form=prompt_form(s.config, common["chat"]),
+                           temperature=s.config.llm.temperature, **common)
     return Phase("llm", proposer, s.config.iterations)
 
 

@@ -1,5 +1,9 @@
 """A thin chat-completions client over the official ``openai`` SDK that records every exchange.
 
+It also sends the document form (``wire.document``) to the completions endpoint
+(``complete_document``): same recording, retries and adaptation, fields from the same
+``RequestShape`` (``document_fields``).
+
 Only the request body is recorded (never headers, so never the API key). Every HTTP try is an
 ``Exchange``; ``complete`` returns one usable exchange or raises, so an HTTP error never reaches
 the model as if it were an answer.
@@ -36,6 +40,7 @@ from urllib.parse import urlsplit
 
 from ..config import LLMConfig
 from ..errors import LLMError
+from ..wire.document import document_temperature
 from ..wire.parse import read_answer, split_reasoning
 
 
@@ -83,14 +88,20 @@ class LLMRejected(LLMUnavailable):
 
 
 class Chat(Protocol):
-    """What a proposer needs from a model: one chat completion, recorded.
+    """What a proposer needs from a model: one chat completion, or one continuation of a
+    document (``wire.document``), recorded.
 
-    Returns an ``ok`` exchange or raises ``LLMUnavailable``/``LLMRejected``; callers pass only
-    ``messages``, ``D`` and ``seed``.
+    Both return an ``ok`` exchange or raise ``LLMUnavailable``/``LLMRejected``.
     """
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         """Send ``messages`` (OpenAI chat messages) asking for ``D`` numbers; returns the recorded Exchange."""
+        ...
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """Send ``prompt`` (a document, ``wire.document``) to be continued with ``D`` numbers under
+        ``grammar`` (GBNF, or None) at ``temperature`` (None: the form's default); returns the recorded Exchange."""
         ...
 
 
@@ -117,6 +128,8 @@ def params_grammar(D: int) -> str:
         'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
     )
 
+
+CHAT_TEMPERATURE = 1.0  # the chat form's default sampling temperature (--temperature unset)
 
 # Tokens of reasoning room added to the answer budget: by --reasoning-effort, or when the endpoint
 # reasons without one being set. Reasoning counts against max_tokens on every server we know of.
@@ -177,48 +190,50 @@ _QUOTA = re.compile(r"insufficient_quota|exceeded your current quota|check your 
                     re.IGNORECASE)
 
 
-class ChatClient:
-    """The one recording client: every byte sent to an LLM endpoint goes through ``complete``.
+# Error kinds after which the request may be adapted (a 400 or 422 that names a parameter).
+ADAPTABLE_KINDS = ("bad_request", "http_422")
 
-    An OpenAI-compatible chat-completions client that adapts to the endpoint (dropped parameters,
-    grammar support, reasoning output), retries transient faults with backoff, and returns each
-    request and answer as an ``Exchange`` for the run's store, so the audit sees all of it.
-    ``runner.chat_client(config)`` builds it (and starts the embedded model when asked).
+
+class RequestShape:
+    """Everything a request carries besides its messages, and how that changes as one client
+    session learns its endpoint (module docstring, "Request adaptation"). It starts from the
+    run's ``LLMConfig`` and changes only through ``adapt`` (a refused parameter) and ``learn``
+    (a usable answer): ``ChatClient`` drives it live, and the audit replays it on the recorded
+    exchanges to know what each recorded request must hold (``privacy.reconstruct``).
     """
 
-    def __init__(self, config: LLMConfig, *, base_url: str, model: str, api_key: str, grammar_ok: bool) -> None:
-        from openai import OpenAI
-
+    def __init__(self, config: LLMConfig, *, model: str, grammar_ok: bool) -> None:
         self.config = config
         self.model = model
-        self.base_url = base_url
         self.structured = config.structured
         if self.structured == "auto":
             self.structured = "grammar" if grammar_ok else "json_schema"
-        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
-        self.sleep: Callable[[float], None] = time.sleep
-        self._jitter = random.Random()
         self.dropped: set[str] = set()  # request parameters this endpoint refused
         self.token_param = "max_tokens"  # or max_completion_tokens, when the endpoint asks for it
         self.reasoning_seen = False
-        self.adaptations: list[str] = []
         self._adapted: set[str] = set()
         self._schema_misses = 0
 
-    @property
-    def url(self) -> str:
-        """The URL every request goes to."""
-        return self.base_url.rstrip("/") + "/chat/completions"
+    @classmethod
+    def for_config(cls, config: LLMConfig) -> RequestShape:
+        """The shape a fresh client of ``config``'s endpoint starts with: the embedded server
+        (model alias, grammar accepted) or the configured one (its model, JSON schema)."""
+        if config.embedded:
+            from .embedded import MODEL_ALIAS
+
+            return cls(config, model=MODEL_ALIAS, grammar_ok=True)
+        assert config.model is not None
+        return cls(config, model=config.model, grammar_ok=False)
 
     def max_tokens(self, D: int) -> int:
         """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens``."""
         return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen)
 
-    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
-        """The request body for ``messages`` (a dict in the chat-completions format); what ``complete`` sends."""
-        body: dict[str, Any] = {"model": self.model, "messages": messages}
+    def fields(self, D: int, seed: int | None) -> dict[str, Any]:
+        """The request body's fields other than ``messages``, in the order sent."""
+        body: dict[str, Any] = {"model": self.model}
         if "temperature" not in self.dropped:
-            body["temperature"] = self.config.temperature
+            body["temperature"] = CHAT_TEMPERATURE if self.config.temperature is None else self.config.temperature
         if self.token_param not in self.dropped:
             body[self.token_param] = self.max_tokens(D)
         if seed is not None and "seed" not in self.dropped:
@@ -234,51 +249,39 @@ class ChatClient:
             body["grammar"] = params_grammar(D)
         return body
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """One usable answer (``ok``), after adapting the request and retrying transient faults.
+    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        """The whole chat-completions request body."""
+        fields = self.fields(D, seed)
+        return {"model": fields.pop("model"), "messages": messages, **fields}
 
-        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
-        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
-        """
-        failures: list[Exchange] = []
-        transient = 0
-        retry = 0
-        while True:
-            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
-            if ex.ok:
-                return replace(self._after_answer(ex, D), failures=tuple(failures))
-            if err is not None and ex.error_kind in ("bad_request", "http_422"):
-                change, hint = self._adapt(err)
-                if change is not None:
-                    self.adaptations.append(change)
-                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
-                    retry += 1
-                    continue
-                if hint:
-                    ex = replace(ex, error=f"{ex.error} ({hint})")
-            failures.append(ex)
-            if not _retryable(ex.error_kind):
-                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
-            if transient >= self.config.transport_retries:
-                raise LLMUnavailable(
-                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
-                )
-            self.sleep(self.backoff(transient, retry_after))
-            transient += 1
-            retry += 1
+    def document_fields(self, D: int, seed: int | None, *, grammar: str | None,
+                        temperature: float | None = None) -> dict[str, Any]:
+        """The fields of a completions request (the document form, ``wire.document``) other than
+        ``prompt``, in the order sent. ``grammar`` (GBNF, from ``wire.document.continuation_grammar``)
+        is sent when the endpoint takes llama.cpp grammars (``--structured grammar``, or ``auto``
+        with the embedded model) and has not refused it; there is no JSON answer to constrain, so
+        a JSON schema is never sent, nor ``reasoning_effort``. ``temperature`` (the proposer's,
+        per request: ``wire.document.document_temperature``) wins over ``--temperature``."""
+        body: dict[str, Any] = {"model": self.model}
+        if "temperature" not in self.dropped:
+            body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
+        if self.token_param not in self.dropped:
+            body[self.token_param] = self.max_tokens(D)
+        if seed is not None and "seed" not in self.dropped:
+            body["seed"] = seed
+        if grammar is not None and self.structured == "grammar":
+            body["grammar"] = grammar
+        return body
 
-    def backoff(self, retry: int, retry_after: float | None) -> float:
-        """Seconds to wait before retry ``retry + 1``: Retry-After (capped) if given, else
-        exponential with "equal jitter" (half fixed, half random), so clients do not retry in step."""
-        cfg = self.config
-        if retry_after is not None:
-            return min(max(retry_after, 0.0), cfg.retry_after_cap_s)
-        d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
-        return d / 2 + self._jitter.uniform(0.0, d / 2)
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
+                      temperature: float | None = None) -> dict[str, Any]:
+        """The whole completions request body: the raw document, no chat wrapper."""
+        fields = self.document_fields(D, seed, grammar=grammar, temperature=temperature)
+        return {"model": fields.pop("model"), "prompt": prompt, **fields}
 
-    # -- adapting to the endpoint -------------------------------------------------------------
-    def _adapt(self, err: ServerError) -> tuple[str | None, str | None]:
-        """(the change made, or None; a hint for the error text when no change is possible)."""
+    def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
+        """After a refusal (``ADAPTABLE_KINDS``): (the change made, or None; a hint for the error
+        text when no change is possible)."""
         if not _REFUSES.search(err.message):
             return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
         sent = {"seed", "temperature", self.token_param} - self.dropped  # what the last request carried
@@ -319,39 +322,158 @@ class ChatClient:
         self.dropped.add(param)
         return f"dropped {param}"
 
-    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
-        """Learn from a usable exchange: room for reasoning, and schema answers that keep failing."""
+    def learn(self, content: str | None, reasoning: str | None, *, D: int, finish_reason: str | None = None,
+              reasoning_tokens: int | None = None, document: bool = False) -> list[str]:
+        """After a usable answer: room for reasoning once the endpoint is seen to reason, and
+        (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under
+        it (a ``document`` continuation is never under a JSON schema, so it does not count).
+        Returns the changes made, in words."""
         notes = []
-        saw = bool((ex.reasoning or "").strip()) or bool(ex.reasoning_tokens) or bool(split_reasoning(ex.content).reasoning)
+        saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
             before = self.max_tokens(D)
             self.reasoning_seen = True
             if self.max_tokens(D) != before:
                 notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
-        if self.structured == "json_schema" and self.config.structured == "auto" and ex.finish_reason != "length":
-            usable = read_answer(ex.content, ex.reasoning, D, finish_reason=ex.finish_reason).ok
+        if not document and self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
+            usable = read_answer(content, reasoning, D, finish_reason=finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
                 self.structured = "none"
                 notes.append(f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable")
+        return notes
+
+
+class ChatClient:
+    """The one recording client: every byte sent to an LLM endpoint goes through ``complete`` or
+    ``complete_document``.
+
+    An OpenAI-compatible client (chat completions, and completions for the document form) that
+    adapts to the endpoint (dropped parameters, grammar support, reasoning output), retries
+    transient faults with backoff, and returns each request and answer as an ``Exchange`` for the
+    run's store, so the audit sees all of it. ``shape`` (default: one made from ``model`` and
+    ``grammar_ok``) decides every request field but the messages or the document.
+    ``runner.chat_client(config)`` builds it (and starts the embedded model when asked).
+
+    Raises:
+        TypeError: neither ``model`` nor ``shape`` given.
+    """
+
+    def __init__(self, config: LLMConfig, *, base_url: str, api_key: str, model: str | None = None,
+                 grammar_ok: bool = False, shape: RequestShape | None = None) -> None:
+        from openai import OpenAI
+
+        if shape is None:
+            if model is None:
+                raise TypeError("ChatClient needs a model or a shape")
+            shape = RequestShape(config, model=model, grammar_ok=grammar_ok)
+        self.config = config
+        self.shape = shape
+        self.model = shape.model
+        self.base_url = base_url
+        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
+        self.sleep: Callable[[float], None] = time.sleep
+        self._jitter = random.Random()
+        self.adaptations: list[str] = []
+
+    @property
+    def url(self) -> str:
+        """The URL chat requests go to."""
+        return self.base_url.rstrip("/") + "/chat/completions"
+
+    @property
+    def document_url(self) -> str:
+        """The URL document continuations go to (the completions endpoint)."""
+        return self.base_url.rstrip("/") + "/completions"
+
+    def max_tokens(self, D: int) -> int:
+        """The token budget sent now (``RequestShape.max_tokens``)."""
+        return self.shape.max_tokens(D)
+
+    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        """The request body for ``messages`` (a dict in the chat-completions format); what ``complete`` sends."""
+        return self.shape.body(messages, D=D, seed=seed)
+
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
+                      temperature: float | None = None) -> dict[str, Any]:
+        """A completions request body (``RequestShape.document_body``)."""
+        return self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """One usable answer (``ok``), after adapting the request and retrying transient faults.
+
+        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
+        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
+        """
+        return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
+        the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
+        the continuation text; ``wire.parse.read_continuation`` reads it."""
+        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature), D=D)
+
+    def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
+        failures: list[Exchange] = []
+        transient = 0
+        retry = 0
+        while True:
+            body = build()
+            ex, retry_after, err = self._attempt(body, D=D, retry=retry)
+            if ex.ok:
+                return replace(self._after_answer(ex, D, document="prompt" in body), failures=tuple(failures))
+            if err is not None and ex.error_kind in ADAPTABLE_KINDS:
+                change, hint = self.shape.adapt(err)
+                if change is not None:
+                    self.adaptations.append(change)
+                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
+                    retry += 1
+                    continue
+                if hint:
+                    ex = replace(ex, error=f"{ex.error} ({hint})")
+            failures.append(ex)
+            if not _retryable(ex.error_kind):
+                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
+            if transient >= self.config.transport_retries:
+                raise LLMUnavailable(
+                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
+                )
+            self.sleep(self.backoff(transient, retry_after))
+            transient += 1
+            retry += 1
+
+    def backoff(self, retry: int, retry_after: float | None) -> float:
+        """Seconds to wait before retry ``retry + 1``: Retry-After (capped) if given, else
+        exponential with "equal jitter" (half fixed, half random), so clients do not retry in step."""
+        cfg = self.config
+        if retry_after is not None:
+            return min(max(retry_after, 0.0), cfg.retry_after_cap_s)
+        d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
+        return d / 2 + self._jitter.uniform(0.0, d / 2)
+
+    def _after_answer(self, ex: Exchange, D: int, *, document: bool = False) -> Exchange:
+        """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
+        notes = self.shape.learn(ex.content, ex.reasoning, D=D, finish_reason=ex.finish_reason,
+                                 reasoning_tokens=ex.reasoning_tokens, document=document)
         if not notes:
             return ex
         self.adaptations += notes
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(
-        self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int
-    ) -> tuple[Exchange, float | None, ServerError | None]:
-        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds,
-        what the server said when it refused)."""
+    def _attempt(self, body: dict[str, Any], *, D: int, retry: int) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, never
+        raising for endpoint faults: (exchange, Retry-After seconds, what the server said when it refused)."""
         import openai
 
-        body = self.body(messages, D=D, seed=seed)
+        document = "prompt" in body
+        url = self.document_url if document else self.url
         request = json.dumps(body)
-        prompt_chars = sum(len(m["content"]) for m in messages)
-        sdk_args = {k: v for k, v in body.items() if k in _SDK_ARGS}
-        extra = {k: v for k, v in body.items() if k not in _SDK_ARGS} or None
+        prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
+        known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
+        sdk_args = {k: v for k, v in body.items() if k in known}
+        extra = {k: v for k, v in body.items() if k not in known} or None
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:
@@ -361,20 +483,21 @@ class ChatClient:
         def refused(err: ServerError, response: str | None, shown: int) -> Exchange:
             kind = _kind(err)
             where = f"HTTP {shown}" if shown == err.status else f"HTTP {shown} with an error body (code {err.code})"
-            text = f"{kind}: {where} from {self.url}: {err.message}"
+            text = f"{kind}: {where} from {url}: {err.message}"
             if err.status == 404:
                 text += f"; {_url_hint(self.base_url, self.model)}"
             return failed(kind, text, response)
 
         try:
-            raw = self._client.chat.completions.with_raw_response.create(**sdk_args, extra_body=extra)
+            api = self._client.completions if document else self._client.chat.completions
+            raw = api.with_raw_response.create(**sdk_args, extra_body=extra)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {self.url}"), None, None
+            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
-            return failed(kind, f"{kind}: {_cause(e)} at {self.url}"), None, None
+            return failed(kind, f"{kind}: {_cause(e)} at {url}"), None, None
         except openai.APIStatusError as e:
             err_body = _body_text(e)
             err = server_error(e.status_code, err_body)
@@ -393,23 +516,30 @@ class ChatClient:
         try:
             completion = raw.parse()
             choice = completion.choices[0]
-            message = choice.message
-        except Exception as e:  # a 200 whose body is not a chat completion (no choices, cut, wrong shape)
-            return failed("bad_response", f"bad_response: not a chat completion ({e.__class__.__name__}: {_short(e)})",
+            if document:
+                content, reasoning = choice.text, None
+                if not isinstance(content, str):
+                    raise TypeError("the choice has no text")
+            else:
+                message = choice.message
+                extra_fields = message.model_extra or {}
+                content = message.content
+                reasoning = next((v for k in ("reasoning_content", "reasoning")
+                                  if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
+        except Exception as e:  # a 200 whose body is not a completion (no choices, cut, wrong shape)
+            what = "completion" if document else "chat completion"
+            return failed("bad_response", f"bad_response: not a {what} ({e.__class__.__name__}: {_short(e)})",
                           text), None, None
         finish = choice.finish_reason
         if finish == "error":
-            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({self.url})",
+            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({url})",
                           text), None, None
-        extra_fields = message.model_extra or {}
-        reasoning = next((v for k in ("reasoning_content", "reasoning")
-                          if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
         usage = completion.usage
         details = getattr(usage, "completion_tokens_details", None) if usage else None
         return Exchange(
             request=request,
             response=text,
-            content=message.content,
+            content=content,
             reasoning=reasoning,
             prompt_chars=prompt_chars,
             prompt_tokens=usage.prompt_tokens if usage else None,
@@ -429,6 +559,7 @@ class ChatClient:
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
+_SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed"})
 
 
 def server_error(status: int | None, text: str | None) -> ServerError:

@@ -52,6 +52,7 @@ class PromptContext:
     params_style: str = "list"
     param_digits: int = 3  # list form: significant digits of a parameter (at most ``decimals`` decimals); 0: fixed decimals
     layout: str = "static-first"
+    title: str = ""  # the task's name, the document form's header (wire.document)
     # ProPS+ (True): the task section describes the environment, the state and action meanings,
     # the reward text and hints. ProPS (False): it says only how the policy maps states to actions.
     describe_task: bool = True
