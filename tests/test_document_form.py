@@ -203,7 +203,7 @@ def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
     # nothing raw sent and every byte accounted for; a pp run is EXPOSED by the channels the paper's
     # scheme keeps (issue 16: lattice, the small run seed's warm-up), which the form does not change
     assert not report.leaks and not report.unverified, report.format()
-    assert {f.kind for f in report.exposed} <= {"lattice", "seed-replay", "diagnostic", "cap"}, report.format()
+    assert all(f.by_design or f.kind == "seed-replay" for f in report.exposed), report.format()  # run seed 3 is small
     store = open_store(run_dir)
     try:
         prompts = [json.loads(c["request"])["prompt"] for c in store.llm_calls()]
@@ -279,7 +279,7 @@ def test_offline_document_run_is_accounted_for_byte_by_byte(tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize("field,value,why", [
-    ("temperature", 0.7, "field temperature differs"),  # not the form's temperature for iteration 3
+    ("temperature", 1.9876543, "field temperature differs"),  # not the form's for iteration 3 (nor, at 7 decimals, a raw value)
     ("grammar", 'root ::= "0:1"', "field grammar differs"),  # not the grammar of the history shown
     ("response_format", {"type": "json_object"}, "field response_format, which the client does not send"),
     ("user", "x", "field user, which the client never sends"),
