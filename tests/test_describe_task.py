@@ -79,9 +79,9 @@ def test_the_sent_prompts_carry_no_description_and_are_audited(tmp_path: Path, c
         assert main(["run", "--env", "Acrobot", "--method", "pp", "--describe-task", "off", "--warmup", "3", "--iterations", "3",
                      "--final-episodes", "0", "--out", str(tmp_path / "r"), "--quiet"]) == 0  # fmt: skip
     out = capsys.readouterr().out
-    assert "privacy audit: CLEAN" in out
+    assert "privacy audit: EXPOSED: no raw value was sent" in out  # pp: the paper's channels, nothing else
     report = audit_run(tmp_path / "r")
-    assert report.requests == 3 and report.clean
+    assert report.requests == 3 and not report.leaks and not report.unverified
     import sqlite3
 
     with sqlite3.connect(tmp_path / "r" / "run.sqlite") as con:

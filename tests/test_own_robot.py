@@ -584,7 +584,7 @@ def test_guide_commands_run(tmp_path: Path) -> None:
     assert summary.status == "finished" and len(summary.history) == 8 and summary.final is not None
     assert [c.source for c in summary.history].count("warmup") == 5
     assert f"mean return {summary.final.mean:.2f}" in outputs[2]  # policy eval reproduces the final evaluation
-    assert "no raw parameter" in outputs[3] or "clean" in outputs[3].lower()
+    assert "CLEAN: no raw parameter" in outputs[3]
 
 
 def test_guide_error_example_is_the_real_line(capsys, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

@@ -32,7 +32,7 @@ from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
 from .evaluation import EpisodeLimitError, Evaluator, Feedback, WorkerError, check_parallel
-from .llm.client import ChatClient, Exchange
+from .llm.client import ChatClient, Exchange, RequestShape
 from .loop import Phase, StopSearch, best_candidate, run_loop
 from .methods import get_method
 from .policy_file import policy_document, write_json_atomic
@@ -176,13 +176,13 @@ def chat_client(config: RunConfig, events: RunEvents = RunEvents()) -> Iterator[
     llm = config.llm
     with ExitStack() as stack:
         if llm.embedded:
-            from .llm.embedded import MODEL_ALIAS, EmbeddedServer
+            from .llm.embedded import EmbeddedServer
 
             events.on_llm_loading()
             t0 = time.monotonic()
             server = stack.enter_context(EmbeddedServer(context_size=llm.context_size))
             events.on_llm_ready(time.monotonic() - t0)
-            client = ChatClient(llm, base_url=server.base_url, model=MODEL_ALIAS, api_key="not-needed", grammar_ok=True)
+            client = ChatClient(llm, base_url=server.base_url, api_key="not-needed", shape=RequestShape.for_config(llm))
         else:
             api_key = "not-needed"
             if llm.api_key_env:
@@ -190,7 +190,7 @@ def chat_client(config: RunConfig, events: RunEvents = RunEvents()) -> Iterator[
                 if not api_key:
                     raise ConfigError(f"--api-key-env names {llm.api_key_env}, but that environment variable is empty or unset")
             assert llm.base_url is not None and llm.model is not None
-            client = ChatClient(llm, base_url=llm.base_url, model=llm.model, api_key=api_key, grammar_ok=False)
+            client = ChatClient(llm, base_url=llm.base_url, api_key=api_key, shape=RequestShape.for_config(llm))
         try:
             yield client
         finally:
@@ -242,6 +242,7 @@ def execute(
                 if config.iterations > 0:
                     chat_fn = None
                     if method.uses_llm:
+                        store.begin_llm_session()  # a fresh client: the audit replays its adaptations from here
                         model = chat
                         if model is None:
                             factory = _CHAT_FACTORY.get()

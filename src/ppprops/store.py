@@ -10,7 +10,8 @@ Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``a
 (transport faults and answers taken from the reasoning text); 3 adds ``candidates.ask_s`` and
 ``eval_s`` (where an iteration's time goes). Older stores are migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
-in the ``meta`` key ``llm_adaptations`` (a JSON list), so no schema change was needed for them.
+in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
+(a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
 """
 
 from __future__ import annotations
@@ -338,6 +339,24 @@ class RunStore:
         """Changes the LLM client made to its requests, in order: {iteration, attempt, change, created}."""
         raw = self._meta("llm_adaptations")
         return list(json.loads(raw)) if raw else []
+
+    def begin_llm_session(self) -> None:
+        """Note that a new LLM client starts here (a run's start or a resume): its requests start
+        from the configured shape again and adapt anew. Kept in the ``meta`` key ``llm_sessions``
+        as the number of LLM calls recorded before it, so the audit replays each session's client."""
+        with self._tx() as db:
+            (n,) = db.execute("SELECT COUNT(*) FROM llm_calls").fetchone()
+            row = db.execute("SELECT value FROM meta WHERE key = 'llm_sessions'").fetchone()
+            starts = json.loads(row[0]) if row else []
+            if not starts or starts[-1] != n:
+                starts.append(n)
+                db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_sessions', ?)", (json.dumps(starts),))
+
+    def llm_sessions(self) -> list[int] | None:
+        """Where each LLM client session began, as a count of the calls before it (ascending);
+        None for runs recorded before sessions were (then only endpoint changes are known)."""
+        raw = self._meta("llm_sessions")
+        return [int(n) for n in json.loads(raw)] if raw else None
 
     def llm_calls(self) -> list[dict[str, Any]]:
         cur = self._read(

@@ -173,37 +173,48 @@ _QUOTA = re.compile(r"insufficient_quota|exceeded your current quota|check your 
                     re.IGNORECASE)
 
 
-class ChatClient:
-    def __init__(self, config: LLMConfig, *, base_url: str, model: str, api_key: str, grammar_ok: bool) -> None:
-        from openai import OpenAI
+# Error kinds after which the request may be adapted (a 400 or 422 that names a parameter).
+ADAPTABLE_KINDS = ("bad_request", "http_422")
 
+
+class RequestShape:
+    """Everything a request carries besides its messages, and how that changes as one client
+    session learns its endpoint (module docstring, "Request adaptation"). It starts from the
+    run's ``LLMConfig`` and changes only through ``adapt`` (a refused parameter) and ``learn``
+    (a usable answer): ``ChatClient`` drives it live, and the audit replays it on the recorded
+    exchanges to know what each recorded request must hold (``privacy.reconstruct``).
+    """
+
+    def __init__(self, config: LLMConfig, *, model: str, grammar_ok: bool) -> None:
         self.config = config
         self.model = model
-        self.base_url = base_url
         self.structured = config.structured
         if self.structured == "auto":
             self.structured = "grammar" if grammar_ok else "json_schema"
-        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
-        self.sleep: Callable[[float], None] = time.sleep
-        self._jitter = random.Random()
         self.dropped: set[str] = set()  # request parameters this endpoint refused
         self.token_param = "max_tokens"  # or max_completion_tokens, when the endpoint asks for it
         self.reasoning_seen = False
-        self.adaptations: list[str] = []
         self._adapted: set[str] = set()
         self._schema_misses = 0
 
-    @property
-    def url(self) -> str:
-        """The URL every request goes to."""
-        return self.base_url.rstrip("/") + "/chat/completions"
+    @classmethod
+    def for_config(cls, config: LLMConfig) -> RequestShape:
+        """The shape a fresh client of ``config``'s endpoint starts with: the embedded server
+        (model alias, grammar accepted) or the configured one (its model, JSON schema)."""
+        if config.embedded:
+            from .embedded import MODEL_ALIAS
+
+            return cls(config, model=MODEL_ALIAS, grammar_ok=True)
+        assert config.model is not None
+        return cls(config, model=config.model, grammar_ok=False)
 
     def max_tokens(self, D: int) -> int:
         """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens``."""
         return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen)
 
-    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
-        body: dict[str, Any] = {"model": self.model, "messages": messages}
+    def fields(self, D: int, seed: int | None) -> dict[str, Any]:
+        """The request body's fields other than ``messages``, in the order sent."""
+        body: dict[str, Any] = {"model": self.model}
         if "temperature" not in self.dropped:
             body["temperature"] = self.config.temperature
         if self.token_param not in self.dropped:
@@ -221,51 +232,14 @@ class ChatClient:
             body["grammar"] = params_grammar(D)
         return body
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """One usable answer (``ok``), after adapting the request and retrying transient faults.
+    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        """The whole chat-completions request body."""
+        fields = self.fields(D, seed)
+        return {"model": fields.pop("model"), "messages": messages, **fields}
 
-        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
-        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
-        """
-        failures: list[Exchange] = []
-        transient = 0
-        retry = 0
-        while True:
-            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
-            if ex.ok:
-                return replace(self._after_answer(ex, D), failures=tuple(failures))
-            if err is not None and ex.error_kind in ("bad_request", "http_422"):
-                change, hint = self._adapt(err)
-                if change is not None:
-                    self.adaptations.append(change)
-                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
-                    retry += 1
-                    continue
-                if hint:
-                    ex = replace(ex, error=f"{ex.error} ({hint})")
-            failures.append(ex)
-            if not _retryable(ex.error_kind):
-                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
-            if transient >= self.config.transport_retries:
-                raise LLMUnavailable(
-                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
-                )
-            self.sleep(self.backoff(transient, retry_after))
-            transient += 1
-            retry += 1
-
-    def backoff(self, retry: int, retry_after: float | None) -> float:
-        """Seconds to wait before retry ``retry + 1``: Retry-After (capped) if given, else
-        exponential with "equal jitter" (half fixed, half random), so clients do not retry in step."""
-        cfg = self.config
-        if retry_after is not None:
-            return min(max(retry_after, 0.0), cfg.retry_after_cap_s)
-        d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
-        return d / 2 + self._jitter.uniform(0.0, d / 2)
-
-    # -- adapting to the endpoint -------------------------------------------------------------
-    def _adapt(self, err: ServerError) -> tuple[str | None, str | None]:
-        """(the change made, or None; a hint for the error text when no change is possible)."""
+    def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
+        """After a refusal (``ADAPTABLE_KINDS``): (the change made, or None; a hint for the error
+        text when no change is possible)."""
         if not _REFUSES.search(err.message):
             return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
         sent = {"seed", "temperature", self.token_param} - self.dropped  # what the last request carried
@@ -306,21 +280,106 @@ class ChatClient:
         self.dropped.add(param)
         return f"dropped {param}"
 
-    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
-        """Learn from a usable exchange: room for reasoning, and schema answers that keep failing."""
+    def learn(self, content: str | None, reasoning: str | None, *, D: int, finish_reason: str | None = None,
+              reasoning_tokens: int | None = None) -> list[str]:
+        """After a usable answer: room for reasoning once the endpoint is seen to reason, and
+        (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under
+        it. Returns the changes made, in words."""
         notes = []
-        saw = bool((ex.reasoning or "").strip()) or bool(ex.reasoning_tokens) or bool(split_reasoning(ex.content).reasoning)
+        saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
             before = self.max_tokens(D)
             self.reasoning_seen = True
             if self.max_tokens(D) != before:
                 notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
-        if self.structured == "json_schema" and self.config.structured == "auto" and ex.finish_reason != "length":
-            usable = read_answer(ex.content, ex.reasoning, D, finish_reason=ex.finish_reason).ok
+        if self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
+            usable = read_answer(content, reasoning, D, finish_reason=finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
                 self.structured = "none"
                 notes.append(f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable")
+        return notes
+
+
+class ChatClient:
+    """The recording chat-completions client (module docstring). ``shape`` (default: one made
+    from ``model`` and ``grammar_ok``) decides every request field but the messages."""
+
+    def __init__(self, config: LLMConfig, *, base_url: str, api_key: str, model: str | None = None,
+                 grammar_ok: bool = False, shape: RequestShape | None = None) -> None:
+        from openai import OpenAI
+
+        if shape is None:
+            if model is None:
+                raise TypeError("ChatClient needs a model or a shape")
+            shape = RequestShape(config, model=model, grammar_ok=grammar_ok)
+        self.config = config
+        self.shape = shape
+        self.model = shape.model
+        self.base_url = base_url
+        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
+        self.sleep: Callable[[float], None] = time.sleep
+        self._jitter = random.Random()
+        self.adaptations: list[str] = []
+
+    @property
+    def url(self) -> str:
+        """The URL every request goes to."""
+        return self.base_url.rstrip("/") + "/chat/completions"
+
+    def max_tokens(self, D: int) -> int:
+        """The token budget sent now (``RequestShape.max_tokens``)."""
+        return self.shape.max_tokens(D)
+
+    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        return self.shape.body(messages, D=D, seed=seed)
+
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """One usable answer (``ok``), after adapting the request and retrying transient faults.
+
+        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
+        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
+        """
+        failures: list[Exchange] = []
+        transient = 0
+        retry = 0
+        while True:
+            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
+            if ex.ok:
+                return replace(self._after_answer(ex, D), failures=tuple(failures))
+            if err is not None and ex.error_kind in ADAPTABLE_KINDS:
+                change, hint = self.shape.adapt(err)
+                if change is not None:
+                    self.adaptations.append(change)
+                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
+                    retry += 1
+                    continue
+                if hint:
+                    ex = replace(ex, error=f"{ex.error} ({hint})")
+            failures.append(ex)
+            if not _retryable(ex.error_kind):
+                raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
+            if transient >= self.config.transport_retries:
+                raise LLMUnavailable(
+                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
+                )
+            self.sleep(self.backoff(transient, retry_after))
+            transient += 1
+            retry += 1
+
+    def backoff(self, retry: int, retry_after: float | None) -> float:
+        """Seconds to wait before retry ``retry + 1``: Retry-After (capped) if given, else
+        exponential with "equal jitter" (half fixed, half random), so clients do not retry in step."""
+        cfg = self.config
+        if retry_after is not None:
+            return min(max(retry_after, 0.0), cfg.retry_after_cap_s)
+        d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
+        return d / 2 + self._jitter.uniform(0.0, d / 2)
+
+    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
+        """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
+        notes = self.shape.learn(ex.content, ex.reasoning, D=D, finish_reason=ex.finish_reason,
+                                 reasoning_tokens=ex.reasoning_tokens)
         if not notes:
             return ex
         self.adaptations += notes

@@ -3,11 +3,17 @@
 How it decides (docs/privacy.md, "The audit"). Every byte of every recorded request body is
 accounted for:
 
-- every top-level field must be what the client sets (model, sampling settings, the structured
-  output, the key-derived seed); any other field or value is **unverified**, and every number in
-  it, at any precision, integers included, is compared with every raw value (a match: **leak**);
-- every message of any role: the client sends [prompt] or [prompt, the provider's own answer, a
-  correction] as plain strings; anything else is read the same way;
+- every top-level field must be what the client sets at that call (model, sampling settings, the
+  token budget, the structured output, the key-derived seed), as its own ``RequestShape``
+  replayed on the recorded exchanges says: a parameter the endpoint refused is gone or renamed
+  from then on, the budget grows once the endpoint is seen to reason, each session (a resume)
+  starts afresh; any other field or value is **unverified**, and every number in it, at any
+  precision, integers included, is compared with every raw value (a match: **leak**);
+- every message of any role, as ``wire.turns`` builds them: [prompt], or after an unusable
+  answer [prompt, that answer's final text, correction] or [prompt + correction], the fault
+  re-derived from the recorded answer (and the history shown, for a repeated policy). The echoed
+  final text is the provider's own and must equal it exactly; whatever differs from the rebuilt
+  text, and any message in another arrangement, is read the same way;
 - the prompt is rebuilt from the public context and the stored encoded values of the candidates
   it shows (``privacy.reconstruct``), so every stretch the templates do not produce is read;
 - each history entry is matched to the candidate it shows and each printed field compared with
@@ -43,6 +49,7 @@ from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
 from ..store import Candidate, open_store
 from ..wire.transcript import ShownEntry, history_entries, number_tokens, outside_entries
+from ..wire.turns import judge_answer
 from . import reconstruct as rc
 from .exposure import exposures
 from .knowledge import facts_for
@@ -50,6 +57,9 @@ from .tokens import renders, token_value
 from .transcript import Request, message_text, parse_request
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
+# Every top-level field the client may send in some state of its request shape (``RequestShape``).
+SENT_FIELDS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
+                         "response_format", "grammar"})
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
                "token counts, and the provider's own answers")
 
@@ -159,7 +169,8 @@ class AuditReport:
 
 class _Auditor:
     def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
-                 secrets: Secrets | None = None) -> None:
+                 secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
+                 endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = ()) -> None:
         self.config = config
         self.mech: Mechanisms = config.mechanisms
         self.task = config.make_task()
@@ -170,7 +181,9 @@ class _Auditor:
         self.secrets = secrets
         self.codec = rc.client_codec(self.task, config, secrets)
         self.ctx = rc.context(self.task, config, self.codec)
-        self.fields = rc.expected_fields(config, self.task)
+        self.replay = rc.ClientReplay(config.llm, self.task.D, sessions, endpoint_changes)
+        self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # (iteration, attempt) -> its latest usable answer
+        self.adaptations = [str(a.get("change")) for a in adaptations]
         self.report = AuditReport(str(run_dir), config.method, self.mech.to_json())
         self._findings: dict[tuple[str, str, str], Finding] = {}
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
@@ -276,13 +289,13 @@ class _Auditor:
         return c
 
     # -- prose: everything outside the history entries --------------------------------------------
-    def prose(self, req: Request) -> None:
+    def prose(self, req: Request, text: str, entries: list[ShownEntry]) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
         # raw returns and components outside the entries are found by the rebuild (``spans``): text the
         # templates produce is public, and comparing it with raw values would only find coincidences
-        for offset, text in outside_entries(req.text, list(req.entries)):
-            for pos, tok in number_tokens(text):
+        for offset, part in outside_entries(text, entries):
+            for pos, tok in number_tokens(part):
                 parsed = token_value(tok)
                 if parsed is None:
                     continue
@@ -352,26 +365,35 @@ class _Auditor:
     # -- every byte of a request body -----------------------------------------------------------
     def body(self, row: dict[str, Any], req: Request) -> None:
         where = req.where
+        expected = self.replay.fields()  # what the client's request shape held at this call
         try:
             doc = json.loads(str(row["request"]))
         except json.JSONDecodeError:
             doc = None
         if not isinstance(doc, dict):
             self.free(str(row["request"]), "a request body that is not a JSON object", where)
-            return
-        for key, value in doc.items():
-            at = f"{where}, field {key}"
-            if key == "messages":
-                self.messages(value, row, req)
-            elif key == "seed":
-                self.seed(value, req)
-            elif key in self.fields:
-                if value != self.fields[key]:
-                    self.free(value, f"field {key} differs from what the client sends", at)
-            else:
-                self.free(value, f"field {key}, which the client never sends", at)
-        if "messages" not in doc:
-            self.finding("unverified", "request", "a request without messages", where)
+        else:
+            for key, value in doc.items():
+                at = f"{where}, field {key}"
+                if key == "messages":
+                    self.messages(value, req)
+                elif key == "seed" and key in expected:
+                    self.seed(value, req)
+                elif key in expected:
+                    if value != expected[key]:
+                        self.free(value, f"field {key} differs from what the client sends", at)
+                elif key in SENT_FIELDS:
+                    self.free(value, f"field {key}, which the client does not send at this point (its endpoint adaptations)", at)
+                else:
+                    self.free(value, f"field {key}, which the client never sends", at)
+            if "messages" not in doc:
+                self.finding("unverified", "request", "a request without messages", where)
+            missing = [k for k in expected if k not in doc]
+            if missing:
+                self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
+        self.replay.observe(row)
+        if row.get("ok"):
+            self.answered[(req.iteration, req.attempt)] = row
 
     def seed(self, value: object, req: Request) -> None:
         at = f"{req.where}, field seed"
@@ -389,13 +411,15 @@ class _Auditor:
         elif self.secrets is None:
             self.free(value, "", at)  # not verifiable without the key file: still read for raw values
 
-    def messages(self, value: object, row: dict[str, Any], req: Request) -> None:
-        """The client sends [prompt] or [prompt, the provider's answer, a correction], as plain strings."""
+    def messages(self, value: object, req: Request) -> None:
+        """The messages the proposer sends (``wire.turns``), rebuilt: the prompt, or after an unusable
+        answer the prompt, that answer's final text and the correction (or prompt and correction in
+        one user turn). Every message is compared with its rebuilt text and what differs is read;
+        messages in any other arrangement are read whole."""
         if not isinstance(value, list):
             self.free(value, "messages that are not a list", f"{req.where}, messages")
             return
-        users = 0
-        answer = None
+        sent: list[tuple[int, object, str]] = []  # (position, role, text) of every readable message
         for i, m in enumerate(value):
             at = f"{req.where}, message {i + 1}"
             if not isinstance(m, dict):
@@ -411,50 +435,70 @@ class _Auditor:
             elif not isinstance(content, str):
                 self.free(content, "message content that is not a string", at)
                 continue
-            if role == "user" and users == 0:
-                users += 1
-                self.prompt(content, req)
-            elif role == "assistant" and users == 1 and answer is None:
-                answer = content
-                if content not in self._answers(req):
-                    self.free(content, "an assistant message that is not the provider's own answer", at)
-            elif role == "user" and users == 1 and answer is not None:
-                users += 1
-                errors = [str(c.get("error") or "") for c in self.calls if c["iteration"] == req.iteration]
-                if content not in rc.expected_correction(answer, self.task.D, errors):
-                    self.free(content, "a correction the client's template does not produce", at)
-            else:
-                self.free(content, f"a {role} message at position {i + 1}, which the client never sends", at)
-
-    def _answers(self, req: Request) -> set[str]:
-        """What the provider answered before this attempt of the same iteration (or the empty marker)."""
-        out = {"(empty)"}
-        for c in self.calls:
-            if c["iteration"] == req.iteration and c["attempt"] < req.attempt and c.get("content"):
-                out.add(str(c["content"]))
-        return out
-
-    def prompt(self, text: str, req: Request) -> None:
-        """The first user message: the ProPS prompt (or R2PO's critic prompt), rebuilt and compared."""
-        entries = history_entries(text)
-        if text.startswith(rc.CRITIC_HEAD):
-            self.critic(text, req)
+            sent.append((i, role, content))
+        turns = rc.expected_turns(req.attempt, self.answered.get((req.iteration, req.attempt - 1)), self.task.D)
+        if turns is None or len(sent) != len(value) or [r for _, r, _ in sent] != [m["role"] for m in turns.messages]:
+            self._unexpected_turns(sent, req, turns is None)
             return
+        shown: list[Candidate | None] = []
+        for (i, _, text), want in zip(sent, turns.messages, strict=True):
+            at = f"{req.where}, message {i + 1}"
+            if rc.PROMPT_MARK in want["content"]:
+                before, after = want["content"].split(rc.PROMPT_MARK)
+                shown = self.prompt(text, req, before, after)
+            elif want["role"] == "assistant":
+                self.spans(want["content"], text, [], at, "an assistant turn that is not the provider's own final text")
+            else:
+                self.spans(want["content"], text, [], at, "text the correction template does not produce")
+        if turns.repeated is not None:
+            prev = turns.repeated
+            finish, _ = rc.response_facts(prev.get("response"))
+            entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
+            verdict = judge_answer(prev.get("content"), prev.get("reasoning"), self.ctx, entries, finish_reason=finish)
+            if verdict.error != "repeats_history":
+                self.finding("unverified", "request", "a correction after an answer the client takes (it repeats no policy "
+                             "of the history shown)", req.where)
+
+    def _unexpected_turns(self, sent: list[tuple[int, object, str]], req: Request, unknown: bool) -> None:
+        """Messages not in the client's arrangement: the first user message is read as the prompt,
+        every other message whole, numbers and all."""
+        if unknown:
+            self.finding("unverified", "request", "a correction after an answer that is not recorded", req.where)
+        prompt_seen = False
+        for i, role, text in sent:
+            if role == "user" and not prompt_seen:
+                prompt_seen = True
+                self.prompt(text, req)
+            else:
+                self.free(text, f"a {role} message at position {i + 1}, which the client does not send there",
+                          f"{req.where}, message {i + 1}")
+
+    def prompt(self, text: str, req: Request, before: str = "", after: str = "") -> list[Candidate | None]:
+        """A message holding the ProPS prompt (or R2PO's critic prompt), with ``before``/``after``
+        what the client puts around it in the same message, rebuilt and compared. Returns the
+        candidates its history entries show (None for an entry that matches none)."""
+        inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
+            and len(text) >= len(before) + len(after) else text
+        if inner.startswith(rc.CRITIC_HEAD):
+            self.critic(text, req, before, after)
+            return []
+        entries = history_entries(text)
         shown: list[Candidate | None] = []
         flagged: list[tuple[int, int]] = []
         for k, e in enumerate(entries):
-            before = sum(f.count for f in self.report.findings if f.severity != "channel")
+            before_count = sum(f.count for f in self.report.findings if f.severity != "channel")
             c = self.entry(req, k, e)
             shown.append(c)
-            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before:
+            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before_count:
                 flagged.append((e.start, e.end))
-        self.prose(req)
-        for a, b in rc.prompt_spans(self.codec, self.ctx, text, entries, shown):
+        self.prose(req, inner, entries if inner == text else history_entries(inner))
+        for a, b in rc.prompt_spans(self.codec, self.ctx, text, entries, shown, before, after):
             if any(s <= a and b <= e for s, e in flagged):
                 continue  # inside an entry already reported
             self.free(text[a:b], f"text the prompt templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
+        return shown
 
-    def critic(self, text: str, req: Request) -> None:
+    def critic(self, text: str, req: Request, before: str = "", after: str = "") -> None:
         printed = rc.critic_params(text)
         c = None
         if printed is not None:
@@ -471,14 +515,15 @@ class _Auditor:
         self.finding("leak", "raw_trajectory", "raw states and the actions taken in them (R2PO's critic evidence)"
                      + ("" if not self.mech.encode_params else "; beside encoded parameters, a least-squares fit gives A"),
                      req.where, by_design=not (self.mech.encode_params or self.mech.scale_rewards))
-        self.spans(rc.expected_critic(self.ctx, c, text), text, [], req.where)
+        self.spans(before + rc.expected_critic(self.ctx, c, text) + after, text, [], req.where)
 
-    def spans(self, expected: str, text: str, flagged: list[tuple[int, int]], where: str) -> None:
-        """Read every stretch of ``text`` that the client's templates do not produce."""
+    def spans(self, expected: str, text: str, flagged: list[tuple[int, int]], where: str,
+              what: str = "text the prompt templates do not produce") -> None:
+        """Read every stretch of ``text`` that the client does not produce (``expected``)."""
         for a, b in rc.differing_spans(expected, text):
             if any(s - 2 <= a and b <= e + 2 for s, e in flagged):
                 continue  # inside an entry already reported
-            self.free(text[a:b], f"text the prompt templates do not produce: {text[a:b][:60]!r}", f"{where}, character {a}")
+            self.free(text[a:b], f"{what}: {text[a:b][:60]!r}", f"{where}, character {a}")
 
     # -- anything the client's code would not have sent ---------------------------------------------
     def free(self, value: object, why: str, where: str) -> None:
@@ -522,9 +567,13 @@ class _Auditor:
         return None
 
     def run(self) -> AuditReport:
-        for row, req in zip(self.calls, self.requests, strict=True):
+        for row, req in zip(self.calls, self.requests, strict=True):  # in the order sent: the client's state follows it
             self.report.requests += 1
             self.body(row, req)
+        if self.replay.changes != self.adaptations:
+            self.finding("unverified", "request", "the run's recorded endpoint adaptations are not the ones its recorded "
+                         f"exchanges lead to ({len(self.adaptations)} recorded, {len(self.replay.changes)} replayed)",
+                         "llm_adaptations")
         self.channels()
         self.exposure()
         order = {"leak": 0, "unverified": 1, "exposed": 2, "channel": 3}
@@ -588,6 +637,7 @@ def audit_run(run_dir: Path) -> AuditReport:
         config = search_config(store.config(), run_dir)
         candidates = store.candidates()
         calls = store.llm_calls()
+        sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         run_id, fingerprint = store.run_id(), store.key_fingerprint()
     finally:
         store.close()
@@ -597,4 +647,5 @@ def audit_run(run_dir: Path) -> AuditReport:
             secrets = Secrets.load(run_dir / "secrets.key", run_id=run_id, D=config.make_task().D, fingerprint=fingerprint)
         except KeyFileError:
             secrets = None
-    return _Auditor(run_dir, config, candidates, calls, secrets).run()
+    return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
+                   adaptations=adaptations).run()

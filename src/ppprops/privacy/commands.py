@@ -85,4 +85,5 @@ def self_audit_line(run_dir: Path) -> str:
         return "privacy audit: no LLM request was sent"
     kinds = sorted({f.kind for f in report.channels})
     tail = f" Known channels: {', '.join(kinds)}." if kinds else ""
-    return f"privacy audit: {report.verdict()}.{tail} Details: ppprops audit {run_dir}"
+    verdict = report.verdict().rstrip(".")  # an EXPOSED verdict ends with its own sentence
+    return f"privacy audit: {verdict}.{tail} Details: ppprops audit {run_dir}"

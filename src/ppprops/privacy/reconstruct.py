@@ -3,16 +3,20 @@
 A recorded prompt is compared with the prompt the templates produce from the public context and
 the stored *encoded* values of the candidates it shows; whatever differs (text the templates do
 not produce) is read number by number. The same is done for R2PO's critic prompt (its rollout
-lines taken from the recording, since they are raw by design), for corrections, and for every
-top-level field of a request body.
+lines taken from the recording, since they are raw by design), for the correction turns (rebuilt
+by ``wire.turns`` from the previous recorded answer, as the proposer builds them), and for every
+top-level field of a request body (``ClientReplay``: the client's own ``RequestShape`` replayed on
+the recorded exchanges, session by session).
 """
 
 from __future__ import annotations
 
 import difflib
+import json
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -21,14 +25,16 @@ from ..client.codec import Codec
 from ..client.context import prompt_context
 from ..client.hardening import codec_for
 from ..client.secrets import Secrets
-from ..config import RunConfig
-from ..llm.client import default_max_tokens, params_grammar, params_schema
+from ..config import LLMConfig, RunConfig
+from ..llm.client import ADAPTABLE_KINDS, RequestShape, server_error
 from ..store import Candidate
 from ..tasks.base import Task
 from ..wire import EncodedEntry, PromptContext, build_prompt
-from ..wire.prompt import build_correction, history_entry, template
+from ..wire.parse import read_answer
+from ..wire.prompt import history_entry, template
 from ..wire.r2po import Evidence, build_critic_prompt
 from ..wire.transcript import ShownEntry, history_entries
+from ..wire.turns import REPEATS_HISTORY, correction_messages, prompt_messages
 
 CRITIC_HEAD = template("r2po_critic").template.split("$", 1)[0]
 _ROLLOUT_LINE = re.compile(r"(\d+): \[([^\]]*)\] -> (.*)")
@@ -63,15 +69,17 @@ def entry_for(codec: Codec, ctx: PromptContext, c: Candidate) -> EncodedEntry:
 
 
 def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
-                 shown: list[Candidate | None]) -> list[tuple[int, int]]:
+                 shown: list[Candidate | None], before: str = "", after: str = "") -> list[tuple[int, int]]:
     """Spans of a recorded ProPS prompt that the templates do not produce from the shown candidates.
 
     The prose around the entries is compared as a skeleton (each entry one placeholder, so a
     missing or extra entry cannot shift the comparison); each matched entry is compared with the
     entry the proposer builds for its candidate. Unmatched entries are the caller's to report.
+    ``before`` and ``after`` are text the client puts around the prompt in the same message (a
+    correction after it, ``wire.turns``).
     """
     dummy = EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
-    expected = build_prompt(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown])
+    expected = before + build_prompt(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown]) + after
     exp_skel, _ = _skeleton(expected, history_entries(expected))
     rec_skel, where = _skeleton(text, entries)
     out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
@@ -137,39 +145,112 @@ def critic_params(text: str) -> str | None:
     return m.group(1) if m else None
 
 
-def expected_correction(answer: str | None, D: int, errors: list[str]) -> list[str]:
-    """Corrections the proposer could have sent after ``answer`` (a parse failure, or a request error)."""
-    from ..wire import parse_answer
-
-    out = []
-    result = parse_answer(answer or "", D)
-    if not result.ok:
-        out.append(build_correction(result.detail, D))
-    out += [build_correction(e, D) for e in errors if e]
-    out.append(build_correction("the request failed", D))
-    return out
+# Where the prompt goes in the messages ``wire.turns`` builds; the audit rebuilds the prompt itself.
+PROMPT_MARK = "\x00prompt\x00"
 
 
-def expected_fields(config: RunConfig, task: Task) -> dict[str, Any]:
-    """Top-level request fields other than messages and seed, as ``ChatClient.body`` sets them.
+def response_facts(response: str | None) -> tuple[str | None, int | None]:
+    """(finish_reason, reasoning tokens) of a recorded response body, as the client read them."""
+    try:
+        doc = json.loads(response) if response else None
+    except ValueError:
+        return None, None
+    if not isinstance(doc, dict):
+        return None, None
+    finish = None
+    choices = doc.get("choices")
+    if isinstance(choices, list) and choices and isinstance(choices[0], dict):
+        f = choices[0].get("finish_reason")
+        finish = f if isinstance(f, str) else None
+    usage = doc.get("usage")
+    details = usage.get("completion_tokens_details") if isinstance(usage, dict) else None
+    tokens = details.get("reasoning_tokens") if isinstance(details, dict) else None
+    return finish, tokens if isinstance(tokens, int) and not isinstance(tokens, bool) else None
 
-    ``response_format`` and ``grammar`` are alternatives (structured output); either may be absent.
+
+@dataclass(frozen=True)
+class Turns:
+    """The messages the client sends for one request, with ``PROMPT_MARK`` where the prompt goes.
+
+    ``repeated`` is the previous answer when the correction says it repeated a policy of the
+    history: true only if it does, which the caller checks once it knows the history shown.
     """
-    from ..llm.embedded import MODEL_ALIAS
 
-    llm = config.llm
-    D = task.D
-    out: dict[str, Any] = {
-        "model": llm.model if llm.base_url else MODEL_ALIAS,
-        "temperature": llm.temperature,
-        "max_tokens": llm.max_tokens or default_max_tokens(D),
-        "response_format": {"type": "json_schema",
-                            "json_schema": {"name": "policy_parameters", "schema": params_schema(D), "strict": True}},
-        "grammar": params_grammar(D),
-    }
-    if llm.reasoning_effort:
-        out["reasoning_effort"] = llm.reasoning_effort
-    return out
+    messages: list[dict[str, str]]
+    repeated: dict[str, Any] | None = None
+
+
+def expected_turns(attempt: int, previous: dict[str, Any] | None, D: int) -> Turns | None:
+    """What the proposer sends at ``attempt`` of an iteration (``wire.turns``): the prompt, or after
+    the recorded answer ``previous`` (a store row) the correction turns with the fault
+    ``read_answer`` finds in it, or ``REPEATS_HISTORY`` when it holds a proposal. None when a
+    correction's answer is not recorded."""
+    if attempt == 0:
+        return Turns(prompt_messages(PROMPT_MARK))
+    if previous is None:
+        return None
+    finish, _ = response_facts(previous.get("response"))
+    result = read_answer(previous.get("content"), previous.get("reasoning"), D, finish_reason=finish)
+    detail = REPEATS_HISTORY if result.ok else result.detail
+    return Turns(correction_messages(PROMPT_MARK, previous.get("content"), detail, D), previous if result.ok else None)
+
+
+# Status each adaptable error kind came with (``ChatClient._attempt``; a 200 with an error body
+# carries its code as the status, so the same).
+_STATUS = {"bad_request": 400, "http_422": 422}
+assert set(_STATUS) == set(ADAPTABLE_KINDS)
+
+
+class ClientReplay:
+    """The recording client's request fields at every recorded call, replayed from the store.
+
+    Each client session (a run's start, each resume: ``RunStore.llm_sessions``; each endpoint
+    change) starts from ``RequestShape.for_config`` of the endpoint then in use, and its shape
+    changes exactly as the live client's did: ``RequestShape.adapt`` on every recorded refusal,
+    ``RequestShape.learn`` on every recorded answer. ``changes`` collects what it changed, which
+    matches the run's ``llm_adaptations``.
+    """
+
+    def __init__(self, llm: LLMConfig, D: int, sessions: Sequence[int] | None, endpoint_changes: Sequence[dict[str, Any]]) -> None:
+        self.llm = llm
+        self.D = D
+        self.changes_at = sorted(endpoint_changes, key=lambda ch: int(ch.get("llm_calls", 0)))
+        self.starts = {0, *(int(n) for n in sessions or ()), *(int(ch.get("llm_calls", 0)) for ch in self.changes_at)}
+        self.n = 0
+        self.shape: RequestShape | None = None
+        self.changes: list[str] = []
+
+    def config_at(self, n: int) -> LLMConfig:
+        """The LLM settings in force for call ``n`` (0-based): the run's, or before a later
+        endpoint change, the ones it changed from."""
+        llm = self.llm
+        for ch in reversed(self.changes_at):
+            if n < int(ch.get("llm_calls", 0)):
+                was = {k: v for k, v in (ch.get("from") or {}).items() if k in ("base_url", "model", "api_key_env")}
+                llm = replace(llm, **was)
+        return llm
+
+    def fields(self) -> dict[str, Any]:
+        """The fields (all but ``messages``) the client sends at the next recorded call; ``seed``
+        is present when it is sent, with a placeholder value (the audit checks the value itself)."""
+        if self.shape is None or self.n in self.starts:
+            self.shape = RequestShape.for_config(self.config_at(self.n))
+        return self.shape.fields(self.D, seed=0)
+
+    def observe(self, row: dict[str, Any]) -> None:
+        """Feed the recorded outcome of that call to the shape, as ``ChatClient.complete`` did."""
+        assert self.shape is not None, "fields() first"
+        self.n += 1
+        if row.get("ok"):
+            finish, tokens = response_facts(row.get("response"))
+            notes = self.shape.learn(row.get("content"), row.get("reasoning"), D=self.D, finish_reason=finish,
+                                     reasoning_tokens=tokens)
+            if notes:
+                self.changes.append("; ".join(notes))
+        elif row.get("error_kind") in _STATUS:
+            change, _ = self.shape.adapt(server_error(_STATUS[row["error_kind"]], row.get("response")))
+            if change is not None:
+                self.changes.append(change)
 
 
 def differing_spans(expected: str, recorded: str) -> list[tuple[int, int]]:

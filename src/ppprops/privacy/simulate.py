@@ -45,19 +45,12 @@ class EchoOptimizer:
                         latency_s=0.0, ok=True)
 
     def _body(self, messages: list[dict[str, str]], D: int, seed: int | None) -> dict[str, Any]:
-        """The body the real client would send to the embedded model (so the audit reads a real one)."""
+        """The body a fresh client of the run's endpoint would send (so the audit reads a real one)."""
         if self.config is None:
             return {"model": "echo-optimizer", "messages": messages, "seed": seed}
-        from ..llm.client import ChatClient
-        from ..llm.embedded import MODEL_ALIAS
+        from ..llm.client import RequestShape
 
-        llm = self.config.llm
-        client = ChatClient(llm, base_url="http://127.0.0.1:9/v1", model=llm.model if llm.base_url else MODEL_ALIAS,
-                            api_key="not-needed", grammar_ok=llm.base_url is None)
-        try:
-            return client.body(messages, D=D, seed=seed)
-        finally:
-            client.close()
+        return RequestShape.for_config(self.config.llm).body(messages, D=D, seed=seed)
 
     def count_tokens(self, text: str) -> int:
         return len(text) // 4

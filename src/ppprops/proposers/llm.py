@@ -11,7 +11,7 @@ is a documented fallback: the best policy so far plus Gaussian noise with standa
 of the box width, clipped to the box, recorded with source ``fallback``.
 
 A correction repeats the model's final text (never its reasoning or markup) and says what was
-wrong; an HTTP error never reaches the model (the client adapts, retries or raises). An
+wrong (``wire.turns.correction_messages``, which the audit rebuilds too); an HTTP error never reaches the model (the client adapts, retries or raises). An
 endpoint that stays down past the client's retry bound either stops the run (``stop``,
 resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``; a request
 the endpoint rejects for good always stops the run. Every HTTP try, failed ones included, goes
@@ -35,14 +35,13 @@ from .. import seeding
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
 from ..store import Candidate
-from ..wire import EncodedEntry, ParseResult, PromptContext, build_correction, build_prompt, top_k
-from ..wire.parse import final_text, read_answer
-from ..wire.prompt import params_text
+from ..wire import EncodedEntry, ParseResult, PromptContext, build_prompt, top_k
+from ..wire.turns import correction_messages, judge_answer, prompt_messages
+from ..wire.turns import repeats_history as _repeats_history
 from .base import Proposal, clip_to_box
 
 ExchangeHook = Callable[[int, int, Exchange, str | None], None]
 FALLBACK_SIGMA = 0.05  # of the box width
-ECHO_CHARS = 2000  # longest final text repeated back to the model in a correction
 # What the user can do about an answer failure, in the fallback note ("after KIND (HINT)").
 HINTS = {
     "length": "answers were cut off at the token limit: raise --max-tokens or lower --reasoning-effort",
@@ -111,12 +110,11 @@ class LLMProposer:
 
     def repeats_history(self, values: tuple[float, ...]) -> bool:
         """True if ``values`` equal an entry of the shown history as the prompt printed it."""
-        printed = params_text(self.ctx, values)
-        return any(printed == params_text(self.ctx, e.params) for e in self.shown())
+        return _repeats_history(self.ctx, values, self.shown())
 
     def ask(self, iteration: int) -> Proposal:
         prompt = self.prompt()
-        messages = [{"role": "user", "content": prompt}]
+        messages = prompt_messages(prompt)
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
             seed = self.codec.sampling_seed(self.seed, iteration, attempt)  # keyed: not derivable from the run seed
@@ -146,31 +144,12 @@ class LLMProposer:
             kind = result.error or "unknown"
             self.failures[kind] += 1
             last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
-            messages = self._correction(prompt, ex, result)
+            messages = correction_messages(prompt, ex.content, result.detail, self.D)
         return self._fallback(iteration, last_error)
 
     def _read(self, ex: Exchange) -> ParseResult:
-        """The proposal in an answer (``wire.parse.read_answer``), refused if it repeats the history."""
-        result = read_answer(ex.content, ex.reasoning, self.D, finish_reason=ex.finish_reason)
-        if result.values is not None and self.repeats_history(result.values):
-            return ParseResult(None, "repeats_history",
-                               "those params are a policy already in the history; propose a new one", result.source)
-        return result
-
-    def _correction(self, prompt: str, ex: Exchange, result: ParseResult) -> list[dict[str, str]]:
-        """The next request: the prompt, the model's final text (no reasoning, no markup; a
-        chat template may refuse markup in an assistant turn) and what was wrong with it. With no
-        final text to repeat, the correction follows the prompt in the one user turn (templates
-        such as Gemma's refuse two user turns in a row)."""
-        correction = build_correction(result.detail, self.D)
-        echo = final_text(ex.content)[:ECHO_CHARS].strip()
-        if not echo:
-            return [{"role": "user", "content": f"{prompt}\n\n{correction}"}]
-        return [
-            {"role": "user", "content": prompt},
-            {"role": "assistant", "content": echo},
-            {"role": "user", "content": correction},
-        ]
+        """The proposal in an answer, refused if it repeats the history shown (``wire.turns.judge_answer``)."""
+        return judge_answer(ex.content, ex.reasoning, self.ctx, self.shown(), finish_reason=ex.finish_reason)
 
     def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:
         if self.on_exchange is not None:

@@ -11,5 +11,7 @@ from .encoded import EncodedEntry, PromptContext
 from .history import top_k
 from .parse import ParseResult, parse_answer
 from .prompt import build_correction, build_prompt
+from .turns import correction_messages, judge_answer, prompt_messages
 
-__all__ = ["EncodedEntry", "ParseResult", "PromptContext", "build_correction", "build_prompt", "parse_answer", "top_k"]
+__all__ = ["EncodedEntry", "ParseResult", "PromptContext", "build_correction", "build_prompt", "correction_messages", "judge_answer",
+           "parse_answer", "prompt_messages", "top_k"]
