@@ -18,7 +18,7 @@ from ..errors import ConfigError
 
 
 def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
-    au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean, 1 leak)")
+    au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean; 1 leak, unverified or exposed)")
     au.add_argument("dir", type=Path, help="a run directory")
     au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
     au.add_argument("--json", action="store_true", help="one JSON object with every finding on stdout")
