@@ -31,8 +31,11 @@ def test_cli_run_show_and_policy_eval(tmp_path: Path, capsys, task: str, method:
     assert stat.S_IMODE(os.stat(out / "secrets.key").st_mode) == 0o600
     key = json.loads((out / "secrets.key").read_text())
     printed = set(re.findall(r"(?<![\w.])-?\d+\.\d+(?![\w.])", stdout))  # whole numbers, not digits inside others
-    for v in [*key["a"], key["c"]]:  # the summary never prints key material
-        assert f"{v:.2f}" not in printed and f"{v:.4f}" not in printed
+    values = [*key["a"], key["c"]]  # the summary never prints key material
+    assert not [v for v in values if f"{v:.4f}" in printed]
+    # at 2 decimals one of 11 random values can equal a printed latency or return by chance; a printed
+    # key prints them all
+    assert len([v for v in values if f"{v:.2f}" in printed]) <= 1, (printed, values)
 
     code, stdout, _ = _run(capsys, "show", str(out), "--json")
     assert code == 0
