@@ -50,12 +50,26 @@ class Section:
 class Context:
     out: Path  # working directory for runs; kept so every figure can be traced to a store
     quick: bool = False  # tiny budgets: checks the suite end to end, figures mean nothing
+    keep: bool = False  # reuse a grid already recorded under ``out`` (resume it) instead of starting afresh
+    collect: bool = False  # with keep: start nothing, report the runs the grid has finished (it may run elsewhere)
     cache: dict[str, Any] = field(default_factory=dict)  # runs one benchmark leaves for another
 
     def dir(self, name: str) -> Path:
         d = self.out / name
         d.mkdir(parents=True, exist_ok=True)
         return d
+
+
+def commit() -> str:
+    """The short git commit of the code measured, ``+changes`` when the work tree differs from it ("" outside git)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return head + ("+changes" if head and dirty else "")
 
 
 def machine() -> str:
@@ -74,14 +88,10 @@ def machine() -> str:
         mem = f", {kb / 2**20:.0f} GiB RAM"
     except (OSError, IndexError, ValueError):
         pass
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                                timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
+    code = commit()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return (f"{cpu}, {os.cpu_count()} logical CPUs{mem}, {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, ppprops {__version__}{f' ({commit})' if commit else ''}, "
+            f"Python {platform.python_version()}, ppprops {__version__}{f' ({code})' if code else ''}, "
             f"load average at start {load:.2f}")
 
 
@@ -127,9 +137,10 @@ def timings(response: str | None) -> dict[str, float]:
     return {k: float(v) for k, v in t.items() if isinstance(v, (int, float))}
 
 
-def _proposer(run_dir: Path, top_k: int | None = None, **overrides: Any) -> tuple[LLMProposer, list[Candidate]]:
+def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **overrides: Any) -> tuple[LLMProposer, list[Candidate]]:
     """A ProPS proposer rebuilt from a recorded run's store and key (told nothing yet), and the
-    run's candidates. ``top_k`` and ``overrides`` change its history bound and prompt context."""
+    run's candidates. ``top_k``, ``form`` (chat or document) and ``overrides`` change its history
+    bound, prompt form and prompt context."""
     store, cfg, secrets = load_run(run_dir)
     try:
         cands = store.candidates()
@@ -138,15 +149,15 @@ def _proposer(run_dir: Path, top_k: int | None = None, **overrides: Any) -> tupl
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg)
     k = cfg.top_k if top_k is None else top_k
-    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, **overrides)
-    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, seed=cfg.seed), cands  # type: ignore[arg-type]
+    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
+    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, seed=cfg.seed, form=form), cands  # type: ignore[arg-type]
 
 
-def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
+def replay_prompts(run_dir: Path, form: str = "chat", **overrides: Any) -> list[tuple[int, str]]:
     """(iteration, prompt) for every LLM iteration of a recorded ProPS run, rebuilt with the
     prompt context changed by ``overrides`` (e.g. ``layout="history-first"``). With no overrides
     the result must equal what the run sent; the caller can check that."""
-    prop, cands = _proposer(run_dir, **overrides)
+    prop, cands = _proposer(run_dir, form=form, **overrides)
     out = []
     for c in cands:
         if c.source in ("llm", "fallback"):
@@ -155,18 +166,40 @@ def replay_prompts(run_dir: Path, **overrides: Any) -> list[tuple[int, str]]:
     return out
 
 
-def prompt_after(run_dir: Path, *, top_k: int, **overrides: Any) -> str:
+def replay_requests(run_dir: Path, form: str = "chat", **overrides: Any) -> list[tuple[int, str, str | None]]:
+    """As ``replay_prompts``, with the continuation grammar of each document-form request (None for chat)."""
+    prop, cands = _proposer(run_dir, form=form, **overrides)
+    out = []
+    for c in cands:
+        if c.source in ("llm", "fallback"):
+            out.append((c.iteration, prop.prompt(), prop.grammar() if form == "document" else None))
+        prop.tell(c)
+    return out
+
+
+def run_form(run_dir: Path) -> str:
+    """The prompt form a recorded run used: chat or document."""
+    store, cfg, _ = load_run(run_dir)
+    store.close()
+    return cfg.form
+
+
+def prompt_after(run_dir: Path, *, top_k: int, form: str = "chat", **overrides: Any) -> str:
     """The prompt the run would send next, after all its recorded candidates, with K = ``top_k``."""
-    prop, cands = _proposer(run_dir, top_k, **overrides)
+    prop, cands = _proposer(run_dir, top_k, form, **overrides)
     for c in cands:
         prop.tell(c)
     return prop.prompt()
 
 
 def sent_prompts(run_dir: Path) -> list[tuple[int, str]]:
-    """(iteration, prompt) of every first attempt the run actually sent."""
-    return [(c["iteration"], json.loads(c["request"])["messages"][0]["content"])
-            for c in llm_calls(run_dir) if c["attempt"] == 0 and c["retry"] == 0]
+    """(iteration, prompt) of every first attempt the run actually sent, in either prompt form."""
+    out = []
+    for c in llm_calls(run_dir):
+        if c["attempt"] == 0 and c["retry"] == 0:
+            body = json.loads(c["request"])
+            out.append((c["iteration"], body["prompt"] if "prompt" in body else body["messages"][0]["content"]))
+    return out
 
 
 @contextmanager

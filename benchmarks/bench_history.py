@@ -1,6 +1,6 @@
 """2. Bounded history: LLM response time and prompt size at the last iteration, K=10 against all.
 
-Two real Ant-Ultra (D=88) pp searches with the embedded model, one keeping the 10 best entries
+Two real Ant-Ultra (D=88) pp searches with the embedded model (document form), one keeping the 10 best entries
 and one keeping every entry, with the same key (so the same encoded warm-up) and seed. Both end
 with the same number of evaluated candidates, 52 at the last call, close to the paper's 59 (whose
 whole-history prompt would not leave room for the answer in the embedded model's 32k-token
@@ -67,7 +67,7 @@ def run(ctx: Context) -> Section:
     data["met"] = {"size": size_met, "time": time_met}
     body = [
         f"Ant-Ultra (D=88), pp, {warmup} warm-up + {iters} LLM iterations, same key and seed, embedded model "
-        "(context 32,768 tokens; default prompt form). Last iteration:",
+        "(context 32,768 tokens; the document form, its default). Last iteration:",
         "",
         table(["history", "entries shown", "prompt chars", "prompt tokens", "response time (s)", "of which prefill (s)",
                "of which decoding (s)", "mean response time, all iterations (s)"], rows),
@@ -83,15 +83,15 @@ def run(ctx: Context) -> Section:
     ]
     full = ctx.cache.get("prompt_data")
     if not size_met and full:
-        ours = pct_less(full["K10_list"]["chars"], full["K0_list"]["chars"])
-        ours_t = pct_less(full["K10_list"]["tokens"], full["K0_list"]["tokens"])
+        ours = pct_less(full["K10_document"]["chars"], full["K0_document"]["chars"])
+        ours_t = pct_less(full["K10_document"]["tokens"], full["K0_document"]["tokens"])
         props = pct_less(full["K10_indexed"]["chars"], full["K0_indexed"]["chars"])
         body.append(
             f"- What limits it: the whole history has to fit the 32k-token window, so the comparison stops at {u['entries_shown']} "
             f"entries (the paper's at 59); and compact entries leave bounding less to cut, since the fixed sections stay. At 59 "
-            f"entries (benchmark 1) the cut is {ours:.1f}% in characters ({ours_t:.1f}% in tokens) with our list form and "
+            f"entries (benchmark 1) the cut is {ours:.1f}% in characters ({ours_t:.1f}% in tokens) with the document form and "
             f"{props:.1f}% with the ProPS form, which matches the paper's {PAPER_SIZE_CUT}%. In absolute terms the K=10 prompt "
-            f"({full['K10_list']['chars']:,} characters) is {pct_less(full['K10_list']['chars'], 114_000):.0f}% smaller than the "
+            f"({full['K10_document']['chars']:,} characters) is {pct_less(full['K10_document']['chars'], 114_000):.0f}% smaller than the "
             "paper's whole-history prompt (114,000).")
     targets = [("response time cut > 74.9% (paper), K=10 vs all, last iteration", f"{cuts['latency']:.1f}%", time_met),
                ("prompt size cut > 80.2% (paper)", f"{cuts['chars']:.1f}% chars, {cuts['tokens']:.1f}% tokens", size_met)]

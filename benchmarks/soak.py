@@ -82,7 +82,7 @@ def _proposal_checks(out: Path, answers: list[list[float]]) -> tuple[int, int, i
 
     def printed(v: np.ndarray) -> str:
         if config.prompt_params == "list":
-            return fmt_vector(list(v), config.decimals, digits=config.param_digits, sep=",")
+            return fmt_vector(list(v), config.decimals, digits=config.digits(), sep=",")
         return ", ".join(fmt(x, config.decimals) for x in v)
 
     seen: set[str] = set()

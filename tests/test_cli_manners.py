@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from ppprops.cli import build_parser, main, run_config, run_parser
-from ppprops.experiments.spec import RunFlags
+from ppprops.experiments.spec import run_settings
 from ppprops.store import open_store
 
 TINY = ["--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "3"]
@@ -52,7 +52,7 @@ def test_box_in_a_config_file_and_a_spec(tmp_path: Path, value: str, capsys) -> 
     assert store.config()["box"] == [-6.0, 6.0]
     store.close()
     spec_value = tomllib.loads(f"box = {value}")["box"]  # an experiment spec's [run] table reads it alike
-    assert RunFlags().values({"box": spec_value}, "spec")["box"] == (-6.0, 6.0)
+    assert run_settings({"box": spec_value}, "spec")["box"] == (-6.0, 6.0)
 
 
 def test_the_readme_command_line_runs(tmp_path: Path) -> None:

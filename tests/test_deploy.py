@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from ppprops.cli import main
-from ppprops.policy_file import load_policy, policy_document, write_json_atomic
+from ppprops.fileio import write_json_atomic
+from ppprops.policy_file import load_policy, policy_document
 from ppprops.tasks import get_task
 
 ROOT = Path(__file__).resolve().parents[1]

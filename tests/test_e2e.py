@@ -31,8 +31,11 @@ def test_cli_run_show_and_policy_eval(tmp_path: Path, capsys, task: str, method:
     assert stat.S_IMODE(os.stat(out / "secrets.key").st_mode) == 0o600
     key = json.loads((out / "secrets.key").read_text())
     printed = set(re.findall(r"(?<![\w.])-?\d+\.\d+(?![\w.])", stdout))  # whole numbers, not digits inside others
-    for v in [*key["a"], key["c"]]:  # the summary never prints key material
-        assert f"{v:.2f}" not in printed and f"{v:.4f}" not in printed
+    values = [*key["a"], key["c"]]  # the summary never prints key material
+    assert not [v for v in values if f"{v:.4f}" in printed]
+    # at 2 decimals one of 11 random values can equal a printed latency or return by chance; a printed
+    # key prints them all
+    assert len([v for v in values if f"{v:.2f}" in printed]) <= 1, (printed, values)
 
     code, stdout, _ = _run(capsys, "show", str(out), "--json")
     assert code == 0
@@ -51,7 +54,7 @@ def test_cli_run_show_and_policy_eval(tmp_path: Path, capsys, task: str, method:
     assert len(s["llm_calls"]) >= 3
     for call in s["llm_calls"]:
         assert set(call) >= {"latency_s", "prompt_tokens", "completion_tokens", "prompt_chars", "ok"}
-        assert call["latency_s"] > 0 and call["prompt_tokens"] > 0 and call["prompt_chars"] > 500
+        assert call["latency_s"] > 0 and call["prompt_tokens"] > 0 and call["prompt_chars"] > 300  # the document form is short
 
     doc = json.loads((out / "best_policy.json").read_text())
     assert doc["task"] == task and len(doc["W"]) == doc["n_s"] and len(doc["b"]) == doc["n_a"]
@@ -71,5 +74,6 @@ def test_unbounded_history_shows_every_entry(tmp_path: Path, capsys) -> None:  #
     from ppprops.store import open_store
 
     store = open_store(out)
-    last = json.loads(store.llm_calls()[-1]["request"])["messages"][0]["content"]
+    body = json.loads(store.llm_calls()[-1]["request"])
+    last = body["prompt"] if "prompt" in body else body["messages"][0]["content"]  # the embedded default: the document form
     assert last.count("\nreturn: ") >= 13  # 12 warm-up + the first LLM candidate, none dropped

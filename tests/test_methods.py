@@ -16,7 +16,7 @@ from ppprops import strategies
 from ppprops.cli import build_parser, main, run_config, run_parser
 from ppprops.config import RunConfig
 from ppprops.errors import ConfigError
-from ppprops.experiments import report as grid_report
+from ppprops.experiments import order as grid_order
 from ppprops.experiments.spec import build_spec, flags_table
 from ppprops.loop import Phase
 from ppprops.methods import METHODS, Method, MethodKind, get_method, resolve
@@ -40,8 +40,8 @@ def test_the_cli_lists_exactly_the_registered_methods() -> None:
     rl = next(a for a in sub["baseline"]._actions if a.dest == "baseline_command").choices["rl"]
     assert _choices(rl, "algo") == [m.algo for m in METHODS.values() if m.kind is MethodKind.RL]
     assert set(_choices(rl, "algo")) == {"ppo", "a2c", "sac", "td3", "ddpg", "trpo", "dqn"}
-    assert grid_report.METHOD_ORDER == tuple(METHODS)  # the report's columns follow the registry
-    assert grid_report.PROMPT_METHODS == ("vanilla", "pe", "df", "pp", "pp-hardened")
+    assert grid_order.METHOD_ORDER == tuple(METHODS)  # the report's columns follow the registry
+    assert grid_order.PROMPT_METHODS == ("vanilla", "pe", "df", "pp", "pp-hardened")
 
 
 @pytest.mark.parametrize("method,kind,episodes", [("vanilla", MethodKind.PROMPTED, 1), ("r2po", MethodKind.PROMPTED, 20),

@@ -21,12 +21,26 @@ def test_flat_layout_matches_the_prompt_description(n_s: int, n_a: int) -> None:
     assert f"W[i][j] = params[i*{n_a} + j]" in text
 
 
-def test_scores_are_w_transpose_s_plus_b() -> None:
-    rng = np.random.default_rng(1)
-    theta = rng.normal(size=param_count(3, 2))
-    pol = LinearPolicy.from_flat(theta, 3, 2, discrete=True)
-    s = rng.normal(size=3)
-    np.testing.assert_allclose(pol.scores(s), pol.W.T @ s + pol.b)
+def test_flat_layout_on_a_written_out_example() -> None:
+    """n_s = 2, n_a = 3: theta = [W00 W01 W02 W10 W11 W12 b0 b1 b2] (row-major W, then b)."""
+    pol = LinearPolicy.from_flat(np.arange(9.0), 2, 3, discrete=True)
+    np.testing.assert_array_equal(pol.W, [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]])
+    np.testing.assert_array_equal(pol.b, [6.0, 7.0, 8.0])
+    assert [layout.param_index(i, j, 3) for i in range(2) for j in range(3)] == [0, 1, 2, 3, 4, 5]
+    assert [layout.bias_index(j, 2, 3) for j in range(3)] == [6, 7, 8]
+
+
+@pytest.mark.parametrize("n_s,n_a", [(3, 2), (1, 1), (5, 4)])
+def test_scores_follow_the_flat_layout(n_s: int, n_a: int) -> None:
+    """u_j = sum_i s_i theta[i n_a + j] + theta[n_s n_a + j], summed here term by term from theta
+    (not from the policy's W and b), so a layout error in from_flat or scores fails."""
+    rng = np.random.default_rng(n_s * 10 + n_a)
+    theta = rng.normal(size=param_count(n_s, n_a))
+    s = rng.normal(size=n_s)
+    expected = [sum(s[i] * theta[i * n_a + j] for i in range(n_s)) + theta[n_s * n_a + j] for j in range(n_a)]
+    pol = LinearPolicy.from_flat(theta, n_s, n_a, discrete=True)
+    np.testing.assert_allclose(pol.scores(s), expected, rtol=1e-12, atol=1e-12)
+    assert pol.act(s) == int(np.argmax(expected))
 
 
 def test_discrete_takes_argmax_and_continuous_clips() -> None:

@@ -13,7 +13,7 @@ from ppprops.client.codec import Codec, encode_feedback
 from ppprops.client.context import prompt_context
 from ppprops.client.secrets import Secrets
 from ppprops.evaluation import Feedback
-from ppprops.loop import StopSearch
+from ppprops.proposers.base import StopSearch
 from ppprops.proposers.r2po import R2POProposer
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task

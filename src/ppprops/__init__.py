@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from .version import __version__
 
 _API = ("search", "resume", "load_run", "evaluate_policy", "load_policy", "SearchResult", "Evaluation", "Policy")
 __all__ = ["__version__", *_API]

@@ -1,3 +1,5 @@
+"""``python -m ppprops``: the command line (``ppprops.cli.main``)."""
+
 import sys
 
 from .cli import main

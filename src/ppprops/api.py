@@ -31,10 +31,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import LLMConfig, RunConfig
+from .config import RunConfig
 from .errors import ConfigError
 from .policy_file import Policy, load_policy
-from .store import Candidate
+from .values import Candidate
 
 Pathish = str | os.PathLike[str]
 TaskLike = Any  # str | os.PathLike | Callable[..., gymnasium.Env] | TaskSpec | Task (see ppprops.tasks.load_task)
@@ -52,10 +52,12 @@ class Evaluation:
 
     @property
     def mean(self) -> float:
+        """Mean episode return (raw reward units); NaN with no episodes."""
         return float(np.mean(self.returns)) if self.returns else float("nan")
 
     @property
     def std(self) -> float:
+        """Population standard deviation of the episode returns (numpy's default); NaN with no episodes."""
         return float(np.std(self.returns)) if self.returns else float("nan")
 
 
@@ -134,14 +136,15 @@ def search(
     encoded_warmup: bool | None = None,
     describe_task: bool | None = None,
     prompt_params: str = "list",
-    param_digits: int = 3,
+    param_digits: int | None = None,
     prompt_layout: str = "static-first",
+    prompt_form: str = "auto",
     parse_retries: int = 2,
     on_llm_failure: str = "stop",
     base_url: str | None = None,
     model: str | None = None,
     api_key_env: str | None = None,
-    temperature: float = 1.0,
+    temperature: float | None = None,
     max_tokens: int | None = None,
     timeout: float = 300.0,
     reasoning_effort: str | None = None,
@@ -191,14 +194,18 @@ def search(
         encoded_warmup: hardening switch (docs/threat-model.md); None keeps the preset's.
         describe_task: the task description in the prompt (ProPS+ on, ProPS off); None keeps on.
         prompt_params: history parameters as one ``list`` or ProPS ``indexed`` pairs.
-        param_digits: significant digits of each listed parameter (0: fixed decimals).
+        param_digits: significant digits of each listed parameter (0: fixed decimals; None: the
+            form's default, 3 in the chat form, 2 in the document form).
         prompt_layout: ``static-first`` (fixed sections first) or ``history-first``.
+        prompt_form: ``auto`` (the document form for the embedded model, the paper's chat prompt
+            otherwise), ``chat`` or ``document`` (a completions-endpoint document the model continues).
         parse_retries: corrections asked for before a fallback candidate.
         on_llm_failure: ``stop`` (resumable) or ``skip`` (fallback candidate) when the endpoint stays down.
         base_url: OpenAI-compatible API root (default: the embedded model).
         model: the model name at ``base_url``.
         api_key_env: the environment variable holding the API key (never stored).
-        temperature: sampling temperature, 0 to 2.
+        temperature: sampling temperature, 0 to 2 (None: 1.0 for the chat form; the document form
+            alternates 0.6 and 1.0).
         max_tokens: answer budget in tokens (default: room for D numbers, and for reasoning).
         timeout: seconds per request.
         reasoning_effort: ``none``, ``minimal``, ``low``, ``medium`` or ``high`` (reasoning models).
@@ -207,7 +214,9 @@ def search(
         retries: retries of one request after a transient fault.
         chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
             a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
-            keeps it (it is not closed). Its exchanges are recorded like an endpoint's.
+            keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With
+            ``complete_document(prompt, *, D, seed, grammar)`` too it gets the document form under
+            ``prompt_form="auto"``; without, the chat form.
         progress: show a progress bar on stderr.
 
     Returns:
@@ -220,41 +229,29 @@ def search(
         StoreError: the run directory cannot be written.
     """
     from .methods import get_method
-    from .tasks import is_builtin, load_task
+    from .settings import build_config
+    from .tasks import load_task
 
-    overrides = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
-                     disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
-                     secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
-                     hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
-                     describe_task=describe_task)  # fmt: skip
+    switches = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
+                    disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
+                    secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
+                    hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
+                    describe_task=describe_task)  # fmt: skip
     entry = get_method(method)  # a bad method fails before the env is made
-    mechanisms = entry.mechanisms(**overrides)
+    entry.mechanisms(**switches)
+    values: dict[str, Any] = dict(
+        method=method, warmup=warmup, iterations=iterations, top_k=top_k, final_episodes=final_episodes, seed=seed,
+        box=tuple(box), decimals=decimals, workers=workers, prompt_params=prompt_params, param_digits=param_digits,
+        prompt_layout=prompt_layout, prompt_form=prompt_form, parse_retries=parse_retries, on_llm_failure=on_llm_failure, base_url=base_url, model=model,
+        api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens, timeout=timeout,
+        reasoning_effort=reasoning_effort, structured=structured, context_size=context_size, retries=retries,
+        **{k: v for k, v in switches.items() if v is not None},
+    )  # fmt: skip
+    if episodes is not None:
+        values["episodes"] = episodes
     t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
                   obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
-    config = RunConfig(
-        task=t.name,
-        task_spec=None if is_builtin(t) or t.spec is None else t.spec.to_json(),
-        method=method,
-        mechanisms=mechanisms,
-        warmup=warmup,
-        iterations=iterations,
-        top_k=top_k,
-        episodes=episodes if episodes is not None else entry.default_episodes,
-        final_episodes=final_episodes,
-        seed=seed,
-        box=(float(box[0]), float(box[1])),
-        decimals=decimals,
-        workers=workers,
-        prompt_params=prompt_params,
-        param_digits=param_digits,
-        prompt_layout=prompt_layout,
-        parse_retries=parse_retries,
-        on_llm_failure=on_llm_failure,
-        llm=LLMConfig(base_url=base_url, model=model, api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens,
-                      timeout_s=timeout, reasoning_effort=reasoning_effort, structured=structured, context_size=context_size,
-                      transport_retries=retries),  # fmt: skip
-    )
-    config.validate()
+    config = build_config(values, task=t)
     run_dir = Path(out) if out is not None else _default_out(t.name, method, seed)
     from .runner import start
 
@@ -308,14 +305,11 @@ def load_run(run_dir: Pathish) -> SearchResult:
     from .store import open_store
 
     run_dir = Path(run_dir)
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         config = RunConfig.from_json(store.config())
         history = tuple(store.candidates())
         fe = store.final_eval()
         status = store.status()
-    finally:
-        store.close()
     best = best_candidate(list(history)) if history else None
     final = None
     if fe is not None and fe.returns:

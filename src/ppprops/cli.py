@@ -19,10 +19,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from . import __version__
-from .config import PROMPT_LAYOUTS, PROMPT_PARAMS, REASONING_EFFORTS, LLMConfig, RunConfig
-from .errors import PPPropsError
-from .methods import SWITCHES, get_method, rl_algos, search_method_names, switch_flag
+from .config import RunConfig, read_table
+from .errors import ConfigError, PPPropsError
+from .methods import rl_algos
+from .settings import SETTINGS, add_flags, build_config, given, read_settings
+from .version import __version__
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
@@ -41,112 +42,19 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_INPUT, f"ppprops: error: {message}\n")
 
 
-def _box(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LOW,HIGH, got {text!r}") from None
-    return lo, hi
-
-
-def _json_object(text: str) -> dict[str, Any]:
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise argparse.ArgumentTypeError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {text!r} ({e.msg})") from None
-    if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {text!r}")
-    return value
-
-
-_json_object.accepts_table = True  # type: ignore[attr-defined]  # a --config file may give a TOML table
-
-
-def _names(text: str) -> tuple[str, ...]:
-    names = tuple(n.strip() for n in text.split(",") if n.strip())
-    if not names:
-        raise argparse.ArgumentTypeError(f"expected K1,K2,..., got {text!r}")
-    return names
-
-
-def _flag(value: str) -> bool:
-    if value.lower() in ("on", "true", "yes", "1"):
-        return True
-    if value.lower() in ("off", "false", "no", "0"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected on or off, got {value!r}")
-
-
 def build_parser() -> argparse.ArgumentParser:
+    """The ``ppprops`` argument parser with every subcommand (run, resume, show, audit, report, ...)."""
     p = _Parser(prog="ppprops", description="Privacy-preserving prompted policy search with an LLM as optimizer.")
     p.add_argument("--version", action="version", version=f"ppprops {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     r = sub.add_parser("run", help="start a search")
-    r.add_argument("--env", default=None,
-                   help="task name (see `ppprops envs`), a Gymnasium id, module:EnvId, or module:attr (an env class or factory)")
-    r.add_argument("--task-file", type=Path, default=None, metavar="FILE",
-                   help="a task described in TOML (env, observation, feedback keys, prose; docs/own-robot.md) instead of --env")
-    r.add_argument("--env-kwargs", type=_json_object, default=None, metavar="JSON",
-                   help="keyword arguments of the env's constructor, as a JSON object")
-    r.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
-                   help="time limit of an episode (needed when the env has none of its own)")
-    r.add_argument("--gym-packages", action="append", default=[], metavar="MOD",
-                   help="a module to import first, e.g. one that registers the env (repeatable)")
-    r.add_argument("--obs-keys", type=_names, default=None, metavar="K1,K2",
-                   help="a Dict observation: the entries the policy sees, in this order")
-    r.add_argument("--method", choices=search_method_names(), default="pp",
-                   help="a preset of the paper (default pp), R2PO, or a black-box baseline at the same budget")
-    r.add_argument("--warmup", type=int, default=10, help="random warm-up policies (default 10)")
-    r.add_argument("--iterations", type=int, default=50,
-                   help="LLM iterations (default 50); r2po: LLM calls, two per two-stage iteration; random, cmaes: samples")
-    r.add_argument("--top-k", type=int, default=10, help="history entries in the prompt; 0 = all (default 10)")
-    r.add_argument("--episodes", type=int, default=None, help="episodes per candidate (default 1; 20 for r2po)")
-    r.add_argument("--final-episodes", type=int, default=20, help="fresh episodes for the best policy (default 20)")
-    r.add_argument("--seed", type=int, default=0, help="run seed: warm-up, episode seeds, LLM sampling seeds (default 0)")
+    add_flags(r, groups=None, only=[s.key for s in SETTINGS if s.group in ("task", "run")])
     r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>__<time>)")
-    r.add_argument("--box", type=_box, default=(-6.0, 6.0), metavar="LOW,HIGH",
-                   help="feasible range of every parameter (default -6,6)")
-    r.add_argument("--decimals", type=int, default=2, help="decimals of numbers in the prompt (default 2)")
-    r.add_argument("--prompt-params", choices=PROMPT_PARAMS, default="list",
-                   help="history parameters as one list (default, compact) or as ProPS-style params[i]: value pairs")
-    r.add_argument("--param-digits", type=int, default=3,
-                   help="list form: significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals (default 3)")
-    r.add_argument("--prompt-layout", choices=PROMPT_LAYOUTS, default="static-first",
-                   help="fixed sections before the history (default; a server's prefix cache reuses them) or history first")
-    r.add_argument("--workers", type=int, default=1, help="processes running episodes in parallel (default 1)")
-    r.add_argument("--component", action="append", default=[], metavar="KEY",
-                   help="an info key to sum as a reward component (repeatable); KEY.SUB picks an entry of a dict, KEY.* all")
-    r.add_argument("--diagnostic", action="append", default=[], metavar="KEY",
-                   help="an info key to report as a diagnostic (its last value; repeatable)")
-    r.add_argument("--parse-retries", type=int, default=2, help="corrections asked for before a fallback (default 2)")
-    r.add_argument("--on-llm-failure", choices=["stop", "skip"], default="stop",
-                   help="when the endpoint stays down past --retries: stop, resumable (default), or skip: "
-                        "record a fallback candidate and go on")
     r.add_argument("--config", type=Path, default=None, metavar="FILE",
-                   help="TOML file whose keys mirror these flags (env = \"CartPole\", top-k = 5, box = [-6, 6]); flags given here win")
-    g = r.add_argument_group("mechanisms (override the preset one by one)")
-    for name in SWITCHES:  # hardening switches: docs/threat-model.md
-        g.add_argument(switch_flag(name), type=_flag, default=None, metavar="on|off", help=SWITCH_HELP[name])
-    llm = r.add_argument_group("LLM endpoint (default: the embedded Gemma 3 270M, offline)")
-    _endpoint_flags(llm)
-    llm.add_argument("--temperature", type=float, default=1.0, help="sampling temperature, 0 to 2 (default 1)")
-    llm.add_argument("--max-tokens", type=int, default=None,
-                     help="answer token budget; reasoning counts against it (default: room for D numbers, "
-                          "plus room for reasoning when --reasoning-effort is set or the endpoint reasons)")
-    llm.add_argument("--timeout", type=float, default=300.0, help="seconds per request (default 300)")
-    llm.add_argument("--reasoning-effort", default=None, choices=REASONING_EFFORTS,
-                     help="for reasoning models (gpt-oss, OpenAI o-series); none turns thinking off on Ollama's /v1")
-    llm.add_argument("--structured", default="auto", choices=["auto", "json_schema", "grammar", "none"],
-                     help="constrained output: auto = grammar for the embedded model, JSON schema otherwise")
-    llm.add_argument("--context-size", type=int, default=16384, help="embedded model context (default 16384)")
-    llm.add_argument("--retries", type=int, default=4,
-                     help="retries of one request after a timeout, refused or dropped connection, 429 or 5xx (default 4)")
-    llm.add_argument("--retry-base-delay", type=float, default=1.0, metavar="S",
-                     help="first backoff in seconds, doubled per retry, with jitter (default 1)")
-    llm.add_argument("--retry-max-delay", type=float, default=30.0, metavar="S", help="longest backoff in seconds (default 30)")
-    llm.add_argument("--retry-after-cap", type=float, default=60.0, metavar="S",
-                     help="longest Retry-After of a 429 that is honoured, seconds (default 60)")
+                   help="TOML or YAML file whose keys mirror these flags (env = \"CartPole\", top-k = 5, box = [-6, 6]); "
+                        "flags given here win")  # fmt: skip
+    add_flags(r, only=[s.key for s in SETTINGS if s.group not in ("task", "run")])
     r.add_argument("--quiet", action="store_true", help="no progress on stderr")
     r.add_argument("--json", action="store_true",
                    help="print one JSON object (the `show --json` summary, the run directory, the audit verdict) on stdout")
@@ -154,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     rs = sub.add_parser("resume", help="continue an interrupted run with its own secrets")
     rs.add_argument("dir", type=Path, help="the run directory (as `run` printed it)")
     ep = rs.add_argument_group("a corrected or different LLM endpoint (recorded in the run; the secrets stay the same)")
-    _endpoint_flags(ep, resume=True)
+    add_flags(ep, only=ENDPOINT_KEYS, groups=None, help_suffix=" (default: the run's)")
     rs.add_argument("--quiet", action="store_true", help="no progress on stderr")
     rs.add_argument("--json", action="store_true", help="print one JSON object (as `run --json`) on stdout")
 
@@ -192,98 +100,30 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .experiments.cli import add_subcommands as add_experiment_subcommands  # argparse only; grids load on use
 
-    add_experiment_subcommands(sub, run_parser=r)
+    add_experiment_subcommands(sub)
 
     en = sub.add_parser("envs", help="list the tasks")
     en.add_argument("--json", action="store_true", help="one JSON list of the tasks on stdout")
     return p
 
 
-SWITCH_HELP = {
-    "encode_params": "parameters shown as A theta (Sec. II-B)",
-    "scale_rewards": "returns and reward components shown as c r (Sec. II-C)",
-    "detailed_feedback": "reward components and diagnostics in the history",
-    "disclose_optimum": "state the optimal return as a target (Vanilla ProPS)",
-    "disclose_reward_structure": "state the numeric reward definition",
-    "describe_task": "task description in the prompt: on = ProPS+, off = ProPS (policy structure only)",
-    "secret_offsets": "hardening: secret raw origins, A (theta - m) and c (r - s)",
-    "warp_params": "hardening: the box mapped onto the real line before A",
-    "warp_rewards": "hardening: a secret increasing power warp of the rewards",
-    "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
-    "encoded_warmup": "hardening: warm-up drawn in the encoded space",
-}
-
-
-def _endpoint_flags(group: Any, *, resume: bool = False) -> None:
-    """--base-url, --model, --api-key-env: for `run`, and for `resume` against another endpoint."""
-    keep = " (default: the run's)" if resume else ""
-    group.add_argument("--base-url", default=None,
-                       help=f"OpenAI-compatible API root that /chat/completions is appended to, e.g. http://localhost:11434/v1{keep}")  # fmt: skip
-    group.add_argument("--model", default=None, help=f"model name at that endpoint (required with --base-url){keep}")
-    group.add_argument("--api-key-env", default=None, metavar="VAR",
-                       help=f"environment variable that holds the API key (never stored){keep}")  # fmt: skip
+ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
 
 
 def run_parser() -> argparse.ArgumentParser:
-    """The parser of ``ppprops run`` (its actions list every run setting and its checks)."""
+    """The parser of ``ppprops run``; its namespace holds only the settings given (``settings.given``)."""
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return sub.choices["run"]  # type: ignore[no-any-return]
 
 
-def run_config(a: argparse.Namespace) -> RunConfig:
-    """The RunConfig of parsed ``ppprops run`` flags (``run_parser().parse_args(...)``).
+def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None) -> RunConfig:
+    """The RunConfig of parsed ``ppprops run`` flags, over ``file_values`` (a ``--config`` file's).
 
-    The method's registry entry gives its mechanisms (preset plus the on/off flags given) and
-    its default episodes. Raises ConfigError for a missing --env, an unknown task, or a
-    mechanism the method refuses; ``RunConfig.validate`` checks the numbers.
+    Raises:
+        ConfigError: one line naming the flag (``settings.build_config``).
     """
-    if a.env is None and getattr(a, "task_file", None) is None:
-        from .errors import ConfigError
-
-        raise ConfigError("--env or --task-file is required (on the command line, or in the --config file)")
-    method = get_method(a.method)
-    mech = method.mechanisms(**{name: getattr(a, name) for name in SWITCHES})
-    from .tasks import is_builtin, load_task
-
-    task = load_task(a.env, task_file=getattr(a, "task_file", None), env_kwargs=getattr(a, "env_kwargs", None),
-                     max_episode_steps=getattr(a, "max_episode_steps", None), gym_packages=getattr(a, "gym_packages", ()),
-                     obs_keys=getattr(a, "obs_keys", None), components=a.component, diagnostics=a.diagnostic)  # fmt: skip
-    return RunConfig(
-        task=task.name,
-        task_spec=None if is_builtin(task) or task.spec is None else task.spec.to_json(),
-        workers=a.workers,
-        method=a.method,
-        mechanisms=mech,
-        warmup=a.warmup,
-        iterations=a.iterations,
-        top_k=a.top_k,
-        episodes=a.episodes if a.episodes is not None else method.default_episodes,
-        final_episodes=a.final_episodes,
-        seed=a.seed,
-        box=a.box,
-        decimals=a.decimals,
-        prompt_params=a.prompt_params,
-        param_digits=a.param_digits,
-        prompt_layout=a.prompt_layout,
-        parse_retries=a.parse_retries,
-        on_llm_failure=a.on_llm_failure,
-        llm=LLMConfig(
-            base_url=a.base_url,
-            model=a.model,
-            api_key_env=a.api_key_env,
-            temperature=a.temperature,
-            max_tokens=a.max_tokens,
-            timeout_s=a.timeout,
-            reasoning_effort=a.reasoning_effort,
-            structured=a.structured,
-            context_size=a.context_size,
-            transport_retries=a.retries,
-            retry_base_s=a.retry_base_delay,
-            retry_max_s=a.retry_max_delay,
-            retry_after_cap_s=a.retry_after_cap,
-        ),
-    )
+    return build_config({**(file_values or {}), **given(a)})
 
 
 def _say(text: str) -> None:
@@ -311,8 +151,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
     from .progress import ProgressEvents
     from .runner import start
 
-    config = run_config(a)
-    config.validate()
+    config = run_config(a, getattr(a, "file_settings", None))
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = a.out or Path("runs") / f"{config.task}__{config.method}__{config.seed}__{stamp}"
     a.run_dir = out  # named by the Ctrl-C line
@@ -330,7 +169,7 @@ def _cmd_resume(a: argparse.Namespace) -> int:
 
     refuse_resume(a.dir)  # an RL baseline run has no search to continue
     a.run_dir = a.dir
-    endpoint = Endpoint(base_url=a.base_url, model=a.model, api_key_env=a.api_key_env)
+    endpoint = Endpoint(**{key: getattr(a, key, None) for key in ENDPOINT_KEYS})
     with ProgressEvents(enabled=not a.quiet, label=str(a.dir)) as events:
         resume(a.dir, events.hooks(), endpoint=endpoint if endpoint.given else None)
     return _finished(a.dir, a.json)
@@ -384,14 +223,25 @@ def _cmd_envs(a: argparse.Namespace) -> int:
     return 0
 
 
-def _with_config_file(parser: argparse.ArgumentParser, argv: Sequence[str] | None, path: Path) -> argparse.Namespace:
-    """Re-parse with the TOML file's values as the defaults of `run`, so flags on the command line win."""
-    from .config import defaults_from_file
+COMMAND_KEYS = {"out": Path, "quiet": bool, "json": bool}  # `run` options a --config file may also hold
 
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    run = sub.choices["run"]
-    run.set_defaults(**defaults_from_file(path, run._actions, skip=("config",)))
-    return parser.parse_args(argv)
+
+def _read_config_file(a: argparse.Namespace, path: Path) -> None:
+    """Put a ``--config`` file's settings under the flags given: they go to ``a.file_settings``,
+    and its ``out``/``quiet``/``json`` fill those options unless given on the command line."""
+    table = read_table(path)
+    where = f"config file {path}"
+    for key, kind in COMMAND_KEYS.items():
+        if key not in table:
+            continue
+        value = table.pop(key)
+        if kind is bool and not isinstance(value, bool):
+            raise ConfigError(f"{where}: {key} must be true or false, got {value!r}")
+        if kind is Path and not isinstance(value, str):
+            raise ConfigError(f"{where}: {key} must be a string, got {value!r}")
+        if not getattr(a, key):
+            setattr(a, key, kind(value))
+    a.file_settings = read_settings(table, where)
 
 
 def interrupted_line(a: argparse.Namespace) -> str:
@@ -434,7 +284,7 @@ def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "config", None) is not None and args.command == "run":
         try:
-            args = _with_config_file(parser, argv, args.config)
+            _read_config_file(args, args.config)
         except PPPropsError as e:
             print(f"ppprops: error: {e}", file=sys.stderr)
             return EXIT_INPUT

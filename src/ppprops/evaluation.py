@@ -8,17 +8,18 @@ from __future__ import annotations
 
 import multiprocessing
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .errors import ConfigError
 from .policy import LinearPolicy
-from .tasks.base import Diagnostic, Task
+from .tasks.base import Task
+from .values import Diagnostic, Feedback
 
 # An env with no time limit whose episode runs this long is stopped with an error naming the fix
 # (--max-episode-steps): a search must never hang on an episode that does not end.
@@ -33,41 +34,28 @@ class WorkerError(ConfigError):
     """A worker process could not make the task's env; the message is the worker's own error line."""
 
 
-@dataclass(frozen=True)
-class Feedback:
-    """Raw feedback of one candidate: mean return, mean reward components, aggregated diagnostics."""
+class Actor(Protocol):
+    """Anything that maps a policy input (shape (n_s,)) to an env action: a ``LinearPolicy``, an SB3 model's wrapper."""
 
-    ret: float
-    components: dict[str, float] = field(default_factory=dict)
-    diagnostics: dict[str, Diagnostic] = field(default_factory=dict)
-    episode_returns: tuple[float, ...] = ()
-
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "return": self.ret,
-            "components": self.components,
-            "diagnostics": self.diagnostics,
-            "episode_returns": list(self.episode_returns),
-        }
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Feedback:
-        return cls(
-            ret=float(d["return"]),
-            components={k: float(v) for k, v in d["components"].items()},
-            diagnostics=dict(d["diagnostics"]),
-            episode_returns=tuple(float(v) for v in d.get("episode_returns", ())),
-        )
+    def act(self, s: NDArray[np.float64]) -> Any:
+        """The action for state ``s``."""
+        ...
 
 
 @dataclass(frozen=True)
 class Episode:
+    """One episode's raw outcome: return (reward units), each reward component's sum, and the reduced diagnostics."""
+
     ret: float
     components: dict[str, float]
     diagnostics: dict[str, Diagnostic]
 
 
 def make_policy(task: Task, theta: NDArray[np.floating], env: Any) -> LinearPolicy:
+    """The linear policy of ``theta`` (shape (D,)) for ``task``, with ``env``'s action bounds for continuous actions.
+
+    Raises ConfigError when ``theta`` does not have D = (n_s + 1) n_a values.
+    """
     space = env.action_space
     low = getattr(space, "low", None) if not task.discrete else None
     high = getattr(space, "high", None) if not task.discrete else None
@@ -81,11 +69,19 @@ def step_cap(env: Any) -> int | None:
     return None if has_time_limit(env) else SAFETY_STEPS
 
 
-def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int, *, max_steps: int | None = None) -> Episode:
-    """One episode. A non-finite observation or reward ends it and is marked, never propagated.
+def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: int | None = None,
+                on_step: Callable[[NDArray[np.float64], Any], None] | None = None) -> Episode:  # fmt: skip
+    """One episode of ``policy`` on ``env``, reset with ``seed``: the one episode loop of ppprops.
 
-    ``max_steps`` (see ``step_cap``) bounds an episode of an env with no time limit: past it the
-    episode is an ``EpisodeLimitError``, never an endless loop.
+    A non-finite observation or reward ends the episode and is marked (diagnostic
+    ``numerical_fault``), never propagated. ``max_steps`` (see ``step_cap``) bounds an episode of
+    an env with no time limit: past it the episode is an ``EpisodeLimitError``, never an endless
+    loop. ``on_step(state, action)`` sees each policy input (the task's observation vector, shape
+    (n_s,)) and the action taken, before the step (R2PO's rollout evidence).
+
+    Raises:
+        EpisodeLimitError: the episode ran past ``max_steps``.
+        FeedbackKeyError: the env's info lacks a declared component or diagnostic.
     """
     recorder = task.feedback()
     obs, info = env.reset(seed=seed)
@@ -98,7 +94,10 @@ def run_episode(task: Task, env: Any, policy: LinearPolicy, seed: int, *, max_st
         if not np.all(np.isfinite(s)):
             numerical_fault = True
             break
-        obs, reward, terminated, truncated, info = env.step(policy.act(s))
+        action = policy.act(s)
+        if on_step is not None:
+            on_step(s, action)
+        obs, reward, terminated, truncated, info = env.step(action)
         reward = float(reward)
         if not np.isfinite(reward) or not np.isfinite(total + reward):
             numerical_fault = True  # a bad reward, or a sum that overflowed
@@ -205,6 +204,7 @@ class Evaluator:
 
     @property
     def env(self) -> Any:
+        """The evaluator's own env (made on first use), for rollouts outside ``evaluate``."""
         if self._env is None:
             self._env = self.task.make_env()
             self._cap = step_cap(self._env)
@@ -248,6 +248,7 @@ class Evaluator:
         return out
 
     def evaluate(self, theta: NDArray[np.floating], seeds: Sequence[int]) -> Feedback:
+        """Raw feedback of ``theta`` (shape (D,)) averaged over one episode per seed in ``seeds`` (paper Sec. II-C)."""
         return self.evaluate_many([theta], [seeds])[0]
 
     def evaluate_many(self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]) -> list[Feedback]:
@@ -258,6 +259,7 @@ class Evaluator:
         return [aggregate(eps) for eps in run(thetas, seeds_list)]
 
     def close(self) -> None:
+        """Shut the worker pool down (if any); the evaluator can still be used serially afterwards."""
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None

@@ -15,32 +15,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from .client.codec import Codec, encode_feedback
-from .evaluation import Feedback
 from .proposers.base import Proposer
-from .store import Candidate, RunStore
+from .store import RunStore
+from .values import Candidate, Feedback
 
 Evaluate = Callable[[np.ndarray, int], tuple[Feedback, Sequence[int]]]
 OnCandidate = Callable[[Candidate], None]
 
 
-class StopSearch(Exception):
-    """Raised by a proposer that cannot go on (e.g. its prompt no longer fits the context
-    window). The run stops there and reports the best policy found before it."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-
-
 @dataclass(frozen=True)
 class Phase:
+    """A stretch of the run: ``budget`` candidates, each asked of ``proposer`` (warm-up, then the search).
+
+    ``name`` labels it (``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``); ``budget`` >= 0.
+    """
+
     name: str
     proposer: Proposer
     budget: int
 
 
 def locate(phases: Sequence[Phase], index: int) -> tuple[Phase, int]:
-    """The phase and the phase-local iteration that produce candidate ``index``."""
+    """The phase and the phase-local iteration that produce candidate ``index`` (0-based).
+
+    Phases are laid end to end: phase k holds indices [sum of earlier budgets, + its budget).
+    Raises IndexError for an index at or past the total budget.
+    """
     start = 0
     for ph in phases:
         if index < start + ph.budget:
@@ -58,7 +58,14 @@ def run_loop(
     done: Sequence[Candidate] = (),
     on_candidate: OnCandidate | None = None,
 ) -> list[Candidate]:
-    """Replays ``done`` into the proposers, then runs the remaining budget. Returns all candidates."""
+    """Replay ``done`` into the proposers, then run the remaining budget. Returns all candidates.
+
+    For each index from ``len(done)`` to the total budget: ask the phase's proposer (``locate``),
+    evaluate the raw theta (``evaluate(theta, index)`` -> raw Feedback and the episode seeds),
+    encode it (theta~ = A theta, r~ = c r: paper Eq. 1-2 through ``codec``), record the Candidate in
+    ``store``, tell every proposer, then call ``on_candidate``. A proposer's StopSearch and the
+    evaluator's errors propagate; the candidates recorded before them stay in the store.
+    """
     history = list(done)
     proposers = list(dict.fromkeys(ph.proposer for ph in phases))
     for c in history:

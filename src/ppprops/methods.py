@@ -8,14 +8,15 @@ distinction: off, the prompt carries no task description, only the policy struct
 
 ``METHODS`` is the one place that knows each method (``Method``): its kind (a prompted search, a
 black-box optimizer at the same budget, or an RL baseline), its mechanisms, its defaults, which
-settings it refuses, and how its search phase is built (``ppprops.strategies``). The CLI, the
-experiment specs, the runner and the reports ask it instead of keeping lists of their own.
-Adding a method is one ``Method`` entry here plus, for a search, one phase builder there.
+settings it refuses, and how its search phase is built (a builder in ``ppprops.strategies``, or
+any callable). The CLI, the experiment specs, the runner and the reports ask it instead of keeping
+lists of their own. Adding a method is one ``Method`` entry here (or ``register_method`` from
+outside), plus, for a search, one phase builder. docs/architecture.md has the recipe.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import MISSING, asdict, dataclass, fields, replace
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
@@ -49,6 +50,7 @@ class Mechanisms:
     describe_task: bool = True
 
     def to_json(self) -> dict[str, bool]:
+        """Each switch by name, as stored in a run's config."""
         return asdict(self)
 
     @classmethod
@@ -105,6 +107,22 @@ PRESETS: dict[str, Mechanisms] = {
 SWITCHES: tuple[str, ...] = tuple(f.name for f in fields(Mechanisms))
 
 
+# The help text of each switch's `--<name> on|off` flag.
+SWITCH_HELP: dict[str, str] = {
+    "encode_params": "parameters shown as A theta (Sec. II-B)",
+    "scale_rewards": "returns and reward components shown as c r (Sec. II-C)",
+    "detailed_feedback": "reward components and diagnostics in the history",
+    "disclose_optimum": "state the optimal return as a target (Vanilla ProPS)",
+    "disclose_reward_structure": "state the numeric reward definition",
+    "describe_task": "task description in the prompt: on = ProPS+, off = ProPS (policy structure only)",
+    "secret_offsets": "hardening: secret raw origins, A (theta - m) and c (r - s)",
+    "warp_params": "hardening: the box mapped onto the real line before A",
+    "warp_rewards": "hardening: a secret increasing power warp of the rewards",
+    "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
+    "encoded_warmup": "hardening: warm-up drawn in the encoded space",
+}
+
+
 def switch_flag(name: str) -> str:
     """The command-line flag of a mechanism switch: ``encode_params`` -> ``--encode-params``."""
     return "--" + name.replace("_", "-")
@@ -159,8 +177,9 @@ class Method:
 
     ``name`` is the ``--method`` value and what a run stores as its method (RL baselines:
     ``rl-<algo>``). ``preset`` is the mechanisms a prompted method starts from. A search runs
-    ``warmup`` uniform samples, then ``iterations`` asks of the phase ``strategies.<phase>``
-    builds; ``iterations`` counts what ``iteration_unit`` says.
+    ``warmup`` uniform samples, then ``iterations`` asks of the phase its builder returns:
+    ``phase`` is the name of a builder in ``ppprops.strategies`` or a callable
+    ``(strategies.SearchSetup) -> loop.Phase``; ``iterations`` counts what ``iteration_unit`` says.
     """
 
     name: str
@@ -169,7 +188,7 @@ class Method:
     preset: Mechanisms | None = None
     default_episodes: int = 1  # episodes per candidate when --episodes is not given
     iteration_unit: str = "LLM iterations"
-    phase: str | None = None  # the builder in ppprops.strategies (None: an RL baseline)
+    phase: str | Callable[[SearchSetup], Phase] | None = None  # builder (name in ppprops.strategies or callable); None: RL
     top_k_prompt: bool = False  # one LLM call per iteration over a top-K history (history-cost figures)
     raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
@@ -190,6 +209,7 @@ class Method:
 
     @property
     def uses_llm(self) -> bool:
+        """True for prompted methods: the run starts (or connects to) an LLM endpoint."""
         return self.kind is MethodKind.PROMPTED
 
     def mechanisms(self, **overrides: bool | None) -> Mechanisms:
@@ -239,14 +259,6 @@ class Method:
                     "use --method pp or pp-hardened for a private search"
                 )
 
-    def search_phase(self, setup: SearchSetup) -> Phase:
-        """The phase that follows the warm-up (``config.iterations`` asks), built by ``strategies``."""
-        if self.phase is None:
-            raise ConfigError(f"{self.name} is an RL baseline; it has no search phase")
-        from . import strategies
-
-        build = getattr(strategies, self.phase)
-        return build(setup)  # type: ignore[no-any-return]
 
 
 def _prompted(name: str, title: str, preset: str) -> Method:
@@ -285,6 +297,21 @@ METHODS: dict[str, Method] = {
         _rl("dqn"),
     )
 }  # fmt: skip
+
+
+def register_method(method: Method) -> Method:
+    """Add ``method`` to the registry (after the built-in ones) and return it.
+
+    From then on ``--method``, ``ppprops.search(method=...)``, the experiment specs and the reports
+    know it. A search method needs a ``phase``. Raises ConfigError if the name is taken or a search
+    method has no phase builder.
+    """
+    if method.name in METHODS:
+        raise ConfigError(f"a method named {method.name!r} is already registered")
+    if method.is_search and method.phase is None:
+        raise ConfigError(f"method {method.name!r} is a search and needs a phase builder")
+    METHODS[method.name] = method
+    return method
 
 
 def methods(kind: MethodKind | None = None, *, search: bool | None = None) -> Iterator[Method]:

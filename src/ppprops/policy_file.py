@@ -36,7 +36,6 @@ import json
 import os
 import platform
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -62,7 +61,7 @@ def _versions(entry_point: str | None) -> dict[str, str]:
 
     import gymnasium
 
-    from . import __version__
+    from .version import __version__
 
     out = {"ppprops": __version__, "gymnasium": gymnasium.__version__, "numpy": np.__version__, "python": platform.python_version()}
     modules = {"mujoco"} | ({entry_point.split(":")[0].split(".")[0]} if entry_point else set())
@@ -121,23 +120,6 @@ def policy_document(
         "search": search,
         "final_eval": final_eval,
     }
-
-
-def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
-    """Write to a temp file in the same folder, then rename: a crash never leaves half a file."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # a policy is meant to be deployed; only the key file is private
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
@@ -211,6 +193,7 @@ class Policy:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """One name per state value, in the order of s."""
         return tuple(self.selection.names)
 
     def state(self, obs: Any) -> NDArray[np.float64]:
@@ -222,6 +205,7 @@ class Policy:
         return self.state(obs) @ self.W + self.b
 
     def __call__(self, obs: Any) -> int | NDArray[np.float64]:
+        """The action for one raw observation: argmax of u (discrete) or u clipped to the action bounds."""
         u = self.scores(obs)
         if self.discrete:
             return int(np.argmax(u))

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from .runner import RunEvents
-from .store import Candidate, FinalEval
+from .values import Candidate, FinalEval
 
 
 class ProgressEvents:
@@ -78,6 +78,7 @@ class ProgressEvents:
         self.bar = self.final_bar = None
 
     def hooks(self) -> RunEvents:
+        """The runner's callbacks that drive these progress bars."""
         return RunEvents(on_start=self._start, on_candidate=self._candidate, on_final=self._final,
                          on_llm_loading=self._llm_loading, on_llm_ready=self._llm_ready,
                          on_final_start=self._final_start, on_final_episode=self._final_episode)  # fmt: skip

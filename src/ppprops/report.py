@@ -54,8 +54,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
     Keys: run_id, status, env, method, mechanisms, seed, config, endpoint_changes (LLM endpoints
     changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
     too). Raises StoreError for a directory that holds no readable run."""
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         if RunKind.of_config(store.config()) is RunKind.RL:  # same keys, no candidates, plus "training"
             return rl_summary(store)
         config = RunConfig.from_json(store.config())
@@ -120,8 +119,6 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                 for call in calls
             ],
         })
-    finally:
-        store.close()
 
 
 def _endpoint(e: dict[str, Any]) -> str:

@@ -31,18 +31,20 @@ from .client.hardening import codec_for, generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
-from .evaluation import EpisodeLimitError, Evaluator, Feedback, WorkerError, check_parallel
+from .evaluation import EpisodeLimitError, Evaluator, WorkerError, check_parallel
+from .fileio import write_json_atomic
 from .llm.client import ChatClient, Exchange, RequestShape
-from .loop import Phase, StopSearch, best_candidate, run_loop
+from .loop import Phase, best_candidate, run_loop
 from .methods import get_method
-from .policy_file import policy_document, write_json_atomic
+from .policy_file import policy_document
+from .proposers.base import StopSearch
 from .proposers.uniform import warmup_sampler
 from .status import RunStatus
-from .store import DB_NAME, Candidate, FinalEval, RunStore, open_store
-from .strategies import SearchSetup
+from .store import DB_NAME, KEY_NAME, RunStore, open_store
+from .strategies import SearchSetup, search_phase
 from .tasks import FeedbackKeyError, Task
+from .values import Candidate, Feedback, FinalEval
 
-KEY_NAME = "secrets.key"
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 CHAT_TEMPLATE_MARGIN = 32  # tokens the chat template adds around a single user message
@@ -77,14 +79,22 @@ class ChatModel(Protocol):
 
     ``complete`` sends one prompt (``messages``: OpenAI chat messages) for a vector of ``D`` numbers
     and returns the ``Exchange`` (request and answer text, recorded in the store, so the audit
-    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it.
+    sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close`` ends it. A model
+    that also has ``complete_document(prompt, *, D, seed, grammar)`` (``ChatClient`` does) can be
+    sent the document form; without it, ``--prompt-form auto`` uses the chat form.
     """
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """Send ``messages`` asking for ``D`` numbers; the Exchange holds the request, answer and errors."""
+        ...
 
-    def count_tokens(self, text: str) -> int: ...
+    def count_tokens(self, text: str) -> int:
+        """An estimate of ``text``'s length in the model's tokens (never under-counted on purpose)."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the endpoint (stop an embedded server this object started)."""
+        ...
 
 
 # A chat model for every run started in this context (see ``use_chat``); None: the configured LLM.
@@ -106,6 +116,7 @@ def use_chat(factory: Callable[[RunConfig], ChatModel]) -> Iterator[None]:
 
 
 def new_run_id(config: RunConfig) -> str:
+    """A fresh run id, ``<task>__<method>__<seed>__<8 hex digits>`` (random, so two runs never share one)."""
     return f"{config.task}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}"
 
 
@@ -143,11 +154,8 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
             secrets.save(tmp / KEY_NAME)
         except OSError as e:
             raise StoreError(f"cannot write the key file in {run_dir}: {e.strerror}") from None
-        store = RunStore(tmp / DB_NAME)
-        try:
+        with RunStore(tmp / DB_NAME) as store:  # closed (the WAL checkpointed) before the directory moves
             store.init_run(run_id, config.to_json(), secrets.fingerprint())
-        finally:
-            store.close()  # the last connection checkpoints the WAL, so the directory can move
         try:
             os.rename(tmp, run_dir)  # onto a missing or empty directory, atomically
         except OSError as e:
@@ -161,10 +169,22 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
 
 
 def load_run(run_dir: Path) -> tuple[RunStore, RunConfig, Secrets]:
+    """The open store, config and secrets of a run directory; the caller closes the store
+    (``with store:``). Nothing stays open when this raises.
+
+    Raises:
+        StoreError: not a run directory, or a damaged store.
+        KeyFileError: the key file is missing, damaged, or belongs to another run.
+        ConfigError: the stored config names a task that cannot be made here.
+    """
     store = open_store(run_dir)
-    config = RunConfig.from_json(store.config())
-    task = config.make_task()
-    secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
+    try:
+        config = RunConfig.from_json(store.config())
+        task = config.make_task()
+        secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
+    except BaseException:
+        store.close()
+        raise
     return store, config, secrets
 
 
@@ -250,7 +270,7 @@ def execute(
                             model = stack.enter_context(closing(made))
                         chat_fn = lambda: model  # noqa: E731
                     setup = SearchSetup(task=task, config=config, codec=codec, evaluator=evaluator, store=store, chat=chat_fn)
-                    phases.append(method.search_phase(setup))
+                    phases.append(search_phase(method, setup))
                 search = phases[-1].proposer if len(phases) > 1 else None
                 best_so_far = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
 
@@ -352,9 +372,17 @@ class LazyChat:
         return self._client
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """``ChatClient.complete`` on the client started on first use, holding the run's LLM gate."""
         client = self._get()
         with self.gate:
             return client.complete(messages, D=D, seed=seed)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """Continue a document-form ``prompt`` (``ChatClient.complete_document``), starting the endpoint on first use."""
+        client = self._get()
+        with self.gate:
+            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
 
     def count_tokens(self, text: str) -> int:
         """A local estimate, nothing sent: one token per two characters (digit-heavy prompts tokenize
@@ -363,6 +391,7 @@ class LazyChat:
         return len(text) // 2 + CHAT_TEMPLATE_MARGIN
 
     def close(self) -> None:
+        """Close the client (and stop the embedded server) if one was started."""
         self._stack.close()
 
 
@@ -375,14 +404,28 @@ def start(
     llm_gate: AbstractContextManager[object] | None = None,
     chat: ChatModel | None = None,
 ) -> FinalEval | None:
-    """Create the run directory and run it. ``llm_gate`` (e.g. a shared semaphore) is held around
-    every LLM request of the run; ``chat`` replaces the configured LLM (see ``execute``)."""
+    """Create the run directory (``create_run``) and run it (``execute``): warm-up, search, final
+    evaluation, policy file (Algorithm 1 of the paper for the prompted methods).
+
+    ``llm_gate`` (e.g. a shared semaphore) is held around every LLM request of the run; ``chat``
+    replaces the configured LLM; ``secrets`` replaces freshly drawn ones (tests, controlled grids).
+
+    Returns:
+        The final evaluation (the best search policy on ``final_episodes`` fresh episodes, raw
+        returns), or None when ``final_episodes`` is 0.
+
+    Raises:
+        ConfigError: an invalid config, or ``run_dir`` already holds something or cannot be made
+            (nothing is written then).
+        LLMError: the endpoint stayed down past the retries (the run is left resumable).
+        KeyboardInterrupt: Ctrl-C; the run is marked ``interrupted`` and resumable.
+        FeedbackKeyError, EpisodeLimitError: the env broke its declaration mid-run (status
+            ``stopped: ...``).
+    """
     store, secrets = create_run(config, run_dir, secrets)
-    try:
+    with store:
         stored = RunConfig.from_json(store.config())  # with the task's declaration
         return execute(run_dir, store, stored, secrets, events, llm_gate=llm_gate, chat=chat)
-    finally:
-        store.close()
 
 
 @dataclass(frozen=True)
@@ -396,6 +439,7 @@ class Endpoint:
 
     @property
     def given(self) -> bool:
+        """True when any setting is given (the run's endpoint changes)."""
         return any(v is not None for v in (self.base_url, self.model, self.api_key_env))
 
 
@@ -443,9 +487,7 @@ def resume(
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
-    try:
+    with store:
         if endpoint is not None and endpoint.given:
             config = change_endpoint(store, config, endpoint)
         return execute(run_dir, store, config, secrets, events, llm_gate=llm_gate, chat=chat)
-    finally:
-        store.close()

@@ -22,6 +22,7 @@ def _seq(seed: int, stream: int, index: int) -> np.random.SeedSequence:
 
 
 def rng(seed: int, stream: int, index: int = 0) -> np.random.Generator:
+    """The generator of draw ``index`` of ``stream`` (WARMUP, EPISODES, ...) for run seed ``seed``; independent across all three."""
     return np.random.default_rng(_seq(seed, stream, index))
 
 

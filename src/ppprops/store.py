@@ -21,19 +21,19 @@ import sqlite3
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .errors import StoreError
-from .evaluation import Feedback
+from .errors import ConfigError, StoreError
 from .status import RunStatus
+from .values import Candidate, Feedback, FinalEval
 
 SCHEMA_VERSION = 3
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"
+KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -104,46 +104,26 @@ def _describe(e: sqlite3.Error, path: Path) -> str:
     return f"run store {path}: {e.__class__.__name__}: {text}"
 
 
-@dataclass(frozen=True)
-class Candidate:
-    """One evaluated policy, raw and encoded. Client-side only."""
-
-    index: int
-    iteration: int  # warm-up sample number, or LLM iteration
-    source: str  # warmup | llm | fallback
-    params: np.ndarray  # raw theta (decoded, clipped)
-    params_enc: np.ndarray
-    feedback: Feedback  # raw
-    feedback_enc: Feedback  # rewards scaled (diagnostics as they are)
-    clipped: int
-    seeds: tuple[int, ...]
-    note: str = ""
-    ask_s: float | None = None  # seconds in the proposer's ask (LLM calls included); None when not measured
-    eval_s: float | None = None  # seconds evaluating the episodes
-
-    @property
-    def ret(self) -> float:
-        return self.feedback.ret
-
-
-@dataclass(frozen=True)
-class FinalEval:
-    candidate_index: int
-    returns: tuple[float, ...]
-    seeds: tuple[int, ...]
-
-    @property
-    def mean(self) -> float:
-        with np.errstate(invalid="ignore", over="ignore"):  # an episode that overflowed makes this inf, quietly
-            return float(np.mean(self.returns)) if self.returns else float("nan")
-
-    @property
-    def std(self) -> float:
-        with np.errstate(invalid="ignore", over="ignore"):
-            return float(np.std(self.returns)) if self.returns else float("nan")
-
-
 class RunStore:
+    """The store of one run: ``run.sqlite`` in the run directory (SQLite, WAL).
+
+    Use it as a context manager, which closes the connection however the block ends::
+
+        with open_store(run_dir) as store:
+            config = store.config()
+
+    Reads return plain values (``Candidate``, ``FinalEval``, dicts); every write is one
+    transaction (``BEGIN IMMEDIATE``), so concurrent writers queue rather than fail and a crash
+    leaves each row whole or absent. Every SQLite failure is a one-line ``StoreError``.
+
+    Args:
+        path: the database file; created (with its schema) when missing, migrated when older.
+
+    Raises:
+        StoreError: the file cannot be opened, is not a SQLite database, has a newer schema, or
+            stays locked past ``BUSY_TIMEOUT_S``.
+    """
+
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         try:
@@ -215,6 +195,7 @@ class RunStore:
             db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)", (key, value))
 
     def schema_version(self) -> int:
+        """The schema version the file holds (``SCHEMA_VERSION`` once opened by this version)."""
         return int(self._meta("schema_version") or 0)
 
     def integrity_check(self) -> str:
@@ -223,10 +204,19 @@ class RunStore:
         return "; ".join(str(r[0]) for r in rows)
 
     def close(self) -> None:
+        """Close the connection (the last one to close checkpoints the WAL into the database file)."""
         self._db.close()
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # -- run-level ------------------------------------------------------------------------
     def init_run(self, run_id: str, config: dict[str, Any], key_fingerprint: str) -> None:
+        """Record a new run: its id, its config (``RunConfig.to_json()`` or an RL baseline's), the
+        fingerprint of its secrets, status ``running``. Raises StoreError if a run is already there."""
         if self._meta("run_id") is not None:
             raise StoreError(f"{self.path} already holds run {self._meta('run_id')}")
         with self._tx() as db:
@@ -235,12 +225,15 @@ class RunStore:
                 db.execute("INSERT INTO meta (key, value) VALUES (?, ?)", (k, v))
 
     def run_id(self) -> str:
+        """The run's id; StoreError when the store holds no run."""
         rid = self._meta("run_id")
         if rid is None:
             raise StoreError(f"{self.path} holds no run")
         return rid
 
     def config(self) -> dict[str, Any]:
+        """The stored configuration as JSON (``RunConfig.from_json`` reads a search's; an RL
+        baseline's carries ``"kind": "rl"``). StoreError when there is none."""
         raw = self._meta("config")
         if raw is None:
             raise StoreError(f"{self.path} holds no run configuration")
@@ -259,6 +252,7 @@ class RunStore:
         return list(json.loads(raw)) if raw else []
 
     def key_fingerprint(self) -> str:
+        """The fingerprint of the run's secrets (``Secrets.fingerprint``); "" when none is stored."""
         return self._meta("key_fingerprint") or ""
 
     def status(self) -> str:
@@ -276,6 +270,7 @@ class RunStore:
 
     # -- candidates -----------------------------------------------------------------------
     def add_candidate(self, c: Candidate) -> None:
+        """Record one evaluated candidate in its own transaction; StoreError if its index is taken."""
         try:
             with self._tx() as db:
                 db.execute(
@@ -292,6 +287,7 @@ class RunStore:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
     def candidates(self) -> list[Candidate]:
+        """Every recorded candidate, by index."""
         rows = self._read(
             "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s"
             " FROM candidates ORDER BY idx"
@@ -359,6 +355,8 @@ class RunStore:
         return [int(n) for n in json.loads(raw)] if raw else None
 
     def llm_calls(self) -> list[dict[str, Any]]:
+        """Every recorded HTTP try, oldest first, as dicts with the ``llm_calls`` columns
+        (request and response bodies as sent and received, tokens, latency in seconds, ok, errors)."""
         cur = self._read(
             "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
             " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source"
@@ -374,6 +372,7 @@ class RunStore:
 
     # -- final evaluation -----------------------------------------------------------------
     def set_final_eval(self, fe: FinalEval) -> None:
+        """Record (or replace) the final evaluation."""
         with self._tx() as db:
             db.execute(
                 "INSERT OR REPLACE INTO final_eval (id, candidate_idx, returns, seeds, created) VALUES (1, ?, ?, ?, ?)",
@@ -381,6 +380,7 @@ class RunStore:
             )
 
     def final_eval(self) -> FinalEval | None:
+        """The final evaluation, or None before it ran."""
         row = self._read("SELECT candidate_idx, returns, seeds FROM final_eval WHERE id = 1").fetchone()
         if row is None:
             return None
@@ -388,7 +388,29 @@ class RunStore:
 
 
 def open_store(run_dir: Path, *, create: bool = False) -> RunStore:
+    """The store of ``run_dir`` (use it in a ``with`` block).
+
+    Raises:
+        StoreError: ``run_dir`` holds no ``run.sqlite`` (unless ``create``), or it cannot be opened.
+    """
     path = Path(run_dir) / DB_NAME
     if not create and not path.exists():
         raise StoreError(f"{run_dir} is not a ppprops run directory (no {DB_NAME})")
     return RunStore(path)
+
+
+def find_runs(root: Path, *, recursive: bool = False, with_key: bool = False) -> list[Path]:
+    """The run directories under ``root``, sorted: ``root`` itself, its children, and a grid's
+    ``runs/*`` (``recursive``: at any depth). A directory holding ``run.sqlite`` is a run; with
+    ``with_key`` only those that also hold their key file count. Directories whose name starts
+    with ``.`` (a run still being created) are left out.
+
+    Raises:
+        ConfigError: ``root`` is not a directory.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"{root} is not a directory")
+    patterns = (f"**/{DB_NAME}",) if recursive else (DB_NAME, f"*/{DB_NAME}", f"runs/*/{DB_NAME}")
+    found = {p.parent for pattern in patterns for p in root.glob(pattern)}
+    return sorted(p for p in found if not p.name.startswith(".") and (not with_key or (p / KEY_NAME).exists()))

@@ -5,7 +5,7 @@ ProPS presets (and pp-hardened) are one LLM proposer with different mechanisms, 
 two-stage LLM proposer, and the black-box baselines replace the LLM with another proposer at the
 same budget (warm-up + iterations evaluations). The loop (``ppprops.loop``) is the same for all.
 A builder takes a ``SearchSetup`` and returns a ``Phase``; adding a search method means adding a
-builder here and a ``Method`` naming it in ``ppprops.methods``.
+builder (here, or anywhere for ``methods.register_method``) and a ``Method`` naming it.
 """
 
 from __future__ import annotations
@@ -16,11 +16,14 @@ from typing import TYPE_CHECKING, Any
 
 from .client.codec import Codec
 from .config import RunConfig
+from .errors import ConfigError
 from .loop import Phase
+from .methods import Method
 from .proposers.base import Proposal, Proposer
 from .proposers.uniform import UniformSampler
-from .store import Candidate, RunStore
+from .store import RunStore
 from .tasks.base import Task
+from .values import Candidate
 
 if TYPE_CHECKING:
     from .evaluation import Evaluator
@@ -42,6 +45,18 @@ class SearchSetup:
     chat: Callable[[], Any] | None = None
 
 
+def search_phase(method: Method, setup: SearchSetup) -> Phase:
+    """The phase that follows the warm-up (``setup.config.iterations`` asks) for ``method``.
+
+    ``method.phase`` names a builder of this module or is the builder itself. Raises ConfigError
+    for a method without one (an RL baseline).
+    """
+    if method.phase is None:
+        raise ConfigError(f"{method.name} is an RL baseline; it has no search phase")
+    build = globals()[method.phase] if isinstance(method.phase, str) else method.phase
+    return build(setup)  # type: ignore[no-any-return]
+
+
 class RandomSearch:
     """Uniform samples that continue the warm-up's stream: sample warmup + i, i.i.d. like the rest."""
 
@@ -50,10 +65,11 @@ class RandomSearch:
         self.offset = offset
 
     def ask(self, iteration: int) -> Proposal:
+        """Sample ``offset + iteration`` of the warm-up's uniform stream (shape (D,), in the box)."""
         return self._uniform.ask(self.offset + iteration)
 
     def tell(self, candidate: Candidate) -> None:
-        pass
+        """Nothing: random search does not learn."""
 
 
 def _llm_common(s: SearchSetup) -> dict[str, Any]:
@@ -73,11 +89,27 @@ def _llm_common(s: SearchSetup) -> dict[str, Any]:
     )
 
 
+def prompt_form(config: RunConfig, chat: object) -> str:
+    """The form the run's proposer uses: ``config.form``, except that ``auto`` falls back to chat for
+    a chat model that cannot continue documents. ``--prompt-form document`` with such a model is a
+    ConfigError."""
+    form = config.form
+    if form == "document" and not callable(getattr(chat, "complete_document", None)):
+        if config.prompt_form == "document":
+            raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
+                              "grammar); this one has only complete(): use --prompt-form chat or auto")
+        return "chat"
+    return form
+
+
 def props_phase(s: SearchSetup) -> Phase:
-    """ProPS (Algorithm 1): one LLM call per iteration over the top-K history, under the run's mechanisms."""
+    """ProPS (Algorithm 1): one LLM call per iteration over the top-K history, under the run's
+    mechanisms, in the run's prompt form (``prompt_form``: the document form for the embedded model)."""
     from .proposers import LLMProposer
 
-    proposer = LLMProposer(on_llm_failure=s.config.on_llm_failure, **_llm_common(s))
+    common = _llm_common(s)
+    proposer = LLMProposer(on_llm_failure=s.config.on_llm_failure, form=prompt_form(s.config, common["chat"]),
+                           temperature=s.config.llm.temperature, **common)
     return Phase("llm", proposer, s.config.iterations)
 
 

@@ -22,6 +22,7 @@ class Algorithm:
     title: str
 
     def applies_to(self, action_type: str) -> bool:
+        """True when the algorithm handles ``action_type`` ("discrete" or "continuous")."""
         return action_type in self.action_types
 
 

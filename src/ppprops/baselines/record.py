@@ -94,7 +94,14 @@ class TrainingLog:
         return {k: json.loads(v) for k, v in self._db.execute("SELECT key, value FROM rl_info").fetchall()}
 
     def close(self) -> None:
+        """Close the connection."""
         self._db.close()
+
+    def __enter__(self) -> TrainingLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def is_rl_config(config: dict[str, Any]) -> bool:
@@ -111,11 +118,8 @@ def rl_summary(store: RunStore) -> dict[str, Any]:
     """
     config = store.config()
     fe = store.final_eval()
-    log = TrainingLog(store.path)
-    try:
+    with TrainingLog(store.path) as log:
         episodes, info = log.episodes(), log.info()
-    finally:
-        log.close()
     return {
         "run_id": store.run_id(),
         "status": store.status(),
@@ -168,11 +172,8 @@ def refuse_resume(run_dir: Path) -> None:
     if not path.is_file():
         return  # resume reports missing or foreign directories itself
     try:
-        store = RunStore(path)
-        try:
+        with RunStore(path) as store:
             config = store.config()
-        finally:
-            store.close()
     except StoreError:
         return  # a corrupt or empty store: resume says so itself
     if is_rl_config(config):

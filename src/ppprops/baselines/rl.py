@@ -30,8 +30,9 @@ from ..errors import ConfigError, MissingExtraError
 from ..evaluation import run_episode
 from ..methods import rl_algos, rl_method
 from ..status import RunKind, RunStatus
-from ..store import DB_NAME, FinalEval, open_store
+from ..store import DB_NAME, open_store
 from ..tasks import Task, get_task
+from ..values import FinalEval
 from .algorithms import Algorithm
 from .record import KIND, MODEL_NAME, NO_CANDIDATE, TrainingLog
 
@@ -120,11 +121,8 @@ def evaluate_model(model: BaseAlgorithm, task: Task, seeds: list[int]) -> tuple[
 
 def load_model(run_dir: Path) -> BaseAlgorithm:
     """The trained model of an RL run directory, on CPU."""
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         config = store.config()
-    finally:
-        store.close()
     if RunKind.of_config(config) is not RunKind.RL:
         raise ConfigError(f"{run_dir} is not an RL baseline run")
     cls = _sb3().algorithm_class(rl_method(config["algo"]).algorithm)
@@ -161,28 +159,24 @@ def run_baseline(config: RLConfig, run_dir: Path, *, progress: bool = False) -> 
         _claim_dir(run_dir)
         stored = {**asdict(config), "task": task.name, "kind": KIND, "method": config.method, "policy": POLICY,
                   "hyperparameters": sb3.default_hyperparameters(cls), "versions": sb3.versions()}  # fmt: skip
-        store = open_store(run_dir, create=True)
-        store.init_run(f"{task.name}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}", stored, "")
-        log = TrainingLog(store.path)
-        try:
-            model = cls(POLICY, env, seed=config.seed, device=config.device, verbose=0)
-            logger = sb3.EpisodeLogger(log, total=config.timesteps, label=f"{task.name} {config.method}", progress=progress)
-            t0 = time.perf_counter()
-            model.learn(total_timesteps=config.timesteps, callback=logger)
-            log.set_info(timesteps_done=int(model.num_timesteps), wall_s=time.perf_counter() - t0)
-            model.save(run_dir / MODEL_NAME)
-            seeds = seeding.final_eval_seeds(config.seed, config.final_episodes)
-            fe = None
-            if seeds:
-                fe = FinalEval(candidate_index=NO_CANDIDATE, returns=evaluate_model(model, task, seeds), seeds=tuple(seeds))
-                store.set_final_eval(fe)
-            store.set_status(RunStatus.FINISHED)
-            return fe
-        except BaseException:  # Ctrl-C or a crash: show must not call the run "running" forever
-            store.set_status(RunStatus.INTERRUPTED)
-            raise
-        finally:
-            log.close()
-            store.close()
+        with open_store(run_dir, create=True) as store, TrainingLog(store.path) as log:
+            store.init_run(f"{task.name}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}", stored, "")
+            try:
+                model = cls(POLICY, env, seed=config.seed, device=config.device, verbose=0)
+                logger = sb3.EpisodeLogger(log, total=config.timesteps, label=f"{task.name} {config.method}", progress=progress)
+                t0 = time.perf_counter()
+                model.learn(total_timesteps=config.timesteps, callback=logger)
+                log.set_info(timesteps_done=int(model.num_timesteps), wall_s=time.perf_counter() - t0)
+                model.save(run_dir / MODEL_NAME)
+                seeds = seeding.final_eval_seeds(config.seed, config.final_episodes)
+                fe = None
+                if seeds:
+                    fe = FinalEval(candidate_index=NO_CANDIDATE, returns=evaluate_model(model, task, seeds), seeds=tuple(seeds))
+                    store.set_final_eval(fe)
+                store.set_status(RunStatus.FINISHED)
+                return fe
+            except BaseException:  # Ctrl-C or a crash: show must not call the run "running" forever
+                store.set_status(RunStatus.INTERRUPTED)
+                raise
     finally:
         env.close()

@@ -31,7 +31,7 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from ..evaluation import Feedback
+from ..values import Feedback
 from ..wire.encoded import EncodedEntry
 from .secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 
@@ -102,12 +102,22 @@ class Codec:
 
     # -- parameters -----------------------------------------------------------------------
     def encode(self, theta: NDArray[np.floating]) -> NDArray[np.float64]:
+        """theta~ = A theta (paper Eq. 1, Sec. II-B); hardened: A (T(theta) - T(m)), clipped to +-ENCODED_LIMIT.
+
+        ``theta``: raw parameters, shape (D,). Returns the encoded vector, shape (D,), float64. The
+        identity when ``encode_params`` is off.
+        """
         x = np.asarray(theta, dtype=np.float64)
         if self.warp_params:
             return np.clip(self._a * (self._t(x) - self._m_t), -ENCODED_LIMIT, ENCODED_LIMIT)
         return self._a * (x - self._m)
 
     def decode(self, theta_enc: NDArray[np.floating]) -> NDArray[np.float64]:
+        """theta = A^-1 theta~, the inverse of ``encode``: shape (D,) in, shape (D,) float64 out.
+
+        Under ``warp_params`` every real vector decodes into the open box (the LLM's answer cannot
+        leave it); otherwise the caller clips the result into the box.
+        """
         x = np.asarray(theta_enc, dtype=np.float64)
         if self.warp_params:
             return self._t_inv(np.clip(x, -ENCODED_LIMIT, ENCODED_LIMIT) / self._a + self._m_t)

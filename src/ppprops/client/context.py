@@ -27,6 +27,9 @@ def warmup_box(config: RunConfig) -> tuple[float, float]:
 
 
 def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext:
+    """The public context of every prompt (wire side): task text as the mechanisms allow, D, the box
+    (encoded when the warm-up is drawn in the encoded space), digits, and the switches. Holds no secret.
+    """
     m = config.mechanisms
     text = task.text
     reward_text = text.reward_structure if m.disclose_reward_structure else text.reward_hint
@@ -51,8 +54,9 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         diagnostic_notes=tuple((k, text.diagnostics.get(k, k)) for k in diagnostics),
         decimals=config.decimals,
         params_style=config.prompt_params,
-        param_digits=config.param_digits,
+        param_digits=config.digits(),
         layout=config.prompt_layout,
+        title=task.name,
         history_limit=config.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,

@@ -39,6 +39,7 @@ RESIDUAL_COMPONENT: dict[str, str] = {"Ant": "reward_survive", "Humanoid": "rewa
 
 
 def return_determining(task_name: str) -> frozenset[str]:
+    """Diagnostics that pin the raw return of ``task_name`` (hidden by ``hide_return_diagnostics``)."""
     return RETURN_DETERMINING["*"] | RETURN_DETERMINING.get(task_name, frozenset())
 
 
@@ -52,6 +53,10 @@ def residual_component(task: Task) -> frozenset[str]:
 
 
 def reward_scale(task: Task) -> float:
+    """The public magnitude of the task's returns (reward units): |optimal return|, else a per-task constant.
+
+    Bounds the secret reward offsets s and s_k of ``secret_offsets``.
+    """
     if task.optimal_return is not None and task.optimal_return != 0:
         return abs(float(task.optimal_return))
     return REWARD_SCALE.get(task.name, DEFAULT_REWARD_SCALE)

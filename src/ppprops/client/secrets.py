@@ -45,6 +45,11 @@ def os_rng() -> np.random.Generator:
 
 @dataclass(frozen=True, repr=False, eq=False)
 class Secrets:
+    """A run's secrets, kept only in its key file: the diagonal ``a`` of A (shape (D,), all > 0) and
+    the reward scale ``c`` > 0 (paper Eq. 1-2), plus the hardening extras (docs/threat-model.md):
+    parameter origins ``m`` (shape (D,)), reward origin ``s``, warp exponent ``p``. Never printed.
+    """
+
     run_id: str
     a: NDArray[np.float64]  # diagonal of A, all > 0
     c: float  # reward scale, > 0
@@ -60,18 +65,22 @@ class Secrets:
 
     @property
     def has_extras(self) -> bool:
+        """True when any hardening extra (m, s, p) is set."""
         return self.m is not None or self.s is not None or self.p is not None
 
     @property
     def origin(self) -> NDArray[np.float64]:
+        """The raw parameter origin m, shape (D,); zeros without ``secret_offsets``."""
         return np.zeros(len(self.a)) if self.m is None else np.asarray(self.m, dtype=np.float64)
 
     @property
     def reward_origin(self) -> float:
+        """The raw reward origin s (reward units); 0 without ``secret_offsets``."""
         return 0.0 if self.s is None else float(self.s)
 
     @property
     def exponent(self) -> float:
+        """The reward warp exponent p; 1 without ``warp_rewards``."""
         return 1.0 if self.p is None else float(self.p)
 
     @classmethod
@@ -138,6 +147,11 @@ class Secrets:
 
     @classmethod
     def load(cls, path: Path, *, run_id: str, D: int, fingerprint: str | None = None) -> Secrets:
+        """Read the key file at ``path`` and check it belongs to ``run_id`` with ``D`` parameters.
+
+        ``fingerprint``: the one the store recorded at the start; a different key is refused.
+        Raises KeyFileError (one line) for a missing, unreadable, corrupt, foreign or replaced file.
+        """
         try:
             raw = json.loads(Path(path).read_text(encoding="utf-8"))
         except FileNotFoundError:

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..settings import add_flags, given
 from .spec import RESERVED, seeds_flag
 
 
@@ -15,7 +16,7 @@ def _names(text: str) -> list[str]:
     return [v.strip() for v in text.split(",") if v.strip()]
 
 
-def add_subcommands(sub: Any, run_parser: argparse.ArgumentParser) -> None:
+def add_subcommands(sub: Any) -> None:
     """Add ``experiment`` (with every ``run`` flag, overriding the spec) and ``report``."""
     ex = sub.add_parser("experiment", help="run a grid of tasks x methods x seeds (resumable), locally or on Ray")
     ex.add_argument("spec", nargs="?", type=Path, default=None,
@@ -37,37 +38,19 @@ def add_subcommands(sub: Any, run_parser: argparse.ArgumentParser) -> None:
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their state; run nothing")
     ex.add_argument("--quiet", action="store_true", help="no line per finished run")
     flags = ex.add_argument_group("run settings (any `ppprops run` flag; overrides the spec's [run] tables)")
-    for act in run_parser._actions:
-        if act.dest in RESERVED or not act.option_strings:
-            continue
-        kw: dict[str, Any] = {"dest": act.dest, "default": argparse.SUPPRESS, "help": act.help}
-        if isinstance(act, argparse._StoreTrueAction):
-            kw["action"] = "store_true"
-        else:
-            kw["type"] = act.type
-            if act.metavar is not None:
-                kw["metavar"] = act.metavar
-            if act.choices is not None:
-                kw["choices"] = act.choices
-            if isinstance(act, argparse._AppendAction):
-                kw["action"] = "append"
-        flags.add_argument(*act.option_strings, **kw)
+    add_flags(flags, exclude=RESERVED, groups=None)  # type: ignore[arg-type]
 
     rp = sub.add_parser("report", help="tables, reward curves, history-cost plots and index.html from a grid directory")
     rp.add_argument("dir", type=Path, help="a grid directory (or any folder of run directories)")
     rp.add_argument("--out", type=Path, default=None, help="where to write (default DIR/report)")
 
 
-def _overrides(a: argparse.Namespace, run_dests: set[str]) -> dict[str, Any]:
-    return {k: v for k, v in vars(a).items() if k in run_dests}
-
-
 def cmd_experiment(a: argparse.Namespace) -> int:
     from ..errors import ConfigError
     from .run_grid import run_grid
-    from .spec import RunFlags, build_spec, flags_table, load_spec
+    from .spec import build_spec, flags_table, load_spec
 
-    overrides = _overrides(a, {act.dest for act in RunFlags().by_key.values()})
+    overrides = given(a)
     execution = {"jobs": a.jobs, "llm_threads": a.llm_threads, "llm_concurrency": a.llm_concurrency}
     if a.spec is not None:
         spec = load_spec(a.spec, overrides=overrides, seeds=a.seeds, only_tasks=a.tasks, only_methods=a.methods, execution=execution)

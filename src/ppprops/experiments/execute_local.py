@@ -90,10 +90,11 @@ def run_local(
                 proc.stdin.write(authkey + pickle.dumps((job, llm_threads, gate)))
                 proc.stdin.close()
                 running[r] = (proc, job)
-            for r in wait(list(running)):
-                proc, job = running.pop(r)  # type: ignore[index]
-                data = _read_all(r)  # type: ignore[arg-type]
-                os.close(r)  # type: ignore[arg-type]
+            for ready in wait(list(running)):
+                r = int(ready)  # type: ignore[arg-type]  # wait() on plain descriptors hands them back
+                proc, job = running.pop(r)
+                data = _read_all(r)
+                os.close(r)
                 proc.wait()
                 outcome: Outcome | None = None
                 try:

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, PPPropsError, StoreError
+from ..fileio import write_json_atomic
 from .spec import RL, ExperimentSpec, PlannedRun
 
 MASTER_KEY = "master.key"
@@ -102,13 +103,10 @@ def run_state(run_dir: Path, kind: str) -> str:
     if not (Path(run_dir) / DB_NAME).exists():
         return PENDING
     try:
-        store = open_store(run_dir)
+        with open_store(run_dir) as store:
+            status = store.status()
     except StoreError:
         return PENDING
-    try:
-        status = store.status()
-    finally:
-        store.close()
     if is_complete(status, RunKind(kind)):
         return DONE
     return PARTIAL if kind != RL else PENDING  # an RL baseline cannot be continued: trained again
@@ -179,13 +177,10 @@ def _same_config(stored: dict[str, Any], planned: dict[str, Any]) -> bool:
 def _summary(run_dir: Path) -> tuple[str, float | None, float | None]:
     from ..store import open_store
 
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         status = store.status()
         fe = store.final_eval()
         cands = store.candidates()
-    finally:
-        store.close()
     finite = [c.ret for c in cands if np.isfinite(c.ret)]
     return status, (max(finite) if finite else None), (fe.mean if fe is not None and fe.returns else None)
 
@@ -201,11 +196,8 @@ def execute_job(job: Job, *, llm_threads: int = 1, llm_gate: Any = None) -> Outc
             if state != PENDING:
                 from ..store import open_store
 
-                store = open_store(run_dir)
-                try:
+                with open_store(run_dir) as store:
                     stored = store.config()
-                finally:
-                    store.close()
                 if not _same_config(stored, job.config):
                     raise ConfigError(f"{run_dir} holds run {job.name} with other settings than this grid's; "
                                       "use a new --out or the spec it was started with")  # fmt: skip
@@ -241,12 +233,6 @@ def execute_job(job: Job, *, llm_threads: int = 1, llm_gate: Any = None) -> Outc
 
 
 # -- the grid directory ----------------------------------------------------------------------
-def _write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True), encoding="utf-8")
-    os.replace(tmp, path)
-
-
 class Grid:
     """A grid directory: opens (or creates) it, checks the spec against it, and makes jobs."""
 
@@ -285,7 +271,7 @@ class Grid:
                                         "runs": [r.name for r in spec.runs]})  # fmt: skip
         if not (grid.root / MASTER_KEY).exists():
             create_master_key(grid.root / MASTER_KEY)
-        _write_json_atomic(manifest_path, manifest)
+        write_json_atomic(manifest_path, manifest, indent=1, sort_keys=True)
         for stale in grid.runs_dir.glob(".*.creating"):  # left by a run killed while its directory was being made
             shutil.rmtree(stale, ignore_errors=True)
         return grid
@@ -301,7 +287,7 @@ class Grid:
         """Add executor details to the latest invocation (jobs, threads, where it ran)."""
         m = self.manifest()
         m["invocations"][-1].update(entry)
-        _write_json_atomic(self.root / MANIFEST, m)
+        write_json_atomic(self.root / MANIFEST, m, indent=1, sort_keys=True)
 
     def run_dir(self, name: str) -> Path:
         return self.runs_dir / name

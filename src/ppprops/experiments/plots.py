@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..status import RunKind
+from .order import PROMPT_METHODS, column_key, task_key
 
 if TYPE_CHECKING:
     from .report import Group, RunRecord
@@ -48,13 +49,11 @@ def curve(runs: list[RunRecord]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def reward_curves(out: Path, groups: dict[tuple[str, str], Group]) -> list[Path]:
     """One PNG per task: each method's mean return per iteration with a shaded +-std band."""
-    from .report import _column_key, _task_key
-
     plt = _plt()
     paths = []
-    tasks = sorted({t for (t, _), g in groups.items() if g.kind == RunKind.SEARCH}, key=_task_key)
+    tasks = sorted({t for (t, _), g in groups.items() if g.kind == RunKind.SEARCH}, key=task_key)
     for task in tasks:
-        cols = sorted((c for (t, c), g in groups.items() if t == task and g.kind == RunKind.SEARCH), key=_column_key)
+        cols = sorted((c for (t, c), g in groups.items() if t == task and g.kind == RunKind.SEARCH), key=column_key)
         fig, ax = plt.subplots(figsize=(7.0, 4.2), dpi=110)
         warm = 0
         for c in cols:
@@ -86,13 +85,11 @@ def history_cost(out: Path, groups: dict[tuple[str, str], Group], retained: Call
     """One PNG per task with prompt-based LLM runs: response time against retained history size
     (left) and prompt size (right), one colour per history setting; the large marker is each
     setting's mean over its last iteration (the paper highlights K = 10 and unbounded)."""
-    from .report import PROMPT_METHODS, _column_key, _task_key
-
     plt = _plt()
     paths = []
-    tasks = sorted({t for (t, _), g in groups.items() if g.method in PROMPT_METHODS and any(r.calls for r in g.runs)}, key=_task_key)
+    tasks = sorted({t for (t, _), g in groups.items() if g.method in PROMPT_METHODS and any(r.calls for r in g.runs)}, key=task_key)
     for task in tasks:
-        cols = sorted((c for (t, c), g in groups.items() if t == task and g.method in PROMPT_METHODS), key=_column_key)
+        cols = sorted((c for (t, c), g in groups.items() if t == task and g.method in PROMPT_METHODS), key=column_key)
         fig, (left, right) = plt.subplots(1, 2, figsize=(9.5, 4.0), dpi=110, sharey=True)
         for c in cols:
             pts = [(retained(r, x["iteration"]), x["prompt_chars"], x["latency_s"], x["iteration"] == r.calls[-1]["iteration"])

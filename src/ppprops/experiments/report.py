@@ -30,16 +30,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, MissingExtraError, StoreError
-from ..methods import MethodKind, find_method, methods
+from ..methods import MethodKind, find_method
 from ..status import RunKind, is_complete
 from . import paper_values as pv
+from .order import DEFAULT_K, PROMPT_METHODS, column_key, task_key
 from .tables import Cell, Table, write_csv, write_table
-
-PAPER_TASKS = ("Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joints", "Humanoid-Torso",
-               "Acrobot", "CartPole", "FetchReachDense", "Highway")  # fmt: skip
-METHOD_ORDER = tuple(m.name for m in methods())  # the registry's order: the paper's tables
-PROMPT_METHODS = tuple(m.name for m in methods() if m.top_k_prompt)  # one LLM call per iteration over a top-K history
-DEFAULT_K = 10
 
 
 def method_kind(method: str, kind: str) -> MethodKind:
@@ -90,27 +85,9 @@ def column_name(method: str, top_k: int | None, kind: str) -> str:
     return f"{method} (unbounded)" if top_k == 0 else f"{method} (K={top_k})"
 
 
-def _column_key(col: str) -> tuple[int, str]:
-    base = col.split(" ")[0]
-    return (METHOD_ORDER.index(base) if base in METHOD_ORDER else len(METHOD_ORDER), col)
-
-
-def _task_key(task: str) -> tuple[int, str]:
-    return (PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS), task)
 
 
 # -- reading ---------------------------------------------------------------------------------
-def find_runs(root: Path) -> list[Path]:
-    """Run directories under a grid (``DIR/runs/*``) or any folder of runs (``DIR/*``, ``DIR`` itself)."""
-    from ..store import DB_NAME
-
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"{root} is not a directory")
-    found = {p.parent for pattern in (DB_NAME, f"*/{DB_NAME}", f"runs/*/{DB_NAME}") for p in root.glob(pattern)}
-    return sorted(p for p in found if not p.name.startswith("."))
-
-
 def read_run(path: Path) -> RunRecord:
     from ..report import run_summary
 
@@ -205,8 +182,8 @@ def main_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[dict[s
     sel = {k: g for k, g in groups.items() if g.method_kind is MethodKind.PROMPTED}
     if not sel:
         return None
-    tasks = sorted({t for t, _ in sel}, key=_task_key)
-    cols = sorted({c for _, c in sel}, key=_column_key)
+    tasks = sorted({t for t, _ in sel}, key=task_key)
+    cols = sorted({c for _, c in sel}, key=column_key)
     stats = {k: g.stats() for k, g in sel.items()}
     n_max = max(s["n"] for s in stats.values())
     has_final = {c: any(stats[k]["final_mean"] is not None for k in stats if k[1] == c) for c in cols}
@@ -249,7 +226,7 @@ def bounded_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[dic
                 pairs.append((g, unb))
     if not pairs:
         return None
-    pairs.sort(key=lambda p: (_task_key(p[0].task), _column_key(p[0].column)))
+    pairs.sort(key=lambda p: (task_key(p[0].task), column_key(p[0].column)))
     header = ["Environment", "D", "method", "Bounded (K=10)", "Unbounded", "Diff (%)", "paper K=10", "paper unbounded", "paper Diff (%)"]
     rows, csv_rows = [], []
     for k10, unb in pairs:
@@ -284,7 +261,7 @@ def retained_history(run: RunRecord, iteration: int) -> int:
 def history_cost_rows(groups: dict[tuple[str, str], Group]) -> list[dict[str, Any]]:
     """Final prompt size and mean response time, K = 10 against unbounded, with reductions."""
     out = []
-    for (t, _), g in sorted(groups.items(), key=lambda kv: (_task_key(kv[0][0]), _column_key(kv[0][1]))):
+    for (t, _), g in sorted(groups.items(), key=lambda kv: (task_key(kv[0][0]), column_key(kv[0][1]))):
         if g.kind != RunKind.SEARCH or g.top_k != DEFAULT_K or g.method not in PROMPT_METHODS:
             continue
         unb = groups.get((t, column_name(g.method, 0, RunKind.SEARCH)))
@@ -328,8 +305,8 @@ def baselines_table(groups: dict[tuple[str, str], Group]) -> tuple[Table, list[d
     baselines = (MethodKind.RL, MethodKind.BLACK_BOX)
     if not any(g.method_kind in baselines for g in groups.values()):
         return None
-    tasks = sorted({g.task for g in groups.values() if g.method_kind in baselines}, key=_task_key)
-    cols = sorted({c for (t, c), g in groups.items() if t in tasks and (g.top_k in (None, DEFAULT_K))}, key=_column_key)
+    tasks = sorted({g.task for g in groups.values() if g.method_kind in baselines}, key=task_key)
+    cols = sorted({c for (t, c), g in groups.items() if t in tasks and (g.top_k in (None, DEFAULT_K))}, key=column_key)
     stats = {k: g.stats() for k, g in groups.items() if k[0] in tasks and k[1] in cols}
     top = {t: max((s["score_mean"] for (tt, _), s in stats.items() if tt == t and s["score_mean"] is not None), default=None)
            for t in tasks}  # fmt: skip
@@ -365,7 +342,7 @@ RUN_COLUMNS = ["name", "task", "method", "top_k", "seed", "status", "best", "fin
 
 def run_rows(runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
     rows = []
-    for r in sorted(runs, key=lambda r: (_task_key(r.task), _column_key(r.column), r.seed)):
+    for r in sorted(runs, key=lambda r: (task_key(r.task), column_key(r.column), r.seed)):
         lat = [c["latency_s"] for c in r.calls if c["ok"]]
         rows.append({"name": r.name, "task": r.task, "method": r.column, "top_k": r.top_k, "seed": r.seed, "status": r.status,
                      "best": r.best, "final": r.final, "candidates": len(r.returns), "llm_calls": len(r.calls),
@@ -385,6 +362,7 @@ def require_matplotlib() -> None:
 def write_report(root: Path, out: Path | None = None) -> Path:
     """Read every run under ``root``, write the report into ``out`` (default ``root/report``)."""
     require_matplotlib()
+    from ..store import find_runs
     from . import html as html_page
     from . import plots
 

@@ -2,8 +2,9 @@
 
 A spec (TOML, or YAML with the ``experiments`` extra) names tasks x methods x seeds in groups,
 with run settings keyed like the flags of ``ppprops run`` (``top-k = 0``, ``base-url = ...``), so a
-grid run is configured exactly as the same ``ppprops run`` command would be: settings go through
-the ``run`` parser and ``cli.run_config`` (the one place flags become a RunConfig). RL
+grid run is configured exactly as the same ``ppprops run`` command would be: settings are read and
+checked by ``ppprops.settings`` (the one schema of run settings) and become a RunConfig through
+``settings.build_config``, as flags do. RL
 baselines (``ppprops baseline rl``) form groups of their own; combinations the paper marks "--"
 (SAC/TD3/DDPG on discrete actions, DQN on continuous ones) are skipped and listed.
 
@@ -30,18 +31,21 @@ from __future__ import annotations
 
 import argparse
 import re
-import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import read_text
-from ..errors import ConfigError, MissingExtraError
+from ..config import RunConfig, read_table
+from ..errors import ConfigError
+from ..methods import search_method_names
+from ..settings import build_config, read_settings
 from ..status import RunKind
 
-# `ppprops run` flags a grid sets itself, per run or for the whole grid.
-RESERVED = frozenset({"env", "method", "seed", "out", "config", "quiet", "help"})
+# Settings a grid sets itself, per run; they are no `ppprops experiment` flag and no [run] key.
+RESERVED = frozenset({"env", "method", "seed"})
+_SET_BY_GRID = "is set by the grid (tasks, methods, seeds, --out), not as a run setting"
+RESERVED_KEYS = {k: _SET_BY_GRID for k in ("env", "method", "seed", "out", "config", "quiet")}
 TOP_KEYS = ("name", "description", "seeds", "run", "execution", "grid", "rl")
 GROUP_KEYS = ("tasks", "methods", "label", "seeds", "run")
 RL_KEYS = ("tasks", "algos", "timesteps", "seeds", "final-episodes", "device", "threads")
@@ -98,25 +102,7 @@ class ExperimentSpec:
 # -- reading ---------------------------------------------------------------------------------
 def read_spec_file(path: Path) -> dict[str, Any]:
     """A spec file as a table: TOML by default, YAML for .yaml/.yml (the ``experiments`` extra)."""
-    path = Path(path)
-    text = read_text(path, "spec file")
-    if path.suffix.lower() in (".yaml", ".yml"):
-        try:
-            import yaml
-        except ImportError as e:
-            raise MissingExtraError("experiments", f"the YAML spec {path}") from e
-        try:
-            raw = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"spec file {path} is not valid YAML: {str(e).splitlines()[0]}") from None
-    else:
-        try:
-            raw = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as e:
-            raise ConfigError(f"spec file {path} is not valid TOML: {str(e).splitlines()[0]}") from None
-    if not isinstance(raw, dict):
-        raise ConfigError(f"spec file {path} must hold a table of keys, got {type(raw).__name__}")
-    return raw
+    return read_table(Path(path), "spec file")
 
 
 def flags_table(tasks: Sequence[str], methods: Sequence[str], seeds: int | list[int]) -> dict[str, Any]:
@@ -173,56 +159,18 @@ def _int(table: Mapping[str, Any], key: str, where: str, default: int | None = N
     return value
 
 
-# -- the `ppprops run` parser as the one source of run settings --------------------------------
-class RunFlags:
-    """Turns flag-keyed settings into RunConfigs through the `run` parser and ``cli.run_config``."""
+# -- run settings -------------------------------------------------------------------------------
+def run_settings(table: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """A spec's run settings (``[run]``, a group's ``run``), checked like a ``ppprops run --config`` file."""
+    return read_settings(table, where, unknown="unknown run setting", reserved=RESERVED_KEYS)
 
-    def __init__(self) -> None:
-        from ..cli import run_parser
-        from ..methods import search_method_names
 
-        self.parser: argparse.ArgumentParser = run_parser()
-        self.by_key: dict[str, argparse.Action] = {}
-        for act in self.parser._actions:
-            if act.dest in RESERVED or not act.option_strings:
-                continue
-            for opt in act.option_strings:
-                if opt.startswith("--"):
-                    self.by_key[opt[2:]] = act
-            self.by_key[act.dest] = act
-        self.methods: tuple[str, ...] = tuple(search_method_names())
-
-    def values(self, table: Mapping[str, Any], where: str) -> dict[str, Any]:
-        """Spec values (TOML/YAML types) as parsed flag values (dest -> value), checked like
-        a ``ppprops run --config`` file."""
-        from ..config import file_value  # the checks of `run --config`, so both read a key alike
-
-        if not isinstance(table, Mapping):
-            raise ConfigError(f"{where} must be a table of run settings, got {table!r}")
-        out: dict[str, Any] = {}
-        for key, value in table.items():
-            if key in RESERVED:
-                raise ConfigError(f"{where}: {key} is set by the grid (tasks, methods, seeds, --out), not as a run setting")
-            act = self.by_key.get(key)
-            if act is None:
-                known = ", ".join(sorted(k for k in self.by_key if "_" not in k))
-                raise ConfigError(f"{where}: unknown run setting {key!r} (known: {known})")
-            out[act.dest] = file_value(Path(where), key, value, act)
-        return out
-
-    def config(self, task: str, method: str, seed: int, settings: Mapping[str, Any]) -> Any:
-        """The RunConfig that ``ppprops run --env task --method method --seed seed <settings>`` builds."""
-        from ..cli import run_config
-
-        if method not in self.methods:
-            raise ConfigError(f"unknown method {method!r}; choose from {', '.join(self.methods)} (RL baselines go in [[rl]] groups)")
-        ns = self.parser.parse_args([])
-        for dest, value in settings.items():
-            setattr(ns, dest, value)
-        ns.env, ns.method, ns.seed = task, method, seed
-        config = run_config(ns)
-        config.validate()
-        return config
+def run_config(task: str, method: str, seed: int, settings: Mapping[str, Any]) -> RunConfig:
+    """The RunConfig that ``ppprops run --env task --method method --seed seed <settings>`` builds."""
+    methods = search_method_names()
+    if method not in methods:
+        raise ConfigError(f"unknown method {method!r}; choose from {', '.join(methods)} (RL baselines go in [[rl]] groups)")
+    return build_config({**settings, "env": task, "method": method, "seed": seed})
 
 
 def _safe(text: str) -> str:
@@ -250,8 +198,7 @@ def build_spec(
     _check_keys(raw, TOP_KEYS, where)
     if not raw.get("grid") and not raw.get("rl"):
         raise ConfigError(f"{where}: no runs: add [[grid]] groups (tasks, methods) or [[rl]] groups")
-    flags = RunFlags()
-    base = flags.values(raw.get("run", {}), f"{where} [run]")
+    base = run_settings(raw.get("run", {}), f"{where} [run]")
     base.update(overrides or {})
     top_seeds = parse_seeds(seeds if seeds is not None else raw.get("seeds", 5), where)
     exe_table = dict(raw.get("execution", {}))
@@ -275,13 +222,13 @@ def build_spec(
         label = str(group.get("label", ""))
         if label and not _LABEL.match(label):
             raise ConfigError(f"{gw}: label must be letters, digits and _ . + (starting with a letter or digit), got {label!r}")
-        settings = {**base, **flags.values(group.get("run", {}), f"{gw} run")}
+        settings = {**base, **run_settings(group.get("run", {}), f"{gw} run")}
         settings.update(overrides or {})
         group_seeds = top_seeds if seeds is not None or "seeds" not in group else parse_seeds(group["seeds"], gw)
         for seed in group_seeds:
             for task in tasks:
                 for method in methods:
-                    config = flags.config(task, method, seed, settings)
+                    config = run_config(task, method, seed, settings)
                     arm = f"{method}-{label}" if label else method
                     run = PlannedRun(run_name(task, arm, seed), SEARCH, task, method, label, seed, config.to_json())
                     planned.append((seed, gi, run))

@@ -12,6 +12,8 @@ from typing import Any
 
 @dataclass(frozen=True)
 class Cell:
+    """One table cell: its text and whether it is bold (the best value of a row or column)."""
+
     text: str
     bold: bool = False
 
@@ -27,6 +29,7 @@ class Table:
     notes: list[str] = field(default_factory=list)
 
     def markdown(self) -> str:
+        """The table as GitHub Markdown (title, grid, notes)."""
         def cell(c: Cell) -> str:
             t = c.text.replace("|", "\\|")
             return f"**{t}**" if c.bold and t else t
@@ -38,6 +41,7 @@ class Table:
         return "\n".join(lines) + "\n"
 
     def latex(self) -> str:
+        """The table as a LaTeX ``table*`` (booktabs), special characters escaped."""
         def esc(text: str) -> str:
             out = text
             for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"),
@@ -59,6 +63,7 @@ class Table:
         return "\n".join(lines) + "\n"
 
     def html(self) -> str:
+        """The table as an HTML fragment for ``index.html`` (text escaped)."""
         def cell(c: Cell) -> str:
             t = html.escape(c.text)
             return f"<td><b>{t}</b></td>" if c.bold and t else f"<td>{t}</td>"

@@ -1,5 +1,9 @@
 """A thin chat-completions client over the official ``openai`` SDK that records every exchange.
 
+It also sends the document form (``wire.document``) to the completions endpoint
+(``complete_document``): same recording, retries and adaptation, fields from the same
+``RequestShape`` (``document_fields``).
+
 Only the request body is recorded (never headers, so never the API key). Every HTTP try is an
 ``Exchange``; ``complete`` returns one usable exchange or raises, so an HTTP error never reaches
 the model as if it were an answer.
@@ -36,6 +40,7 @@ from urllib.parse import urlsplit
 
 from ..config import LLMConfig
 from ..errors import LLMError
+from ..wire.document import document_temperature
 from ..wire.parse import read_answer, split_reasoning
 
 
@@ -73,6 +78,7 @@ class LLMUnavailable(LLMError):
 
     @property
     def kind(self) -> str:
+        """The last failed try's error kind (``timeout``, ``refused``, ``http_5xx``, ...), or ``unknown``."""
         return (self.failures[-1].error_kind or "unknown") if self.failures else "unknown"
 
 
@@ -82,16 +88,25 @@ class LLMRejected(LLMUnavailable):
 
 
 class Chat(Protocol):
-    """What a proposer needs from a model: one chat completion, recorded.
+    """What a proposer needs from a model: one chat completion, or one continuation of a
+    document (``wire.document``), recorded.
 
-    Returns an ``ok`` exchange or raises ``LLMUnavailable``/``LLMRejected``; callers pass only
-    ``messages``, ``D`` and ``seed``.
+    Both return an ``ok`` exchange or raise ``LLMUnavailable``/``LLMRejected``.
     """
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange: ...
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """Send ``messages`` (OpenAI chat messages) asking for ``D`` numbers; returns the recorded Exchange."""
+        ...
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """Send ``prompt`` (a document, ``wire.document``) to be continued with ``D`` numbers under
+        ``grammar`` (GBNF, or None) at ``temperature`` (None: the form's default); returns the recorded Exchange."""
+        ...
 
 
 def params_schema(D: int) -> dict[str, Any]:
+    """The JSON schema of an answer: an object with ``params``, an array of exactly ``D`` numbers (``--structured json_schema``)."""
     return {
         "type": "object",
         "properties": {"params": {"type": "array", "items": {"type": "number"}, "minItems": D, "maxItems": D}},
@@ -113,6 +128,8 @@ def params_grammar(D: int) -> str:
         'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
     )
 
+
+CHAT_TEMPERATURE = 1.0  # the chat form's default sampling temperature (--temperature unset)
 
 # Tokens of reasoning room added to the answer budget: by --reasoning-effort, or when the endpoint
 # reasons without one being set. Reasoning counts against max_tokens on every server we know of.
@@ -216,7 +233,7 @@ class RequestShape:
         """The request body's fields other than ``messages``, in the order sent."""
         body: dict[str, Any] = {"model": self.model}
         if "temperature" not in self.dropped:
-            body["temperature"] = self.config.temperature
+            body["temperature"] = CHAT_TEMPERATURE if self.config.temperature is None else self.config.temperature
         if self.token_param not in self.dropped:
             body[self.token_param] = self.max_tokens(D)
         if seed is not None and "seed" not in self.dropped:
@@ -236,6 +253,31 @@ class RequestShape:
         """The whole chat-completions request body."""
         fields = self.fields(D, seed)
         return {"model": fields.pop("model"), "messages": messages, **fields}
+
+    def document_fields(self, D: int, seed: int | None, *, grammar: str | None,
+                        temperature: float | None = None) -> dict[str, Any]:
+        """The fields of a completions request (the document form, ``wire.document``) other than
+        ``prompt``, in the order sent. ``grammar`` (GBNF, from ``wire.document.continuation_grammar``)
+        is sent when the endpoint takes llama.cpp grammars (``--structured grammar``, or ``auto``
+        with the embedded model) and has not refused it; there is no JSON answer to constrain, so
+        a JSON schema is never sent, nor ``reasoning_effort``. ``temperature`` (the proposer's,
+        per request: ``wire.document.document_temperature``) wins over ``--temperature``."""
+        body: dict[str, Any] = {"model": self.model}
+        if "temperature" not in self.dropped:
+            body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
+        if self.token_param not in self.dropped:
+            body[self.token_param] = self.max_tokens(D)
+        if seed is not None and "seed" not in self.dropped:
+            body["seed"] = seed
+        if grammar is not None and self.structured == "grammar":
+            body["grammar"] = grammar
+        return body
+
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
+                      temperature: float | None = None) -> dict[str, Any]:
+        """The whole completions request body: the raw document, no chat wrapper."""
+        fields = self.document_fields(D, seed, grammar=grammar, temperature=temperature)
+        return {"model": fields.pop("model"), "prompt": prompt, **fields}
 
     def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
         """After a refusal (``ADAPTABLE_KINDS``): (the change made, or None; a hint for the error
@@ -281,10 +323,11 @@ class RequestShape:
         return f"dropped {param}"
 
     def learn(self, content: str | None, reasoning: str | None, *, D: int, finish_reason: str | None = None,
-              reasoning_tokens: int | None = None) -> list[str]:
+              reasoning_tokens: int | None = None, document: bool = False) -> list[str]:
         """After a usable answer: room for reasoning once the endpoint is seen to reason, and
         (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under
-        it. Returns the changes made, in words."""
+        it (a ``document`` continuation is never under a JSON schema, so it does not count).
+        Returns the changes made, in words."""
         notes = []
         saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
@@ -292,7 +335,7 @@ class RequestShape:
             self.reasoning_seen = True
             if self.max_tokens(D) != before:
                 notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
-        if self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
+        if not document and self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
             usable = read_answer(content, reasoning, D, finish_reason=finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
@@ -302,8 +345,19 @@ class RequestShape:
 
 
 class ChatClient:
-    """The recording chat-completions client (module docstring). ``shape`` (default: one made
-    from ``model`` and ``grammar_ok``) decides every request field but the messages."""
+    """The one recording client: every byte sent to an LLM endpoint goes through ``complete`` or
+    ``complete_document``.
+
+    An OpenAI-compatible client (chat completions, and completions for the document form) that
+    adapts to the endpoint (dropped parameters, grammar support, reasoning output), retries
+    transient faults with backoff, and returns each request and answer as an ``Exchange`` for the
+    run's store, so the audit sees all of it. ``shape`` (default: one made from ``model`` and
+    ``grammar_ok``) decides every request field but the messages or the document.
+    ``runner.chat_client(config)`` builds it (and starts the embedded model when asked).
+
+    Raises:
+        TypeError: neither ``model`` nor ``shape`` given.
+    """
 
     def __init__(self, config: LLMConfig, *, base_url: str, api_key: str, model: str | None = None,
                  grammar_ok: bool = False, shape: RequestShape | None = None) -> None:
@@ -324,15 +378,26 @@ class ChatClient:
 
     @property
     def url(self) -> str:
-        """The URL every request goes to."""
+        """The URL chat requests go to."""
         return self.base_url.rstrip("/") + "/chat/completions"
+
+    @property
+    def document_url(self) -> str:
+        """The URL document continuations go to (the completions endpoint)."""
+        return self.base_url.rstrip("/") + "/completions"
 
     def max_tokens(self, D: int) -> int:
         """The token budget sent now (``RequestShape.max_tokens``)."""
         return self.shape.max_tokens(D)
 
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
+        """The request body for ``messages`` (a dict in the chat-completions format); what ``complete`` sends."""
         return self.shape.body(messages, D=D, seed=seed)
+
+    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
+                      temperature: float | None = None) -> dict[str, Any]:
+        """A completions request body (``RequestShape.document_body``)."""
+        return self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         """One usable answer (``ok``), after adapting the request and retrying transient faults.
@@ -340,13 +405,24 @@ class ChatClient:
         The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
         bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
         """
+        return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
+        the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
+        the continuation text; ``wire.parse.read_continuation`` reads it."""
+        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature), D=D)
+
+    def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
         failures: list[Exchange] = []
         transient = 0
         retry = 0
         while True:
-            ex, retry_after, err = self._attempt(messages, D=D, seed=seed, retry=retry)
+            body = build()
+            ex, retry_after, err = self._attempt(body, D=D, retry=retry)
             if ex.ok:
-                return replace(self._after_answer(ex, D), failures=tuple(failures))
+                return replace(self._after_answer(ex, D, document="prompt" in body), failures=tuple(failures))
             if err is not None and ex.error_kind in ADAPTABLE_KINDS:
                 change, hint = self.shape.adapt(err)
                 if change is not None:
@@ -376,28 +452,28 @@ class ChatClient:
         d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
         return d / 2 + self._jitter.uniform(0.0, d / 2)
 
-    def _after_answer(self, ex: Exchange, D: int) -> Exchange:
+    def _after_answer(self, ex: Exchange, D: int, *, document: bool = False) -> Exchange:
         """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
         notes = self.shape.learn(ex.content, ex.reasoning, D=D, finish_reason=ex.finish_reason,
-                                 reasoning_tokens=ex.reasoning_tokens)
+                                 reasoning_tokens=ex.reasoning_tokens, document=document)
         if not notes:
             return ex
         self.adaptations += notes
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(
-        self, messages: list[dict[str, str]], *, D: int, seed: int | None, retry: int
-    ) -> tuple[Exchange, float | None, ServerError | None]:
-        """One HTTP round trip, never raising for endpoint faults: (exchange, Retry-After seconds,
-        what the server said when it refused)."""
+    def _attempt(self, body: dict[str, Any], *, D: int, retry: int) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, never
+        raising for endpoint faults: (exchange, Retry-After seconds, what the server said when it refused)."""
         import openai
 
-        body = self.body(messages, D=D, seed=seed)
+        document = "prompt" in body
+        url = self.document_url if document else self.url
         request = json.dumps(body)
-        prompt_chars = sum(len(m["content"]) for m in messages)
-        sdk_args = {k: v for k, v in body.items() if k in _SDK_ARGS}
-        extra = {k: v for k, v in body.items() if k not in _SDK_ARGS} or None
+        prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
+        known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
+        sdk_args = {k: v for k, v in body.items() if k in known}
+        extra = {k: v for k, v in body.items() if k not in known} or None
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:
@@ -407,25 +483,26 @@ class ChatClient:
         def refused(err: ServerError, response: str | None, shown: int) -> Exchange:
             kind = _kind(err)
             where = f"HTTP {shown}" if shown == err.status else f"HTTP {shown} with an error body (code {err.code})"
-            text = f"{kind}: {where} from {self.url}: {err.message}"
+            text = f"{kind}: {where} from {url}: {err.message}"
             if err.status == 404:
                 text += f"; {_url_hint(self.base_url, self.model)}"
             return failed(kind, text, response)
 
         try:
-            raw = self._client.chat.completions.with_raw_response.create(**sdk_args, extra_body=extra)
+            api = self._client.completions if document else self._client.chat.completions
+            raw = api.with_raw_response.create(**sdk_args, extra_body=extra)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {self.url}"), None, None
+            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
-            return failed(kind, f"{kind}: {_cause(e)} at {self.url}"), None, None
+            return failed(kind, f"{kind}: {_cause(e)} at {url}"), None, None
         except openai.APIStatusError as e:
-            text = _body_text(e)
-            err = server_error(e.status_code, text)
+            err_body = _body_text(e)
+            err = server_error(e.status_code, err_body)
             after = _retry_after(e)
-            ex = refused(err, text, e.status_code)
+            ex = refused(err, err_body, e.status_code)
             if after is not None:
                 ex = replace(ex, error=f"{ex.error} (Retry-After {after:g} s)")
             return ex, after, err
@@ -439,23 +516,30 @@ class ChatClient:
         try:
             completion = raw.parse()
             choice = completion.choices[0]
-            message = choice.message
-        except Exception as e:  # a 200 whose body is not a chat completion (no choices, cut, wrong shape)
-            return failed("bad_response", f"bad_response: not a chat completion ({e.__class__.__name__}: {_short(e)})",
+            if document:
+                content, reasoning = choice.text, None
+                if not isinstance(content, str):
+                    raise TypeError("the choice has no text")
+            else:
+                message = choice.message
+                extra_fields = message.model_extra or {}
+                content = message.content
+                reasoning = next((v for k in ("reasoning_content", "reasoning")
+                                  if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
+        except Exception as e:  # a 200 whose body is not a completion (no choices, cut, wrong shape)
+            what = "completion" if document else "chat completion"
+            return failed("bad_response", f"bad_response: not a {what} ({e.__class__.__name__}: {_short(e)})",
                           text), None, None
         finish = choice.finish_reason
         if finish == "error":
-            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({self.url})",
+            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({url})",
                           text), None, None
-        extra_fields = message.model_extra or {}
-        reasoning = next((v for k in ("reasoning_content", "reasoning")
-                          if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
         usage = completion.usage
         details = getattr(usage, "completion_tokens_details", None) if usage else None
         return Exchange(
             request=request,
             response=text,
-            content=message.content,
+            content=content,
             reasoning=reasoning,
             prompt_chars=prompt_chars,
             prompt_tokens=usage.prompt_tokens if usage else None,
@@ -468,12 +552,14 @@ class ChatClient:
         ), None, None
 
     def close(self) -> None:
+        """Close the HTTP connection pool."""
         self._client.close()
 
 
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
+_SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed"})
 
 
 def server_error(status: int | None, text: str | None) -> ServerError:

@@ -34,6 +34,7 @@ STOP_WAIT_S = 3.0  # after closing its stdin, how long the child may take to exi
 
 
 def cache_dir() -> Path:
+    """Where the embedded server keeps files: ``$PPPROPS_CACHE``, else ``~/.cache/ppprops``."""
     return Path(os.environ.get("PPPROPS_CACHE", Path.home() / ".cache" / "ppprops"))
 
 
@@ -50,9 +51,21 @@ def model_path() -> Path:
         return Path(gguf.assemble(target, overwrite=True))
 
 
-def default_threads() -> int:
-    """PPPROPS_LLM_THREADS (a grid running several searches side by side shares the cores), else every core."""
-    return int(os.environ.get("PPPROPS_LLM_THREADS", 0)) or max(1, os.cpu_count() or 1)
+def default_threads(cores: int | None = None, load: float | None = None) -> int:
+    """llama.cpp threads for the cores that are free now: ``cores - round(load)``, at least 1.
+
+    ``load`` is the 1-minute load average (``os.getloadavg``). More threads than free cores is
+    much slower, not a little: llama.cpp's threads wait for each other at every step, so one
+    that is descheduled stalls the rest (measured on 2 cores at load 11: decoding 10 tokens/s
+    with one thread, 1-2 with two; dependencies.md). On idle cores every core is used.
+    """
+    cores = cores if cores is not None else max(1, os.cpu_count() or 1)
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (AttributeError, OSError):  # not available on this platform
+            load = 0.0
+    return max(1, min(cores, cores - round(load)))
 
 
 class EmbeddedServer:
@@ -62,13 +75,15 @@ class EmbeddedServer:
 
     def __init__(self, *, context_size: int = 16384, threads: int | None = None) -> None:
         self.context_size = context_size
-        self.threads = threads or default_threads()
+        # PPPROPS_LLM_THREADS lets a grid that runs several searches side by side share the cores
+        self.threads = threads or int(os.environ.get("PPPROPS_LLM_THREADS", 0)) or default_threads()
         self.base_url = ""
         self._proc: subprocess.Popen[str] | None = None
         self._log: IO[bytes] | None = None
 
     @property
     def pid(self) -> int | None:
+        """The server child's process id, or None when it is not running."""
         return self._proc.pid if self._proc is not None else None
 
     def __enter__(self) -> EmbeddedServer:

@@ -55,7 +55,9 @@ def diagnostic(v: View) -> Estimate:
                 continue
             raw = sum(coef * x[0] for coef, x in zip(formula.values(), vals, strict=True) if x) + v.facts.formula_const
             if raw != 0:
-                f.append(raw), r.append(e.ret), tol.append(e.ret_tol)
+                f.append(raw)
+                r.append(e.ret)
+                tol.append(e.ret_tol)
         if len(f) >= 2:
             fa, ra = np.array(f), np.array(r)
             c = float(fa @ ra / (fa @ fa))
@@ -329,10 +331,31 @@ ATTACKS: dict[str, Callable[[View], Estimate]] = {
     "seed-replay": seed_replay,
     "fallback-spread": fallback_spread,
 }
-TARGET: dict[str, str] = {name: ("c" if i < 7 else "a") for i, name in enumerate(ATTACKS)}
+# The secret each attack estimates: "c" (the reward scale) or "a" (the parameter scales a_j).
+TARGET: dict[str, str] = {
+    **dict.fromkeys(("diagnostic", "lattice", "warped-lattice", "known-cap", "additivity", "survive-length", "saturated-ctrl"), "c"),
+    **dict.fromkeys(("warmup-range", "stated-range", "clip-edge", "seed-replay", "fallback-spread"), "a"),
+}
+assert TARGET.keys() == ATTACKS.keys()
+
+
+def register_attack(name: str, target: str, attack: Callable[[View], Estimate]) -> None:
+    """Add ``attack`` to every privacy report (``ppprops privacy-report``, ``run_attacks``).
+
+    ``attack(view)`` reads only the provider's view of one transcript (``privacy.view.View``) and
+    returns an ``Estimate`` named ``name`` of the secret ``target``: ``"c"`` (a float) or ``"a"``
+    (an array of shape (D,), NaN where not estimated), or ``value=None`` when it finds nothing.
+    Raises ValueError for a taken name or another target.
+    """
+    if name in ATTACKS:
+        raise ValueError(f"an attack named {name!r} is already registered")
+    if target not in ("c", "a"):
+        raise ValueError(f"an attack estimates 'c' or 'a', not {target!r}")
+    ATTACKS[name] = attack
+    TARGET[name] = target
 
 
 def run_attacks(requests: Sequence[Request], task: str, box: tuple[float, float]) -> list[Estimate]:
-    """Every attack on one transcript."""
+    """Every registered attack on one transcript (the recorded request bodies), in registry order."""
     v = view_of(requests, task, box)
     return [f(v) for f in ATTACKS.values()]

@@ -48,7 +48,8 @@ from ..config import RunConfig
 from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
 from ..store import Candidate, open_store
-from ..wire.transcript import ShownEntry, history_entries, number_tokens, outside_entries
+from ..wire.document import continuation_grammar, document_target, document_temperature
+from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
 from ..wire.turns import judge_answer
 from . import reconstruct as rc
 from .exposure import exposures
@@ -58,7 +59,7 @@ from .transcript import Request, message_text, parse_request
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``).
-SENT_FIELDS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
+SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
                          "response_format", "grammar"})
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
                "token counts, and the provider's own answers")
@@ -232,6 +233,7 @@ class _Auditor:
         return None, ""
 
     def entry(self, req: Request, k: int, e: ShownEntry) -> Candidate | None:
+        """Check one shown entry; returns the candidate it shows, or None if it matches none."""
         where = f"{req.where}, entry {k + 1}"
         parsed = [token_value(t) for t in e.params]
         if any(p is None for p in parsed):
@@ -289,13 +291,32 @@ class _Auditor:
         return c
 
     # -- prose: everything outside the history entries --------------------------------------------
-    def prose(self, req: Request, text: str, entries: list[ShownEntry]) -> None:
+    def target(self, req: Request, text: str, shown: list[Candidate | None]) -> int | None:
+        """The document form's open block: its return must be ``wire.document.document_target`` of
+        the shown candidates' encoded returns (a derived encoded value). Returns its offset when
+        it is, so the prose check skips it; otherwise it is unverified and read like any prose."""
+        found = open_target(text)
+        if found is None:
+            self.finding("unverified", "target", "a document prompt that does not end in an open block", req.where)
+            return None
+        at, tok = found
+        parsed = token_value(tok)
+        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
+        if parsed is not None and entries and len(entries) == len(shown) and renders(document_target(entries), *parsed):
+            return at
+        self.finding("unverified", "target", "the open block's return is not the target computed from the shown "
+                     "encoded returns", f"{req.where}, prose at character {at}")
+        return None
+
+    def prose(self, req: Request, text: str, entries: list[ShownEntry], skip: int | None = None) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
         # raw returns and components outside the entries are found by the rebuild (``spans``): text the
         # templates produce is public, and comparing it with raw values would only find coincidences
         for offset, part in outside_entries(text, entries):
             for pos, tok in number_tokens(part):
+                if skip is not None and offset + pos == skip:
+                    continue  # the document's target, checked by ``target``
                 parsed = token_value(tok)
                 if parsed is None:
                     continue
@@ -366,12 +387,16 @@ class _Auditor:
     def body(self, row: dict[str, Any], req: Request) -> None:
         where = req.where
         expected = self.replay.fields()  # what the client's request shape held at this call
+        document = False
         try:
             doc = json.loads(str(row["request"]))
         except json.JSONDecodeError:
             doc = None
         if not isinstance(doc, dict):
             self.free(str(row["request"]), "a request body that is not a JSON object", where)
+        elif "prompt" in doc and "messages" not in doc:
+            self.document_body(doc, req)
+            document = True
         else:
             for key, value in doc.items():
                 at = f"{where}, field {key}"
@@ -391,9 +416,68 @@ class _Auditor:
             missing = [k for k in expected if k not in doc]
             if missing:
                 self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
-        self.replay.observe(row)
+        self.replay.observe(row, document=document)
         if row.get("ok"):
             self.answered[(req.iteration, req.attempt)] = row
+
+    def document_body(self, doc: dict[str, Any], req: Request) -> None:
+        """A document-form request (the completions endpoint, ``wire.document``): ``prompt`` is the
+        document, rebuilt and compared; ``grammar`` must be the continuation grammar of the history
+        it shows and ``temperature`` the form's for this iteration and attempt; the other fields as
+        the client's request shape holds them at this call (``ClientReplay.document_fields``)."""
+        where = req.where
+        text = doc["prompt"]
+        shown: list[Candidate | None] = []
+        if isinstance(text, str):
+            shown = self.document(text, req)
+        else:
+            self.free(text, "a document prompt that is not a string", f"{where}, field prompt")
+        verified = bool(shown) and all(c is not None for c in shown)
+        grammar = continuation_grammar(self.task.D, [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None],
+                                       self.ctx) if verified else None
+        expected = self.replay.document_fields(grammar, document_temperature(req.iteration, req.attempt,
+                                                                             self.config.llm.temperature))
+        for key, value in doc.items():
+            at = f"{where}, field {key}"
+            if key == "prompt":
+                continue
+            if key == "seed" and key in expected:
+                self.seed(value, req)
+            elif key in expected:
+                if value != expected[key]:
+                    self.free(value, f"field {key} differs from what the client sends", at)
+            elif key == "grammar" and not verified:
+                self.free(value, "a grammar that cannot be rebuilt (the history it shows is not verified)", at)
+            elif key in SENT_FIELDS:
+                self.free(value, f"field {key}, which the client does not send at this point (its endpoint adaptations)", at)
+            else:
+                self.free(value, f"field {key}, which the client never sends", at)
+        missing = [k for k in expected if k not in doc]
+        if missing:
+            self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
+
+    def document(self, text: str, req: Request) -> list[Candidate | None]:
+        """A document-form prompt: its entries matched and checked, its open block's target
+        checked (``target``), the rest read as prose, and the whole rebuilt from the shown
+        candidates (``reconstruct.document_spans``). Returns the candidates shown."""
+        entries = history_entries(text, "document")
+        shown: list[Candidate | None] = []
+        flagged: list[tuple[int, int]] = []
+        for k, e in enumerate(entries):
+            before = sum(f.count for f in self.report.findings if f.severity != "channel")
+            c = self.entry(req, k, e)
+            shown.append(c)
+            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before:
+                flagged.append((e.start, e.end))
+        skip = self.target(req, text, shown)
+        self.prose(req, text, entries, skip)
+        for a, b in rc.document_spans(self.codec, self.ctx, text, entries, shown):
+            if any(s <= a and b <= e for s, e in flagged):
+                continue  # inside an entry already reported
+            if skip is not None and a <= skip < b:
+                continue  # the target, checked by ``target``
+            self.free(text[a:b], f"text the document template does not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
+        return shown
 
     def seed(self, value: object, req: Request) -> None:
         at = f"{req.where}, field seed"
@@ -482,7 +566,7 @@ class _Auditor:
         if inner.startswith(rc.CRITIC_HEAD):
             self.critic(text, req, before, after)
             return []
-        entries = history_entries(text)
+        entries = history_entries(text, "chat")
         shown: list[Candidate | None] = []
         flagged: list[tuple[int, int]] = []
         for k, e in enumerate(entries):
@@ -491,7 +575,7 @@ class _Auditor:
             shown.append(c)
             if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before_count:
                 flagged.append((e.start, e.end))
-        self.prose(req, inner, entries if inner == text else history_entries(inner))
+        self.prose(req, inner, entries if inner == text else history_entries(inner, "chat"))
         for a, b in rc.prompt_spans(self.codec, self.ctx, text, entries, shown, before, after):
             if any(s <= a and b <= e for s, e in flagged):
                 continue  # inside an entry already reported

@@ -47,10 +47,13 @@ def cmd_audit(a: argparse.Namespace) -> int:
 
 
 def cmd_privacy_report(a: argparse.Namespace) -> int:
-    from .report import find_runs, privacy_report, run_matrix, write_report
+    from ..store import DB_NAME, KEY_NAME, find_runs
+    from .report import privacy_report, run_matrix, write_report
 
     if a.runs is not None:
-        dirs = find_runs(a.runs)
+        dirs = find_runs(a.runs, recursive=True, with_key=True)
+        if not dirs:
+            raise ConfigError(f"no run directories (with {DB_NAME} and {KEY_NAME}) under {a.runs}")
         out = a.runs
     else:
         if a.seeds < 1 or a.warmup < 1 or a.iterations < 0:

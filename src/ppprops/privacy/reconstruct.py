@@ -27,9 +27,10 @@ from ..client.hardening import codec_for
 from ..client.secrets import Secrets
 from ..config import LLMConfig, RunConfig
 from ..llm.client import ADAPTABLE_KINDS, RequestShape, server_error
-from ..store import Candidate
 from ..tasks.base import Task
+from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, build_prompt
+from ..wire.document import build_document, document_entry
 from ..wire.parse import read_answer
 from ..wire.prompt import history_entry, template
 from ..wire.r2po import Evidence, build_critic_prompt
@@ -80,7 +81,7 @@ def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[Show
     """
     dummy = EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
     expected = before + build_prompt(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown]) + after
-    exp_skel, _ = _skeleton(expected, history_entries(expected))
+    exp_skel, _ = _skeleton(expected, history_entries(expected, "chat"))
     rec_skel, where = _skeleton(text, entries)
     out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
     for e, c in zip(entries, shown, strict=True):
@@ -91,9 +92,30 @@ def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[Show
     return sorted(out)
 
 
+def document_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
+                   shown: list[Candidate | None]) -> list[tuple[int, int]]:
+    """Spans of a recorded document-form prompt (``wire.document.build_document``) that the
+    document templates do not produce from the shown candidates: the header and the open block
+    as a skeleton (each entry one placeholder), each matched entry against the entry built for its
+    candidate. With an unmatched entry the target cannot be rebuilt; it is the caller's to report."""
+    dummy = EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
+    expected = build_document(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown] or [dummy])
+    exp_skel, _ = _skeleton(expected, history_entries(expected, "document") if shown else [])
+    rec_skel, where = _skeleton(text, entries)
+    out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
+    for e, c in zip(entries, shown, strict=True):
+        if c is None:
+            continue
+        mine = text[e.start:e.end]
+        out += [(e.start + a, e.start + b) for a, b in differing_spans(document_entry(ctx, entry_for(codec, ctx, c)), mine)]
+    return sorted(out)
+
+
 def _skeleton(text: str, entries: list[ShownEntry]) -> tuple[str, list[int]]:
     """The text with each entry replaced by one NUL, and the text offset of each skeleton character."""
-    parts, where, pos = [], [], 0
+    parts: list[str] = []
+    where: list[int] = []
+    pos = 0
     for e in entries:
         parts.append(text[pos:e.start])
         where.extend(range(pos, e.start))
@@ -230,21 +252,31 @@ class ClientReplay:
                 llm = replace(llm, **was)
         return llm
 
+    def _shape(self) -> RequestShape:
+        if self.shape is None or self.n in self.starts:
+            self.shape = RequestShape.for_config(self.config_at(self.n))
+        return self.shape
+
     def fields(self) -> dict[str, Any]:
         """The fields (all but ``messages``) the client sends at the next recorded call; ``seed``
         is present when it is sent, with a placeholder value (the audit checks the value itself)."""
-        if self.shape is None or self.n in self.starts:
-            self.shape = RequestShape.for_config(self.config_at(self.n))
-        return self.shape.fields(self.D, seed=0)
+        return self._shape().fields(self.D, seed=0)
 
-    def observe(self, row: dict[str, Any]) -> None:
-        """Feed the recorded outcome of that call to the shape, as ``ChatClient.complete`` did."""
+    def document_fields(self, grammar: str | None, temperature: float) -> dict[str, Any]:
+        """The fields (all but ``prompt``) of the next recorded call when it is a document-form
+        request (``RequestShape.document_fields``), for the continuation ``grammar`` and the
+        ``temperature`` the proposer asked for; ``seed`` as in ``fields``."""
+        return self._shape().document_fields(self.D, seed=0, grammar=grammar, temperature=temperature)
+
+    def observe(self, row: dict[str, Any], *, document: bool = False) -> None:
+        """Feed the recorded outcome of that call to the shape, as ``ChatClient.complete`` (or
+        ``complete_document``, for a ``document`` request) did."""
         assert self.shape is not None, "fields() first"
         self.n += 1
         if row.get("ok"):
             finish, tokens = response_facts(row.get("response"))
             notes = self.shape.learn(row.get("content"), row.get("reasoning"), D=self.D, finish_reason=finish,
-                                     reasoning_tokens=tokens)
+                                     reasoning_tokens=tokens, document=document)
             if notes:
                 self.changes.append("; ".join(notes))
         elif row.get("error_kind") in _STATUS:
@@ -258,7 +290,7 @@ def differing_spans(expected: str, recorded: str) -> list[tuple[int, int]]:
     if expected == recorded:
         return []
     sm = difflib.SequenceMatcher(None, expected, recorded, autojunk=False)
-    spans = []
+    spans: list[tuple[int, int]] = []
     for tag, _, _, j1, j2 in sm.get_opcodes():
         if tag == "equal":
             continue

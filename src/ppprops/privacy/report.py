@@ -21,7 +21,7 @@ import numpy as np
 from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import ConfigError
-from ..store import DB_NAME, open_store
+from ..store import open_store
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
 from .transcript import load_requests
@@ -32,6 +32,10 @@ PRIOR = 1.0  # geometric mean of the priors of c and a_j, in both schemes
 
 @dataclass
 class RunAnalysis:
+    """One run's privacy analysis: its search result and audit verdict, and per attack the recovery
+    error of the secret it targets (error factor - 1: exp(abs(ln(estimate / true))) - 1).
+    """
+
     run_dir: str
     task: str
     method: str
@@ -51,6 +55,7 @@ class RunAnalysis:
     coord_errors: dict[str, list[float]] = field(default_factory=dict)  # a-attacks: one error per scored coordinate
 
     def to_json(self) -> dict[str, Any]:
+        """The JSON form written to ``privacy-report.json``."""
         return dict(self.__dict__)
 
 
@@ -117,17 +122,6 @@ def _model_of(run_dir: Path) -> str:
         return ""
 
 
-def find_runs(root: Path) -> list[Path]:
-    """Run directories under ``root`` (itself included) that hold a store and a key file."""
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"{root} is not a directory")
-    found = [p.parent for p in sorted(root.rglob(DB_NAME)) if (p.parent / "secrets.key").exists()]
-    if not found:
-        raise ConfigError(f"no run directories (with {DB_NAME} and secrets.key) under {root}")
-    return found
-
-
 def run_matrix(
     out: Path, *, envs: Sequence[str], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
     iterations: int = 10, final_episodes: int = 20, log: Callable[[str], None] = print, offline: bool = False,
@@ -169,6 +163,7 @@ def _fmt_err(values: list[float], applicable: list[bool], coverage: list[float] 
 
 
 def format_report(runs: Sequence[RunAnalysis]) -> str:
+    """The report as Markdown: one row per attack (and the prior guesses), one column per (task, scheme); then the search results."""
     groups: dict[tuple[str, str], list[RunAnalysis]] = {}
     for r in runs:
         groups.setdefault((r.task, r.method), []).append(r)
@@ -213,11 +208,16 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
 
 
 def privacy_report(run_dirs: Sequence[Path]) -> tuple[str, list[RunAnalysis]]:
+    """Analyse every run in ``run_dirs`` (``analyse_run``) and format the report: (Markdown text, analyses).
+
+    Raises StoreError / KeyFileError for a directory that is not a run or has no usable key file.
+    """
     analyses = [analyse_run(d) for d in run_dirs]
     return format_report(analyses), analyses
 
 
 def write_report(out: Path, text: str, analyses: Sequence[RunAnalysis], command: str) -> None:
+    """Write ``privacy-report.md`` (with the producing ``command``) and ``privacy-report.json`` into ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "privacy-report.md").write_text(f"# Privacy report\n\nProduced by: `{command}`\n\n{text}\n", encoding="utf-8")

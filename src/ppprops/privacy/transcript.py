@@ -18,9 +18,10 @@ class Request:
     call_id: int
     iteration: int
     attempt: int
-    text: str  # every non-assistant message, joined (assistant messages are the provider's own words)
+    text: str  # every non-assistant message, joined (assistant messages are the provider's own words); or the document
     seed: int | None
     entries: tuple[ShownEntry, ...]
+    form: str = "chat"  # chat (messages) or document (a completions prompt, wire.document)
     answer: str | None = None  # the provider's own answer to it (it knows what it said)
     body: str = ""  # the request body as sent
 
@@ -39,15 +40,21 @@ def message_text(content: object) -> str:
 
 
 def parse_request(call_id: int, iteration: int, attempt: int, body: str, answer: str | None = None) -> Request:
+    """A chat body (its ``messages``) or a completions body (its ``prompt``, the document form)."""
+    form = None
     try:
         doc = json.loads(body)
-        messages = doc.get("messages", [])
-        text = "\n\n".join(message_text(m.get("content")) for m in messages if m.get("role") != "assistant")
+        if isinstance(doc.get("prompt"), str) and "messages" not in doc:
+            text, form = doc["prompt"], "document"
+        else:
+            messages = doc.get("messages", [])
+            text = "\n\n".join(message_text(m.get("content")) for m in messages if m.get("role") != "assistant")
+            form = "chat"
         seed = doc.get("seed")
-    except (json.JSONDecodeError, AttributeError):
-        text, seed = body, None  # not JSON: audit the bytes as text
-    return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None, tuple(history_entries(text)),
-                   answer, body)
+    except (json.JSONDecodeError, AttributeError, TypeError):
+        text, seed = body, None  # not JSON: audit the bytes as text, reading entries of any form
+    return Request(call_id, iteration, attempt, text, int(seed) if isinstance(seed, int) else None,
+                   tuple(history_entries(text, form)), form or "chat", answer, body)
 
 
 def load_requests(run_dir: Path) -> list[Request]:

@@ -40,6 +40,10 @@ class View:
 
 @dataclass(frozen=True)
 class Estimate:
+    """What an attack found: an estimate of ``target`` ("c": a float; "a": shape (D,), NaN where not
+    estimated), or ``value=None`` when it found nothing; ``detail`` says how, without secret values.
+    """
+
     attack: str
     target: str  # "c" or "a"
     value: float | np.ndarray | None  # None: the attack found nothing; a: NaN where not estimated
@@ -48,12 +52,16 @@ class Estimate:
 
     @property
     def applicable(self) -> bool:
+        """True when the estimate holds at least one finite value."""
         if self.value is None:
             return False
         return bool(np.any(np.isfinite(np.atleast_1d(self.value))))
 
 
 def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) -> View:
+    """The provider's view of one transcript: the distinct history entries shown (parsed from the
+    request bodies), the warm-up entries, and the task's public facts.
+    """
     seen: dict[tuple[tuple[str, ...], str], Shown] = {}
     first: list[Shown] = []
     D = 0
@@ -76,6 +84,7 @@ def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) ->
 
 
 def same_marker(printed: str | None, marker: str) -> bool:
+    """True when a printed diagnostic equals ``marker`` (as text, or as the same number)."""
     if printed is None:
         return False
     if printed == marker:

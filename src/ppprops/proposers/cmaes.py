@@ -14,19 +14,26 @@ exactly the population it was in the middle of.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from ..client.codec import Codec
 from ..errors import MissingExtraError
-from ..store import Candidate
+from ..values import Candidate
 from .base import Proposal, clip_to_box
 
 Space = Literal["raw", "encoded"]
 
 
 class CMAESProposer:
+    """CMA-ES (pycma) at the prompted methods' budget, started from the best warm-up policy.
+
+    ``space="raw"`` searches theta in the box (initial step 0.3 x box width); ``"encoded"`` searches
+    theta~ = A theta with step 1 and decodes each sample (the optimizer then sees what the LLM sees).
+    Raises MissingExtraError (extra ``baselines``) when pycma is not installed.
+    """
+
     def __init__(self, *, D: int, box: tuple[float, float], seed: int, codec: Codec, space: Space = "raw",
                  popsize: int | None = None, source: str = "cmaes") -> None:
         try:
@@ -37,7 +44,7 @@ class CMAESProposer:
         self.popsize = popsize
         self.source = source
         self._warmup: list[Candidate] = []
-        self._es = None
+        self._es: Any = None  # cma.CMAEvolutionStrategy once started (pycma has no type information)
         self._pop: list[np.ndarray] | None = None
         self._fit: list[float] = []
 
@@ -64,17 +71,19 @@ class CMAESProposer:
         if self._es is None:
             self._start()
         if self._pop is None:
-            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]  # type: ignore[union-attr]
+            self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]
             self._fit = []
         return self._pop
 
     def ask(self, iteration: int) -> Proposal:
+        """The next member of the current population, decoded if needed and clipped into the box: shape (D,)."""
         x = self._population()[len(self._fit)]
         theta = x if self.space == "raw" else self.codec.decode(x)
         theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source=self.source, clipped=clipped)
 
     def tell(self, candidate: Candidate) -> None:
+        """Warm-up candidates seed the start; the population's own returns (negated: CMA-ES minimizes) feed ``tell``."""
         if candidate.source != self.source:
             self._warmup.append(candidate)
             return
@@ -83,5 +92,5 @@ class CMAESProposer:
         ret = candidate.feedback.ret if self.space == "raw" else candidate.feedback_enc.ret
         self._fit.append(-ret if np.isfinite(ret) else np.inf)
         if len(self._fit) == len(pop):
-            self._es.tell(pop, self._fit)  # type: ignore[union-attr]
+            self._es.tell(pop, self._fit)
             self._pop = None

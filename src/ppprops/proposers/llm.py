@@ -10,6 +10,13 @@ and asked again. Unusable answers get a bounded number of corrections; after tha
 is a documented fallback: the best policy so far plus Gaussian noise with standard deviation 5%
 of the box width, clipped to the box, recorded with source ``fallback``.
 
+Two prompt forms (``form``): ``chat``, the paper's instruction prompt as one chat message, and
+``document``, the history as a document for a base model to continue (``wire.document``), sent
+to the completions endpoint with a grammar fitted to the shown history. A document answer is
+``[`` plus the continuation up to its first ``]`` (``wire.parse.read_continuation``); an
+unusable one is asked again with the same document and the next seed (there is no conversation
+to correct). Everything else (repeats, fallbacks, recording) is the same in both forms.
+
 A correction repeats the model's final text (never its reasoning or markup) and says what was
 wrong (``wire.turns.correction_messages``, which the audit rebuilds too); an HTTP error never reaches the model (the client adapts, retries or raises). An
 endpoint that stays down past the client's retry bound either stops the run (``stop``,
@@ -34,10 +41,10 @@ import numpy as np
 from .. import seeding
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
-from ..store import Candidate
+from ..values import Candidate
 from ..wire import EncodedEntry, ParseResult, PromptContext, build_prompt, top_k
-from ..wire.turns import correction_messages, judge_answer, prompt_messages
-from ..wire.turns import repeats_history as _repeats_history
+from ..wire.document import build_document, continuation_grammar, document_temperature
+from ..wire.turns import correction_messages, judge_answer, judge_continuation, prompt_messages, repeats_history
 from .base import Proposal, clip_to_box
 
 ExchangeHook = Callable[[int, int, Exchange, str | None], None]
@@ -51,6 +58,15 @@ HINTS = {
 
 
 class LLMProposer:
+    """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
+
+    The prompt is built on the wire side from ``context`` and the encoded entries only; an answer is
+    parsed into D encoded numbers and decoded (theta = A^-1 theta~) into the box. An unusable answer
+    is corrected (chat form; the document form asks the same document again with the next seed) up to
+    ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian noise of
+    ``FALLBACK_SIGMA`` x box width (source ``fallback``, with the reason as note).
+    """
+
     def __init__(
         self,
         *,
@@ -63,7 +79,17 @@ class LLMProposer:
         parse_retries: int = 2,
         on_exchange: ExchangeHook | None = None,
         on_llm_failure: str = "stop",
+        form: str = "chat",
+        temperature: float | None = None,
     ) -> None:
+        """``form`` ``chat`` sends the paper's instruction prompt as a chat message; ``document``
+        sends the history as a document to continue (``wire.document``) to the completions
+        endpoint, constrained by ``continuation_grammar``, at ``document_temperature`` (``temperature``
+        is ``--temperature``; None alternates the form's defaults)."""
+        self.temperature = temperature
+        if form not in ("chat", "document"):
+            raise ValueError(f"unknown prompt form {form!r} (known: chat, document)")
+        self.form = form
         self.chat = chat
         self.codec = codec
         self.ctx = context
@@ -81,9 +107,11 @@ class LLMProposer:
 
     @property
     def D(self) -> int:
+        """D = (n_s + 1) n_a, the number of parameters."""
         return self.ctx.D
 
     def tell(self, candidate: Candidate) -> None:
+        """Add the candidate's encoded entry to the history (a non-finite return is never shown) and track the best."""
         fb = candidate.feedback_enc
         if not (math.isfinite(fb.ret) and math.isfinite(candidate.ret)):
             self.nonfinite_skipped += 1  # a numerical fault: never shown, never the best
@@ -102,7 +130,14 @@ class LLMProposer:
             self.best = candidate
 
     def prompt(self) -> str:
+        """The prompt of the next ask: the public context and the top-K history (best last), in the run's form."""
+        if self.form == "document":
+            return build_document(self.ctx, self.shown())
         return build_prompt(self.ctx, self.shown())
+
+    def grammar(self) -> str:
+        """The continuation grammar of the document form, shaped by the shown history."""
+        return continuation_grammar(self.D, self.shown(), self.ctx)
 
     def shown(self) -> list[EncodedEntry]:
         """The history entries the prompt shows (top-K, best last)."""
@@ -110,16 +145,26 @@ class LLMProposer:
 
     def repeats_history(self, values: tuple[float, ...]) -> bool:
         """True if ``values`` equal an entry of the shown history as the prompt printed it."""
-        return _repeats_history(self.ctx, values, self.shown())
+        return repeats_history(self.ctx, values, self.shown())
 
     def ask(self, iteration: int) -> Proposal:
+        """One LLM proposal (raw theta, shape (D,), clipped into the box), or a fallback after unusable answers.
+
+        Raises LLMRejected when the endpoint refuses for good, and LLMUnavailable past the retries
+        when ``on_llm_failure`` is ``stop`` (with ``skip`` a fallback is recorded instead).
+        """
         prompt = self.prompt()
         messages = prompt_messages(prompt)
+        grammar = self.grammar() if self.form == "document" else None
         last_error = "no attempt"
         for attempt in range(1 + self.parse_retries):
             seed = self.codec.sampling_seed(self.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
-                ex = self.chat.complete(messages, D=self.D, seed=seed)
+                if self.form == "document":  # a retry asks the same document again, with the next seed
+                    ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar,
+                                                     temperature=document_temperature(iteration, attempt, self.temperature))
+                else:
+                    ex = self.chat.complete(messages, D=self.D, seed=seed)
             except LLMUnavailable as e:
                 self._record(iteration, attempt, e.failures)
                 if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
@@ -144,11 +189,15 @@ class LLMProposer:
             kind = result.error or "unknown"
             self.failures[kind] += 1
             last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
-            messages = correction_messages(prompt, ex.content, result.detail, self.D)
+            if self.form == "chat":
+                messages = correction_messages(prompt, ex.content, result.detail, self.D)
         return self._fallback(iteration, last_error)
 
     def _read(self, ex: Exchange) -> ParseResult:
-        """The proposal in an answer, refused if it repeats the history shown (``wire.turns.judge_answer``)."""
+        """The proposal in an answer (``wire.turns.judge_answer``; a document continuation:
+        ``judge_continuation``), refused if it repeats the history shown."""
+        if self.form == "document":
+            return judge_continuation(ex.content, self.ctx, self.shown(), finish_reason=ex.finish_reason)
         return judge_answer(ex.content, ex.reasoning, self.ctx, self.shown(), finish_reason=ex.finish_reason)
 
     def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:

@@ -26,11 +26,10 @@ import numpy as np
 
 from ..client.codec import Codec
 from ..llm.client import Chat, Exchange
-from ..loop import StopSearch
-from ..store import Candidate
+from ..values import Candidate
 from ..wire import PromptContext
 from ..wire.r2po import Evidence, build_critic_prompt
-from .base import Proposal
+from .base import Proposal, StopSearch
 from .llm import ExchangeHook, LLMProposer
 
 Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
@@ -51,6 +50,11 @@ class _Critic(LLMProposer):
 
 
 class R2POProposer:
+    """R2PO's two stages as one proposer: even asks are the Search-LLM's proposal, odd asks the
+    Critic-LLM's revision of it (see the module docstring). Raises StopSearch when a prompt would
+    not fit ``context_window`` tokens with its answer.
+    """
+
     def __init__(
         self,
         *,
@@ -81,6 +85,7 @@ class R2POProposer:
 
     @property
     def last_latency(self) -> float | None:
+        """Seconds of the latest LLM call of either stage (None before the first)."""
         return self.critic.last_latency or self.search.last_latency
 
     def _observe(self, iteration: int, attempt: int, ex: Exchange, error: str | None) -> None:
@@ -104,6 +109,9 @@ class R2POProposer:
             )
 
     def evidence(self, c: Candidate) -> Evidence:
+        """The critic's evidence on candidate ``c``: return statistics over its episodes (encoded) and
+        the rollout of its median episode (raw states and actions, re-run from that episode's seed).
+        """
         fb = c.feedback_enc
         rets = np.asarray(fb.episode_returns, dtype=float)
         order = np.argsort(rets, kind="stable")
@@ -119,6 +127,10 @@ class R2POProposer:
         )
 
     def ask(self, iteration: int) -> Proposal:
+        """Even ``iteration``: the Search-LLM's proposal; odd: the Critic-LLM's revision of the last one.
+
+        Raises StopSearch on a context overflow, RuntimeError for a critic stage with nothing to revise.
+        """
         if iteration % 2 == 0:
             self._check_fits(self.search.prompt(), iteration)
             p = self.search.ask(iteration)
@@ -132,6 +144,7 @@ class R2POProposer:
         return Proposal(p.theta, CRITIC if p.source == "llm" else p.source, p.clipped, p.note)
 
     def tell(self, candidate: Candidate) -> None:
+        """Warm-up goes to the search history; of each proposal/revision pair only the better enters it."""
         if candidate.source == "warmup":
             self.search.tell(candidate)
         elif self.pending is None:  # the search stage's candidate (or its fallback)

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .. import seeding
-from ..store import Candidate
+from ..values import Candidate
 from .base import Proposal
 
 if TYPE_CHECKING:
@@ -25,6 +25,10 @@ Decode = Callable[[np.ndarray], np.ndarray]
 
 
 class UniformSampler:
+    """Uniform samples in ``box``, shape (D,) each; sample m comes from its own seeded stream (the
+    same whether or not the run was interrupted). The paper's warm-up (Algorithm 1, line 1).
+    """
+
     def __init__(
         self, D: int, box: tuple[float, float], seed: int, *, source: str = "warmup", decode: Decode | None = None
     ) -> None:
@@ -37,6 +41,7 @@ class UniformSampler:
 
     def ask(self, iteration: int) -> Proposal:
         # One stream per sample, so sample m is the same whether or not the run was interrupted.
+        """Sample ``iteration`` of the stream (decoded to raw theta when ``decode`` is given)."""
         lo, hi = self.box
         theta = seeding.rng(self.seed, seeding.WARMUP, iteration).uniform(lo, hi, size=self.D)
         if self.decode is not None:
@@ -44,6 +49,7 @@ class UniformSampler:
         return Proposal(theta=theta, source=self.source)
 
     def tell(self, candidate: Candidate) -> None:
+        """Nothing: uniform samples do not depend on results."""
         pass
 
 

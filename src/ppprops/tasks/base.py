@@ -14,9 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..policy import param_count
+from ..values import Diagnostic
 
 ActionType = Literal["continuous", "discrete"]
-Diagnostic = float | str
 
 
 @dataclass(frozen=True)
@@ -30,17 +30,26 @@ class EpisodeFeedback:
 class EpisodeRecorder(Protocol):
     """Accumulates one episode's feedback step by step."""
 
-    def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None: ...
+    def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        """Add one step: the raw observation after it, its reward (reward units), and the env's ``info``."""
+        ...
 
-    def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback: ...
+    def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
+        """The episode's summed components and reduced diagnostics, after ``steps`` steps."""
+        ...
 
 
 class ObservationAdapter(Protocol):
     """Maps the environment's observation to the policy's state vector s (length n_s)."""
 
-    names: tuple[str, ...]
+    @property
+    def names(self) -> tuple[str, ...]:
+        """One name per state value, in the order of s."""
+        ...
 
-    def __call__(self, obs: Any) -> NDArray[np.float64]: ...
+    def __call__(self, obs: Any) -> NDArray[np.float64]:
+        """The state vector s, shape (n_s,), float64, from one raw observation."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -59,6 +68,7 @@ class Selection:
     one_hot: tuple[int, int] | None = None  # (n, start) of a Discrete observation
 
     def __call__(self, obs: Any) -> NDArray[np.float64]:
+        """The state s, shape (n_s,), from a raw observation (the four steps of the class docstring)."""
         if self.keys is not None:
             obs = np.concatenate([np.ravel(obs[k]) for k in self.keys])
         if self.one_hot is not None:
@@ -67,6 +77,7 @@ class Selection:
         return flat if self.indices is None else flat[list(self.indices)]
 
     def to_json(self) -> dict[str, Any]:
+        """The stored form (in run configs and policy files)."""
         return {
             "names": list(self.names),
             "keys": None if self.keys is None else list(self.keys),
@@ -76,6 +87,7 @@ class Selection:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Selection:
+        """The inverse of ``to_json``; KeyError for a missing ``names``."""
         oh = d.get("one_hot")
         return cls(
             names=tuple(d["names"]),
@@ -129,10 +141,12 @@ class Task:
 
     @property
     def D(self) -> int:
+        """D = (n_s + 1) n_a, the number of policy parameters (paper Sec. II-A)."""
         return param_count(self.n_s, self.n_a)
 
     @property
     def discrete(self) -> bool:
+        """True for a Discrete action space (the policy takes the argmax of its scores)."""
         return self.action_type == "discrete"
 
     def make_env(self) -> Any:
@@ -146,6 +160,7 @@ class Task:
         return gym.make(self.env_id, disable_env_checker=True, **dict(self.env_kwargs))
 
     def summary(self) -> dict[str, Any]:
+        """The task's shape as a dict (name, env id, n_s, n_a, D, action type, feedback keys), for ``show`` and JSON output."""
         return {
             "name": self.name,
             "env_id": self.env_id,
@@ -159,5 +174,6 @@ class Task:
 
 
 def check_names(task: Task, names: Sequence[str]) -> None:
+    """Refuse a list of observation names whose length is not n_s (ValueError)."""
     if len(names) != task.n_s:
         raise ValueError(f"task {task.name}: {len(names)} observation names for n_s={task.n_s}")

@@ -17,9 +17,11 @@ class CartPoleRecorder:
         self.last_obs: NDArray[Any] | None = None
 
     def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        """Keep the observation (the last one tells why the episode ended)."""
         self.last_obs = obs
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
+        """Episode length and why it ended (pole fell, cart left the track, time limit)."""
         if terminated and self.last_obs is not None:
             x, _, angle, _ = (float(v) for v in self.last_obs)
             cause = "cart_out_of_bounds" if abs(x) > 2.4 else "pole_fell"
@@ -38,12 +40,14 @@ class AcrobotRecorder:
         self.n = 0
 
     def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        """Track the free tip's height."""
         c1, s1, c2, s2 = (float(v) for v in obs[:4])
         # tip height relative to the pivot, in link lengths: -cos(t1) - cos(t1 + t2)
         self.height_sum += -c1 - (c1 * c2 - s1 * s2)
         self.n += 1
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
+        """Episode length, whether the tip reached the goal height, and its mean height."""
         mean_h = self.height_sum / self.n if self.n else 0.0
         return EpisodeFeedback(
             components={},

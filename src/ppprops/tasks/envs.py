@@ -59,6 +59,7 @@ def import_module(name: str, why: str = "") -> Any:
 
 
 def add_paths(paths: tuple[str, ...]) -> None:
+    """Append ``paths`` (folders of user env modules) to ``sys.path``, each once."""
     for p in paths:
         if p not in sys.path:
             sys.path.append(p)
@@ -170,6 +171,7 @@ def registered_id(name: str) -> str | None:
 
 
 def known_ids() -> list[str]:
+    """Every registered Gymnasium env id."""
     import gymnasium as gym
 
     return list(gym.registry)
@@ -295,12 +297,14 @@ class EnvRecipe:
         return replace(self, entry_point=ref, kwargs=kwargs, max_episode_steps=steps, paths=tuple(dict.fromkeys(self.paths + paths)))
 
     def to_json(self) -> dict[str, Any]:
+        """The stored form (in a task declaration)."""
         return {"id": self.id, "entry_point": self.entry_point, "kwargs": dict(self.kwargs),
                 "max_episode_steps": self.max_episode_steps, "imports": list(self.imports), "paths": list(self.paths),
                 "setup": self.setup}  # fmt: skip
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> EnvRecipe:
+        """The inverse of ``to_json``; KeyError without ``id``."""
         return cls(id=str(d["id"]), entry_point=d.get("entry_point"), kwargs=dict(d.get("kwargs") or {}),
                    max_episode_steps=d.get("max_episode_steps"), imports=tuple(d.get("imports") or ()),
                    paths=tuple(d.get("paths") or ()), setup=d.get("setup"))  # fmt: skip
@@ -313,6 +317,7 @@ class Prepare:
     recipe: EnvRecipe
 
     def __call__(self) -> None:
+        """Import, register and check what the env needs (``EnvRecipe.prepare``)."""
         self.recipe.prepare()
 
 

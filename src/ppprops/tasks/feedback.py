@@ -40,10 +40,12 @@ class InfoKey:
     reduce: str = "last"
 
     def to_json(self) -> dict[str, str]:
+        """The stored form."""
         return {"name": self.name, "info": self.info, "reduce": self.reduce}
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> InfoKey:
+        """The inverse of ``to_json``."""
         return cls(name=str(d["name"]), info=str(d["info"]), reduce=str(d.get("reduce", "last")))
 
 
@@ -71,6 +73,7 @@ def scalar(value: Any) -> float | str | None:
 
 
 def describe_keys(info: Mapping[str, Any]) -> str:
+    """The keys of an ``info`` dict as one comma-separated list ("none" when empty), for error messages."""
     return ", ".join(map(str, info)) or "none"
 
 
@@ -98,6 +101,7 @@ def check_value(task: str, kind: str, key: InfoKey, info: Mapping[str, Any], *, 
 
 
 def missing_key(task: str, kind: str, key: InfoKey, info: Mapping[str, Any], *, where: str) -> FeedbackKeyError:
+    """The one-line error for a declared key the env's ``info`` lacks ``where`` (e.g. "at step 3"), with a close match as hint."""
     close = difflib.get_close_matches(key.info, [str(k) for k in info], n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else ""
     return FeedbackKeyError(f"{task}: {kind} {key.info!r} is not in the env's info {where} (its keys: {describe_keys(info)}){hint}")
@@ -112,6 +116,7 @@ class InfoFeedback:
     diagnostics: tuple[InfoKey, ...] = ()
 
     def __call__(self) -> _InfoRecorder:
+        """A fresh recorder for one episode."""
         return _InfoRecorder(self)
 
 
@@ -141,6 +146,7 @@ class _InfoRecorder:
 
 
 def reduce(values: list[float | str], how: str) -> Diagnostic:
+    """Reduce a diagnostic's per-step values by ``how``: last, mean, sum, min or max (text values: the last)."""
     if how == "last" or any(isinstance(v, str) for v in values):
         return values[-1]
     nums = [float(v) for v in values]

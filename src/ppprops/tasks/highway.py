@@ -50,6 +50,7 @@ REWARD_CONFIG: Mapping[str, Any] = {
     "normalize_reward": True,
 }
 def setup_highway() -> None:
+    """Import highway-env (registers its ids); MissingExtraError naming the ``highway`` extra when it is absent."""
     try:
         import gymnasium as gym
         import highway_env
@@ -85,6 +86,7 @@ class HighwayRecorder:
         self.crashed = 0.0
 
     def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        """Add the step's reward terms (info["rewards"]), speed and crash flag."""
         for k, v in split_reward(info["rewards"]).items():
             self.sums[k] += v
         self.speed_sum += float(info["speed"])
@@ -92,7 +94,8 @@ class HighwayRecorder:
         self.crashed = float(bool(info["crashed"]))
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
-        diagnostics = {
+        """Summed reward terms; episode length, crash flag and mean speed as diagnostics."""
+        diagnostics: dict[str, float | str] = {
             "episode_length": float(steps),
             "crashed": self.crashed,
             "mean_speed": self.speed_sum / self.n if self.n else 0.0,

@@ -66,9 +66,11 @@ class LocomotionRecorder:
         self.sums = dict.fromkeys(COMPONENTS, 0.0)
 
     def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        """Add the step's four reward terms from ``info``."""
         for k in COMPONENTS:
             self.sums[k] += float(info[k])
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
+        """Summed reward terms; episode length and why it ended (unhealthy or time limit)."""
         cause = "unhealthy" if terminated else "time_limit" if truncated else "stopped"
         return EpisodeFeedback(components=dict(self.sums), diagnostics={"episode_length": float(steps), "termination": cause})

@@ -45,7 +45,7 @@ from dataclasses import dataclass, replace
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -91,10 +91,12 @@ class Declared:
     reduce: str = "last"
 
     def to_json(self) -> dict[str, Any]:
+        """The stored form."""
         return {"name": self.name, "description": self.description, "info": self.info, "reduce": self.reduce}
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Declared:
+        """The inverse of ``to_json``."""
         return cls(name=str(d["name"]), description=str(d.get("description", "")), info=d.get("info"),
                    reduce=str(d.get("reduce", "last")))  # fmt: skip
 
@@ -358,6 +360,10 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
     return spec
 
 
+@overload
+def _str(raw: Mapping[str, Any], key: str, where: str, *, required: Literal[True]) -> str: ...
+@overload
+def _str(raw: Mapping[str, Any], key: str, where: str, *, required: bool = False) -> str | None: ...
 def _str(raw: Mapping[str, Any], key: str, where: str, *, required: bool = False) -> str | None:
     v = raw.get(key)
     if v is None and not required:
@@ -434,7 +440,7 @@ def _check_complete(spec: TaskSpec, where: str) -> None:
 def spec_for_env(env: str | Callable[..., Any], *, name: str | None = None) -> TaskSpec:
     """A bare declaration for an env given by id / ``module:attr`` string or a factory callable."""
     if callable(env) and not isinstance(env, str):
-        label = name or getattr(env, "__name__", "env")
+        label = str(name or getattr(env, "__name__", "env"))
         found = entry_point_of(env)
         if found is None:  # a lambda or local function: reachable in this process through a registered id
             return TaskSpec(name=label, env=EnvRecipe(id=_register_local(env, label)))

@@ -199,11 +199,11 @@ def garble(kind: str, D: int, rng: random.Random, span: float) -> tuple[str | No
         vals[rng.randrange(D)] = "NaN"
         return _params_json(vals), None
     if kind == "inf":
-        vals = _vector(rng, D, span)
+        vals = list[Any](_vector(rng, D, span))
         vals[rng.randrange(D)] = "-Infinity" if rng.random() < 0.5 else "Infinity"
         return _params_json(vals), None
     if kind == "huge":
-        vals = _vector(rng, D, span)
+        vals = list[Any](_vector(rng, D, span))
         vals[rng.randrange(D)] = rng.choice(["1e308", "-9.9e307", "123456789012345678901234567890"])
         return _params_json(vals), None
     if kind == "prose":

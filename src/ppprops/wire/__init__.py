@@ -7,11 +7,13 @@ Rules, checked by ``tests/test_trust_boundary.py``:
   codec produces after encoding. A raw ``Candidate`` is rejected at run time as well.
 """
 
+from .document import build_document, continuation_grammar, document_target
 from .encoded import EncodedEntry, PromptContext
 from .history import top_k
-from .parse import ParseResult, parse_answer
+from .parse import ParseResult, parse_answer, read_continuation
 from .prompt import build_correction, build_prompt
-from .turns import correction_messages, judge_answer, prompt_messages
+from .turns import correction_messages, judge_answer, judge_continuation, prompt_messages
 
-__all__ = ["EncodedEntry", "ParseResult", "PromptContext", "build_correction", "build_prompt", "correction_messages", "judge_answer",
-           "parse_answer", "prompt_messages", "top_k"]
+__all__ = ["EncodedEntry", "ParseResult", "PromptContext", "build_correction", "build_document", "build_prompt",
+           "continuation_grammar", "correction_messages", "document_target", "judge_answer", "judge_continuation",
+           "parse_answer", "prompt_messages", "read_continuation", "top_k"]

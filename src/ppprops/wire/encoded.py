@@ -52,18 +52,22 @@ class PromptContext:
     params_style: str = "list"
     param_digits: int = 3  # list form: significant digits of a parameter (at most ``decimals`` decimals); 0: fixed decimals
     layout: str = "static-first"
+    title: str = ""  # the task's name, the document form's header (wire.document)
     # ProPS+ (True): the task section describes the environment, the state and action meanings,
     # the reward text and hints. ProPS (False): it says only how the policy maps states to actions.
     describe_task: bool = True
 
     @property
     def n_s(self) -> int:
+        """Length of the state vector s."""
         return len(self.observations)
 
     @property
     def n_a(self) -> int:
+        """Number of policy outputs (action scores or continuous action dimensions)."""
         return len(self.actions)
 
     @property
     def D(self) -> int:
+        """D = (n_s + 1) n_a, the number of parameters asked for."""
         return (self.n_s + 1) * self.n_a

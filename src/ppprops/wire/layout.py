@@ -9,10 +9,12 @@ def param_index(i: int, j: int, n_a: int) -> int:
 
 
 def bias_index(j: int, n_s: int, n_a: int) -> int:
+    """Index of the bias b[j] (action j) in the flat vector: after the n_s x n_a weights."""
     return n_s * n_a + j
 
 
 def describe(n_s: int, n_a: int) -> str:
+    """The layout in words for the prompt: which params form W (row by row) and which the bias b."""
     D = (n_s + 1) * n_a
     last_w = n_s * n_a - 1
     return (

@@ -22,10 +22,12 @@ def fmt_sig(x: float, digits: int, decimals: int) -> str:
 
 
 def fmt_vector(values: tuple[float, ...] | list[float], decimals: int, *, digits: int = 0, sep: str = ", ") -> str:
+    """``[v0, v1, ...]`` with each value in ``digits`` significant digits (0: ``decimals`` fixed decimals)."""
     return "[" + sep.join(fmt_sig(v, digits, decimals) for v in values) + "]"
 
 
 def fmt_value(v: float | str, decimals: int) -> str:
+    """A diagnostic as printed: text as is, integers without decimals, other numbers with ``decimals`` decimals."""
     if isinstance(v, str):
         return v
     if float(v).is_integer():

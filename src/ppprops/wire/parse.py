@@ -18,6 +18,12 @@ Where the proposal comes from (one rule, for every server and model):
    the last ``{"params": [...]}`` object in it, or else the last list of D numbers that follows
    an answer cue ("answer", "propose", "final", ...) on its line. Quoted lists are not answers.
 
+A continuation of the document form (``wire.document``) is read by ``read_continuation``: the
+document ends inside an open list, so the answer is ``[`` plus the continuation up to its first
+``]``; whatever follows is the model writing more document and is never read. The values' index
+labels (``0:1.5,1:-2``) are dropped and must count 0, 1, 2, ... Rule 1 holds for it too, and the
+numbers go through the same reader as a final text.
+
 Typographic minus signs (U+2212, en and figure dashes) before a number read as ``-``; exponents
 are accepted. The parser never raises on model output: failures come back as a typed result.
 Whether a proposal merely repeats a history entry is the proposer's check (it knows what it showed).
@@ -53,12 +59,14 @@ _OPEN_TAIL = re.compile(r"\[([^\[\]]*)$")
 
 ERROR_KINDS = (
     "empty", "reasoning_only", "length", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite",
-    "several_vectors",
+    "several_vectors", "labels",
 )
 
 
 @dataclass(frozen=True)
 class ParseResult:
+    """What an answer gave: the D numbers (``values``), or None with an ``error`` kind and a ``detail`` in words."""
+
     values: tuple[float, ...] | None
     error: str | None = None  # one of ERROR_KINDS when values is None
     detail: str = ""  # why, in words that may be shown to the model (no markup, no HTTP text)
@@ -66,6 +74,7 @@ class ParseResult:
 
     @property
     def ok(self) -> bool:
+        """True when the answer gave a usable vector."""
         return self.values is not None
 
 
@@ -290,3 +299,44 @@ def read_answer(content: str | None, reasoning: str | None, D: int, *, finish_re
 def parse_answer(text: str | None, D: int) -> ParseResult:
     """Extract exactly D finite numbers from an answer's content (no separate reasoning field)."""
     return read_answer(text, None, D)
+
+
+def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_reason: str | None = None) -> ParseResult:
+    """The proposal in the continuation of a document that ends with ``opening`` (an open list).
+
+    The answer is ``opening`` + the text up to and including its first ``]``; text after that
+    is ignored. An answer cut off at the token limit is never used (``length``); an empty
+    continuation is ``empty``; one that never closes the list is ``truncated``. Never raises.
+    """
+    if finish_reason == "length":
+        return _fail("length", "the answer was cut off at the token limit before it was complete")
+    if finish_reason == "content_filter":
+        return _fail("refusal", "the answer was withheld by a content filter")
+    body = text or ""
+    if not body.strip():
+        return _fail("empty", "the answer was empty")
+    close = body.find("]")
+    head = body if close < 0 else body[: close + 1]
+    head, bad = _unlabel(head)
+    if bad:
+        return _fail("labels", bad)
+    return _parse_final(opening + head, D)
+
+
+_LABELLED = re.compile(r"^\s*(\d+)\s*:\s*(.*)$", re.DOTALL)
+
+
+def _unlabel(text: str) -> tuple[str, str]:
+    """Drop the index labels of a labelled list (``0:1.5,1:-2]`` -> ``1.5,-2]``). Items with no
+    label are left as they are; labels must count 0, 1, 2, ... (else the second value is why)."""
+    items = text.split(",")
+    out = []
+    for i, item in enumerate(items):
+        m = _LABELLED.match(item)
+        if m is None:
+            out.append(item)
+            continue
+        if int(m.group(1)) != i:
+            return text, f"the value at position {i} was labelled {m.group(1)}; label the values 0, 1, 2, ... in order"
+        out.append(m.group(2))
+    return ",".join(out), ""

@@ -14,22 +14,25 @@ from .numbers import fmt, fmt_value, fmt_vector
 
 @cache
 def template(name: str) -> Template:
+    """The prompt template ``wire/templates/<name>.txt`` (read once); FileNotFoundError for an unknown name."""
     text = resources.files("ppprops.wire.templates").joinpath(f"{name}.txt").read_text(encoding="utf-8")
     return Template(text.rstrip("\n"))
 
 
-def _render(name: str, **values: object) -> str:
+def render(name: str, **values: object) -> str:
+    """Template ``name`` (a file in ``wire/templates``) with ``values`` substituted; KeyError if one is missing."""
     return template(name).substitute(**values)
+
 
 
 def task_section(ctx: PromptContext) -> str:
     """The task description (ProPS+), or with ``describe_task`` off only the policy's structure (ProPS)."""
-    action_rule = _render("action_discrete" if ctx.discrete else "action_continuous")
+    action_rule = render("action_discrete" if ctx.discrete else "action_continuous")
     if not ctx.describe_task:
-        return _render("task_withheld", n_s=ctx.n_s, n_a=ctx.n_a, action_rule=action_rule)
+        return render("task_withheld", n_s=ctx.n_s, n_a=ctx.n_a, action_rule=action_rule)
     obs = "\n".join(f"- s[{i}] {name}: {meaning}" for i, (name, meaning) in enumerate(ctx.observations))
     acts = "\n".join(f"- u[{j}]: {meaning}" for j, meaning in enumerate(ctx.actions))
-    return _render(
+    return render(
         "task",
         summary=ctx.summary,
         n_s=ctx.n_s,
@@ -47,36 +50,43 @@ _REWARD_NOTES = {"scale": "scale_note", "affine": "scale_note_offset", "warp": "
 
 
 def parameters_section(ctx: PromptContext) -> str:
+    """The policy-structure section: the flat layout of params (D = (n_s + 1) n_a) and the box, encoded
+    (theta~ = A theta, paper Sec. II-B: no range is stated) or raw. ValueError for an unknown encoding.
+    """
     desc = layout.describe(ctx.n_s, ctx.n_a)
     if ctx.encoded_params:
         if ctx.param_encoding not in _PARAM_TEMPLATES:
             raise ValueError(f"unknown parameter encoding {ctx.param_encoding!r}")
-        text = _render(_PARAM_TEMPLATES[ctx.param_encoding], layout=desc)
+        text = render(_PARAM_TEMPLATES[ctx.param_encoding], layout=desc)
         if ctx.warmup_range is not None:
             low, high = ctx.warmup_range
-            text += "\n" + _render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+            text += "\n" + render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
         return text
     if ctx.param_range is None:
         raise ValueError("unencoded parameters need a public range")
     low, high = ctx.param_range
-    return _render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+    return render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
 
 
 def feedback_section(ctx: PromptContext) -> str:
+    """The feedback section: what the printed returns mean (scaled r~ = c r, Sec. II-C, or raw), the
+    optimum when disclosed, and the reward components and diagnostics with detailed feedback.
+    """
     if ctx.scaled_rewards and ctx.reward_encoding not in _REWARD_NOTES:
         raise ValueError(f"unknown reward encoding {ctx.reward_encoding!r}")
-    scale = _render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
-    optimum = _render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
+    scale = render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
+    optimum = render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
     if not ctx.detailed_feedback:
-        return _render("feedback_scalar", scale_note=scale, optimum_note=optimum)
+        return render("feedback_scalar", scale_note=scale, optimum_note=optimum)
     notes = [f"- component {k}: {v}" for k, v in ctx.component_notes]
     notes += [f"- diagnostic {k}: {v}" for k, v in ctx.diagnostic_notes]
-    return _render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
+    return render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
 
 
 def interaction_section(ctx: PromptContext) -> str:
+    """The interaction section: how many past policies the history shows (top-K or all) and the answer format (D numbers)."""
     size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
-    return _render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
+    return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
 
 
 # Shared with ``wire.transcript``, which reads entries back out of recorded prompts.
@@ -106,6 +116,10 @@ def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
 
 
 def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
+    """One history line: encoded params, encoded return, components and diagnostics in the chosen style.
+
+    Raises TypeError for anything but an EncodedEntry (raw candidates never reach a prompt).
+    """
     if not isinstance(e, EncodedEntry):  # a raw Candidate must never be formatted into a prompt
         raise TypeError(f"prompt history takes EncodedEntry values only, got {type(e).__name__}")
     d = ctx.decimals
@@ -115,7 +129,7 @@ def history_entry(ctx: PromptContext, e: EncodedEntry) -> str:
     if ctx.detailed_feedback and e.diagnostics:
         diags = DIAGNOSTICS_PREFIX + ", ".join(f"{k}={fmt_value(v, d)}" for k, v in e.diagnostics)
     params = params_text(ctx, e.params)  # checks the style
-    return _render(PARAMS_STYLES[ctx.params_style], params=params, ret=fmt(e.ret, d), components=comps, diagnostics=diags)
+    return render(PARAMS_STYLES[ctx.params_style], params=params, ret=fmt(e.ret, d), components=comps, diagnostics=diags)
 
 
 def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
@@ -123,7 +137,7 @@ def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
     iterations, so a server that caches prompt prefixes re-reads just that part."""
     name = _choice(LAYOUTS, ctx.layout, "prompt layout")
     hist = "\n\n".join(history_entry(ctx, e) for e in history) if history else "(empty)"
-    return _render(
+    return render(
         name,
         task=task_section(ctx),
         parameters=parameters_section(ctx),
@@ -134,4 +148,5 @@ def build_prompt(ctx: PromptContext, history: Sequence[EncodedEntry]) -> str:
 
 
 def build_correction(reason: str, D: int) -> str:
-    return _render("correction", reason=reason, D=D)
+    """The follow-up message after an unusable answer: ``reason`` in words and the D numbers wanted."""
+    return render("correction", reason=reason, D=D)

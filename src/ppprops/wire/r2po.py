@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from .encoded import PromptContext
 from .numbers import fmt, fmt_value, fmt_vector
-from .prompt import _render, parameters_section, task_section
+from .prompt import parameters_section, render, task_section
 
 
 @dataclass(frozen=True)
@@ -30,10 +30,11 @@ def _rollout_lines(ev: Evidence, decimals: int) -> str:
 
 
 def build_critic_prompt(ctx: PromptContext, ev: Evidence) -> str:
+    """R2PO's Critic-LLM prompt: the task, the proposal's statistics and its median rollout (raw states and actions)."""
     d = ctx.decimals
     mean, std, lo, hi = ev.returns
     diags = "\n".join(f"- {k}: {fmt_value(v, d)}" for k, v in ev.diagnostics) or "- (none)"
-    return _render(
+    return render(
         "r2po_critic",
         task=task_section(ctx),
         parameters=parameters_section(ctx),

@@ -19,10 +19,14 @@ _PAIR_SPLIT = re.compile(r", (?=[A-Za-z_][\w.]*=)")
 
 _INDEXED_PARAM = re.compile(r"params\[(\d+)\]: ([^,\n]+)")
 # The parameter field of each history-entry template (see wire.prompt.PARAMS_STYLES).
+_LIST_RX = r"\[(?P<params>[^\]\n]*)\]"
 _PARAMS_RX = {
-    "history_entry": r"\[(?P<params>[^\]\n]*)\]",
+    "history_entry": _LIST_RX,
     "history_entry_indexed": r"(?P<indexed>params\[\d+\]: [^,\n]+(?:, params\[\d+\]: [^,\n]+)*)",
+    "document_entry": _LIST_RX,  # wire.document: return first, then the list
 }
+# Which entry templates each prompt form writes (chat: the instruction prompt, in either parameter style).
+FORMS = {"chat": ("history_entry", "history_entry_indexed"), "document": ("document_entry",)}
 
 
 def _entry_pattern(name: str) -> re.Pattern[str]:
@@ -79,20 +83,47 @@ def _indexed_params(text: str) -> tuple[str, ...]:
     return tuple(v.strip() for _, v in pairs)
 
 
-def history_entries(text: str) -> list[ShownEntry]:
-    """Every history entry in a prompt, in the order printed, in either parameter style."""
+def _labelled_params(text: str) -> tuple[str, ...]:
+    """Values of a labelled list ``0:v,1:v,...`` (the document form). Labels that do not count
+    0, 1, 2, ... give an entry whose parameters cannot be read (unverified, never skipped)."""
+    items = [v.strip() for v in text.split(",") if v.strip()]
+    out = []
+    for i, item in enumerate(items):
+        label, sep, value = item.partition(":")
+        if not sep or label.strip() != str(i):
+            return (UNREADABLE,)
+        out.append(value.strip())
+    return tuple(out)
+
+
+def history_entries(text: str, form: str | None = None) -> list[ShownEntry]:
+    """Every history entry in a prompt, in the order printed: of the prompt ``form`` (``chat``,
+    in either parameter style, or ``document``), or of any form when None."""
     out: list[ShownEntry] = []
-    for name in _PARAMS_RX:
+    names = FORMS[form] if form is not None else tuple(_PARAMS_RX)
+    for name in names:
         for m in _entry_pattern(name).finditer(text):
             groups = m.groupdict()
-            if groups.get("params") is not None:
+            if groups.get("params") is not None and name == "document_entry":
+                params = _labelled_params(groups["params"])
+            elif groups.get("params") is not None:
                 params = tuple(v.strip() for v in groups["params"].split(",") if v.strip())
             else:
                 params = _indexed_params(groups["indexed"])
-            out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(m.group("components")),
-                                  _pairs(m.group("diagnostics"))))
+            out.append(ShownEntry(m.start(), m.end(), params, m.group("ret"), _pairs(groups.get("components")),
+                                  _pairs(groups.get("diagnostics"))))
     out.sort(key=lambda e: e.start)
     return out
+
+
+def open_target(text: str) -> tuple[int, str] | None:
+    """The document form's open block: (offset, printed target return) of the ``return:`` line
+    that the prompt ends after (inside its ``params: [``), else None."""
+    t = template("document_entry").template
+    before, rest = t.split("$ret", 1)
+    between = rest.split("$params", 1)[0]
+    m = re.search(re.escape(before) + r"(?P<ret>\S+)" + re.escape(between) + r"\[\Z", text)
+    return (m.start("ret"), m.group("ret")) if m else None
 
 
 def outside_entries(text: str, entries: list[ShownEntry]) -> list[tuple[int, str]]:

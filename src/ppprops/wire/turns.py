@@ -12,15 +12,18 @@ One rule, used by the proposer to build requests and by the audit to rebuild the
 
 What was wrong is ``read_answer``'s detail, or, for an answer that only repeats a policy of the
 history shown (at the precision the prompt printed it), ``REPEATS_HISTORY``. Only provider text
-(the echo) and public template text are added to the prompt here. Standard library only.
+(the echo) and public template text are added to the prompt here. The document form
+(``wire.document``) has no correction turns: an unusable continuation (``judge_continuation``)
+is asked again with the same document. Standard library only.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
+from .document import OPENING
 from .encoded import EncodedEntry, PromptContext
-from .parse import ParseResult, final_text, read_answer
+from .parse import ParseResult, final_text, read_answer, read_continuation
 from .prompt import build_correction, params_text
 
 ECHO_CHARS = 2000  # longest final text repeated back to the model in a correction
@@ -67,6 +70,17 @@ def judge_answer(content: str | None, reasoning: str | None, ctx: PromptContext,
     """The proposal in an answer (``read_answer``), refused with ``repeats_history`` (detail
     ``REPEATS_HISTORY``) when it is a policy of the history ``shown`` in the prompt. Never raises."""
     result = read_answer(content, reasoning, ctx.D, finish_reason=finish_reason)
+    if result.values is not None and repeats_history(ctx, result.values, shown):
+        return ParseResult(None, "repeats_history", REPEATS_HISTORY, result.source)
+    return result
+
+
+def judge_continuation(content: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
+                       finish_reason: str | None = None) -> ParseResult:
+    """The document form's counterpart of ``judge_answer``: the proposal in a continuation of the
+    open list (``read_continuation``), refused the same way when it repeats the history ``shown``.
+    A document request has no correction turns: it is asked again as it was (``LLMProposer``)."""
+    result = read_continuation(content, ctx.D, opening=OPENING, finish_reason=finish_reason)
     if result.values is not None and repeats_history(ctx, result.values, shown):
         return ParseResult(None, "repeats_history", REPEATS_HISTORY, result.source)
     return result

@@ -1,0 +1,1 @@
+"""Task descriptions (``*.toml``): the prose of the built-in tasks."""

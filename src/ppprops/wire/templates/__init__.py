@@ -1,0 +1,1 @@
+"""Prompt templates (``*.txt``), read by ``ppprops.wire.prompt.template``."""

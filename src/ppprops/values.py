@@ -1,0 +1,111 @@
+"""Value types the search passes around: one candidate's raw feedback, the recorded candidate, the
+final evaluation. Plain frozen data with no behaviour beyond their JSON forms, so proposers, the
+loop, the store and the reports share them without importing each other.
+
+Everything here is client-side: it holds raw parameters and raw returns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+Diagnostic = float | str  # a diagnostic's value: a number, or a category such as a termination cause
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """Raw feedback of one candidate over its episodes (paper, Sec. II-C).
+
+    Attributes:
+        ret: mean episode return (raw reward units).
+        components: mean of each reward component's per-episode sum, by name.
+        diagnostics: numeric diagnostics averaged over the episodes; categorical ones counted
+            (``"pole_fell x3, time_limit x1"``).
+        episode_returns: each episode's return, in seed order.
+    """
+
+    ret: float
+    components: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict[str, Diagnostic] = field(default_factory=dict)
+    episode_returns: tuple[float, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        """The stored form (``return``, ``components``, ``diagnostics``, ``episode_returns``)."""
+        return {
+            "return": self.ret,
+            "components": self.components,
+            "diagnostics": self.diagnostics,
+            "episode_returns": list(self.episode_returns),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Feedback:
+        """The inverse of ``to_json``; ``episode_returns`` may be absent (older stores)."""
+        return cls(
+            ret=float(d["return"]),
+            components={k: float(v) for k, v in d["components"].items()},
+            diagnostics=dict(d["diagnostics"]),
+            episode_returns=tuple(float(v) for v in d.get("episode_returns", ())),
+        )
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One evaluated policy as the store records it, raw and encoded (client-side only).
+
+    Attributes:
+        index: position in the run, from 0 (warm-up first); unique per run.
+        iteration: the proposer's own ask number (warm-up sample, or LLM iteration).
+        source: who proposed it: ``warmup``, ``llm``, ``fallback``, ``random``, ``cmaes``, ...
+        params: raw theta, shape (D,), decoded and clipped into the box.
+        params_enc: the encoded theta~ = A theta (Eq. 3; hardened: A T(theta - m)), shape (D,).
+        feedback: raw feedback.
+        feedback_enc: feedback with returns and components scaled (Eq. 5-6); diagnostics as they are.
+        clipped: coordinates that had to be clipped into the box.
+        seeds: the episode seeds it was evaluated on.
+        note: why a fallback was used, or other remarks.
+        ask_s: seconds in the proposer's ask (LLM calls included); None when not measured.
+        eval_s: seconds evaluating its episodes; None when not measured.
+    """
+
+    index: int
+    iteration: int
+    source: str
+    params: np.ndarray
+    params_enc: np.ndarray
+    feedback: Feedback
+    feedback_enc: Feedback
+    clipped: int
+    seeds: tuple[int, ...]
+    note: str = ""
+    ask_s: float | None = None
+    eval_s: float | None = None
+
+    @property
+    def ret(self) -> float:
+        """The raw mean return (``feedback.ret``)."""
+        return self.feedback.ret
+
+
+@dataclass(frozen=True)
+class FinalEval:
+    """The final evaluation: the best candidate run on fresh episode seeds (``seeding.final_eval_seeds``)."""
+
+    candidate_index: int
+    returns: tuple[float, ...]
+    seeds: tuple[int, ...]
+
+    @property
+    def mean(self) -> float:
+        """Mean return; NaN with no episodes, inf when an episode overflowed."""
+        with np.errstate(invalid="ignore", over="ignore"):  # an episode that overflowed makes this inf, quietly
+            return float(np.mean(self.returns)) if self.returns else float("nan")
+
+    @property
+    def std(self) -> float:
+        """Standard deviation of the returns (population); NaN with no episodes."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            return float(np.std(self.returns)) if self.returns else float("nan")

@@ -1,0 +1,136 @@
+"""The package's layout rules (docs/architecture.md): no import cycle, no private name across modules.
+
+The import graph is read from the source with ``ast``: every ``import``/``from ... import`` of a
+ppprops module, at module level or inside a function (a deferred import still makes the two
+modules depend on each other), except those under ``if TYPE_CHECKING:`` (never executed). Importing
+a submodule is not counted as importing its package's ``__init__``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGE = "ppprops"
+
+
+def module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement that runs: a walk that does not enter ``if TYPE_CHECKING:`` bodies."""
+    out: list[ast.Import | ast.ImportFrom] = []
+    stack: list[ast.AST] = [tree]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            out.append(node)
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            stack.extend(node.orelse)
+            continue
+        stack.extend(ast.iter_child_nodes(node))
+    return out
+
+
+def import_graph(root: Path, package: str) -> tuple[dict[str, set[str]], list[tuple[str, str, str]]]:
+    """(module -> the package's modules it imports, [(importer, source module, private name)])."""
+    files = {module_name(p, root): p for p in sorted((root / package).rglob("*.py"))}
+    edges: dict[str, set[str]] = {m: set() for m in files}
+    private: list[tuple[str, str, str]] = []
+    for mod, path in files.items():
+        is_pkg = path.name == "__init__.py"
+        for node in _imports(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                edges[mod].update(a.name for a in node.names if a.name in files)
+                continue
+            if node.level:
+                base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+                base = base[: len(base) - node.level + 1]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            if source not in files:
+                continue
+            for alias in node.names:
+                sub = f"{source}.{alias.name}"
+                target = sub if sub in files else source
+                if target != mod:
+                    edges[mod].add(target)
+                if target == source and alias.name.startswith("_") and not alias.name.startswith("__"):
+                    private.append((mod, source, alias.name))
+    return edges, private
+
+
+def find_cycle(edges: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle as [a, b, ..., a], or None (depth-first search with colours)."""
+    WHITE, GREY, BLACK = 0, 1, 2
+    colour = dict.fromkeys(edges, WHITE)
+    path: list[str] = []
+
+    def visit(v: str) -> list[str] | None:
+        colour[v] = GREY
+        path.append(v)
+        for w in sorted(edges[v]):
+            if colour[w] == GREY:
+                return path[path.index(w) :] + [w]
+            if colour[w] == WHITE and (found := visit(w)):
+                return found
+        path.pop()
+        colour[v] = BLACK
+        return None
+
+    for v in sorted(edges):
+        if colour[v] == WHITE and (found := visit(v)):
+            return found
+    return None
+
+
+def test_the_graph_sees_package_imports() -> None:
+    edges, _ = import_graph(SRC, PACKAGE)
+    assert "ppprops.config" in edges["ppprops.strategies"]  # module level
+    assert "ppprops.proposers.cmaes" in edges["ppprops.strategies"]  # deferred, inside a function
+    assert "ppprops.evaluation" not in edges["ppprops.strategies"]  # only under TYPE_CHECKING
+
+
+def test_no_import_cycle_in_src() -> None:
+    edges, _ = import_graph(SRC, PACKAGE)
+    assert find_cycle(edges) is None, " -> ".join(find_cycle(edges) or [])
+
+
+def test_no_private_name_imported_across_modules() -> None:
+    _, private = import_graph(SRC, PACKAGE)
+    assert private == [], [f"{m} imports {n} from {s}" for m, s, n in private]
+
+
+@pytest.fixture
+def toy_package(tmp_path: Path) -> Path:
+    pkg = tmp_path / "toy"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from .b import thing\n")
+    (pkg / "b.py").write_text("def f():\n    from .sub.c import _hidden\n    return _hidden\nthing = 1\n")
+    (pkg / "sub" / "c.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from ..a import x\n_hidden = 2\n")
+    return tmp_path
+
+
+def test_the_checks_can_fail(toy_package: Path) -> None:
+    """A deferred import closing a loop is a cycle; a TYPE_CHECKING one is not; ``_hidden`` is private."""
+    edges, private = import_graph(toy_package, "toy")
+    assert find_cycle(edges) is None
+    assert private == [("toy.b", "toy.sub.c", "_hidden")]
+    (toy_package / "toy" / "sub" / "c.py").write_text("def g():\n    from .. import a\n_hidden = 2\n")
+    edges, _ = import_graph(toy_package, "toy")
+    assert find_cycle(edges) == ["toy.a", "toy.b", "toy.sub.c", "toy.a"]
