@@ -15,7 +15,7 @@ import difflib
 import json
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -79,17 +79,10 @@ def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[Show
     ``before`` and ``after`` are text the client puts around the prompt in the same message (a
     correction after it, ``wire.turns``).
     """
-    dummy = EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
-    expected = before + build_prompt(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown]) + after
-    exp_skel, _ = _skeleton(expected, history_entries(expected, "chat"))
-    rec_skel, where = _skeleton(text, entries)
-    out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
-    for e, c in zip(entries, shown, strict=True):
-        if c is None:
-            continue
-        mine = text[e.start:e.end]
-        out += [(e.start + a, e.start + b) for a, b in differing_spans(history_entry(ctx, entry_for(codec, ctx, c)), mine)]
-    return sorted(out)
+    built = [entry_for(codec, ctx, c) if c is not None else _dummy(ctx) for c in shown]
+    expected = before + build_prompt(ctx, built) + after
+    return _spans(text, entries, shown, built, expected, history_entries(expected, "chat"),
+                  lambda e: history_entry(ctx, e))
 
 
 def document_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
@@ -98,16 +91,27 @@ def document_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[Sh
     document templates do not produce from the shown candidates: the header and the open block
     as a skeleton (each entry one placeholder), each matched entry against the entry built for its
     candidate. With an unmatched entry the target cannot be rebuilt; it is the caller's to report."""
-    dummy = EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
-    expected = build_document(ctx, [entry_for(codec, ctx, c) if c is not None else dummy for c in shown] or [dummy])
-    exp_skel, _ = _skeleton(expected, history_entries(expected, "document") if shown else [])
+    built = [entry_for(codec, ctx, c) if c is not None else _dummy(ctx) for c in shown]
+    expected = build_document(ctx, built or [_dummy(ctx)])
+    return _spans(text, entries, shown, built, expected, history_entries(expected, "document") if shown else [],
+                  lambda e: document_entry(ctx, e))
+
+
+def _dummy(ctx: PromptContext) -> EncodedEntry:
+    """A stand-in for a shown entry the audit could not match: one placeholder in the skeleton."""
+    return EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
+
+
+def _spans(text: str, entries: list[ShownEntry], shown: list[Candidate | None], built: list[EncodedEntry], expected: str,
+           expected_entries: list[ShownEntry], render_entry: Callable[[EncodedEntry], str]) -> list[tuple[int, int]]:
+    """The spans of ``text`` the expected prompt does not account for: the prose as a skeleton
+    (each entry one placeholder), then each matched entry against ``render_entry`` of its own."""
+    exp_skel, _ = _skeleton(expected, expected_entries)
     rec_skel, where = _skeleton(text, entries)
     out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
-    for e, c in zip(entries, shown, strict=True):
-        if c is None:
-            continue
-        mine = text[e.start:e.end]
-        out += [(e.start + a, e.start + b) for a, b in differing_spans(document_entry(ctx, entry_for(codec, ctx, c)), mine)]
+    for e, c, mine in zip(entries, shown, built, strict=True):
+        if c is not None:
+            out += [(e.start + a, e.start + b) for a, b in differing_spans(render_entry(mine), text[e.start:e.end])]
     return sorted(out)
 
 
