@@ -44,6 +44,11 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``ppprops`` argument parser with every subcommand (run, resume, show, audit, report, ...)."""
+    return _build_parsers()[0]
+
+
+def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
+    """The ``ppprops`` parser and its ``run`` subcommand's parser."""
     p = _Parser(prog="ppprops", description="Privacy-preserving prompted policy search with an LLM as optimizer.")
     p.add_argument("--version", action="version", version=f"ppprops {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -104,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     en = sub.add_parser("envs", help="list the tasks")
     en.add_argument("--json", action="store_true", help="one JSON list of the tasks on stdout")
-    return p
+    return p, r
 
 
 ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
@@ -112,9 +117,7 @@ ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` ma
 
 def run_parser() -> argparse.ArgumentParser:
     """The parser of ``ppprops run``; its namespace holds only the settings given (``settings.given``)."""
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return sub.choices["run"]  # type: ignore[no-any-return]
+    return _build_parsers()[1]
 
 
 def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None) -> RunConfig:
