@@ -48,9 +48,9 @@ def add_subcommands(sub: Any) -> None:
 def cmd_experiment(a: argparse.Namespace) -> int:
     """``ppprops experiment``: build the spec (a spec file, or ``--tasks`` and ``--methods``) and run its grid in ``--out``.
 
-    Run flags given on the command line override the spec's ``[run]`` tables; ``--seeds``,
-    ``--tasks`` and ``--methods`` narrow a spec file's runs. Returns the exit code: 0 when no run
-    failed, 1 when one did (rerunning the command retries it), 130 after Ctrl-C.
+    Run flags given on the command line override the spec's ``[run]`` tables; ``--seeds`` replaces
+    its seeds (every group's), ``--tasks`` and ``--methods`` keep a subset of its runs. Returns the
+    exit code: 0 when no run failed, 1 when one did (rerunning the command retries it), 130 after Ctrl-C.
 
     Raises:
         ConfigError: no spec and no ``--tasks``/``--methods``, a bad spec or flag, an ``--out`` that
