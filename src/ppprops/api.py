@@ -90,7 +90,7 @@ class SearchResult:
 
     @property
     def W(self) -> NDArray[np.float64] | None:
-        """Weights of u = s @ W + b, shape (n_s, n_a)."""
+        """Weights of u = s @ W + b (paper Eq. 10: u = W^T s + b), shape (n_s, n_a)."""
         return None if self.policy is None else self.policy.W
 
     @property
@@ -154,7 +154,7 @@ def search(
     chat: Any = None,
     progress: bool = False,
 ) -> SearchResult:
-    """Run a policy search (paper, Sec. III) on ``task`` and return its result.
+    """Run a policy search (paper Sec. II-E, Algorithm 1; settings of Sec. III) on ``task`` and return its result.
 
     Args:
         task: a paper task name (``"Ant-Ultra"``), a Gymnasium id, ``"module:EnvId"`` or
@@ -167,7 +167,7 @@ def search(
             ``pp`` (default), ``pp-hardened``, ``r2po``, ``random`` or ``cmaes``.
         warmup: random warm-up policies (``--warmup``).
         iterations: LLM proposals (r2po: LLM calls; random, cmaes: samples) after the warm-up.
-        top_k: history entries in the prompt, best last (Eq. 7); 0 keeps every entry.
+        top_k: history entries in the prompt, best last (Eq. 9, Sec. II-D); 0 keeps every entry.
         episodes: episodes per candidate (default: the method's, 1; 20 for r2po).
         final_episodes: fresh episodes for the best policy at the end.
         seed: the run seed (episode seeds, warm-up, fallbacks; never the secrets).
@@ -182,8 +182,8 @@ def search(
         obs_keys: for a Dict observation, the entries the policy sees, in this order.
         components: info keys summed over an episode as reward components.
         diagnostics: info keys reported as diagnostics (last value of an episode).
-        encode_params: switch Eq. 3 (theta~ = A theta) on or off; None keeps the preset's.
-        scale_rewards: switch Eq. 5-6 (r~ = c r) on or off; None keeps the preset's.
+        encode_params: switch Eq. 5 (theta~ = A theta) on or off; None keeps the preset's.
+        scale_rewards: switch Eq. 7-8 (r~ = c r, for the return and each component) on or off; None keeps the preset's.
         detailed_feedback: switch component and diagnostic feedback (Sec. II-C); None keeps the preset's.
         disclose_optimum: state the optimal return (Vanilla ProPS); None keeps the preset's.
         disclose_reward_structure: state the numeric reward definition; None keeps the preset's.
@@ -227,6 +227,7 @@ def search(
             why, an info key missing from the env's info or not a scalar, an occupied ``out``).
         LLMError: the endpoint stayed down past the retry bound (the run is saved: ``resume`` it).
         StoreError: the run directory cannot be written.
+        MissingExtraError: the task needs an extra that is not installed (``mujoco``, ``robotics``, ...).
     """
     from .methods import get_method
     from .settings import build_config

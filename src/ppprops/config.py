@@ -321,11 +321,11 @@ class LLMConfig:
 @one_line_errors
 @dataclass(frozen=True, config=_SCHEMA)
 class RunConfig:
-    """Everything that defines a run (paper, Sec. III and Algorithm 1), stored with it as JSON.
+    """Everything that defines a run (paper Algorithm 1 and the settings of Sec. III), stored with it as JSON.
 
     A search evaluates ``warmup`` uniform samples in ``box``, then ``iterations`` proposals of
     ``method``, each on ``episodes`` seeded episodes, keeping the best ``top_k`` in the prompt
-    (Eq. 7); the best candidate is then evaluated on ``final_episodes`` fresh seeds.
+    (Eq. 9); the best candidate is then evaluated on ``final_episodes`` fresh seeds.
 
     Raises:
         ConfigError: on construction, for a value out of range (naming its flag), an empty or

@@ -62,7 +62,7 @@ def run_loop(
 
     For each index from ``len(done)`` to the total budget: ask the phase's proposer (``locate``),
     evaluate the raw theta (``evaluate(theta, index)`` -> raw Feedback and the episode seeds),
-    encode it (theta~ = A theta, r~ = c r: paper Eq. 1-2 through ``codec``), record the Candidate in
+    encode it (theta~ = A theta, r~ = c r: paper Eq. 5, 7, 8 through ``codec``), record the Candidate in
     ``store``, tell every proposer, then call ``on_candidate``. A proposer's StopSearch and the
     evaluator's errors propagate; the candidates recorded before them stay in the store.
     """
@@ -105,7 +105,7 @@ def run_loop(
 def best_candidate(candidates: Sequence[Candidate]) -> Candidate:
     """Highest finite raw return; the earliest wins a tie (Algorithm 1 updates on strict
     improvement). A NaN or infinite return (a numerical fault) is never the best; if no return
-    is finite, the first candidate."""
+    is finite, the first candidate. Raises ValueError for an empty sequence."""
     if not candidates:
         raise ValueError("no candidates")
     finite = [c for c in candidates if math.isfinite(c.ret)]

@@ -22,7 +22,7 @@ FloatArray = NDArray[np.float64]
 
 
 def param_count(n_s: int, n_a: int) -> int:
-    """D = (n_s + 1) n_a: the weights W (n_s x n_a) and the bias b (n_a) of u = W^T s + b (paper Sec. II-A)."""
+    """D = (n_s + 1) n_a: the weights W (n_s x n_a) and the bias b (n_a) of u = W^T s + b (paper Eq. 10, Sec. III)."""
     return (n_s + 1) * n_a
 
 

@@ -126,7 +126,8 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     """The policy file's document and its flat theta (shape (D,)).
 
     Raises:
-        PPPropsError: missing, unreadable, not JSON, not a ppprops policy file, or W/b inconsistent.
+        PPPropsError: missing, unreadable, not JSON, not a ppprops policy file, or lacking a block.
+        ConfigError: W is not n_s x n_a, b not of length n_a, or a value is not finite.
     """
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
@@ -161,8 +162,8 @@ class Policy:
 
     ``policy(obs)`` returns the action for one raw observation of the env the file records: an
     ``int`` for discrete actions (the argmax of u), a float64 array of shape (n_a,) clipped to the
-    action bounds for continuous ones, where u = s @ W + b and s = ``policy.state(obs)`` (shape
-    (n_s,)). ``make_env()`` makes that env (``gym.make`` of the recorded EnvSpec). Only numpy is
+    action bounds for continuous ones, where u = s @ W + b (paper Eq. 10, u = W^T s + b) and
+    s = ``policy.state(obs)`` (shape (n_s,)). ``make_env()`` makes that env (``gym.make`` of the recorded EnvSpec). Only numpy is
     needed to act; gymnasium to make the env.
     """
 
@@ -245,6 +246,8 @@ def load_policy(path: str | os.PathLike[str]) -> Policy:
 
     Raises:
         PPPropsError: the file is missing, not JSON, or not a valid ppprops policy file.
+        ConfigError: its W or b has the wrong shape or a non-finite value.
+        UnknownTaskError: a ``/1`` file whose task this ppprops does not know.
     """
     doc, theta = read_policy(Path(path))
     return Policy(doc, theta, path=Path(path))

@@ -287,7 +287,7 @@ class RunStore:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
     def candidates(self) -> list[Candidate]:
-        """Every recorded candidate, by index."""
+        """Every recorded candidate, by index (``params`` and ``params_enc``: float64 arrays of shape (D,))."""
         rows = self._read(
             "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s"
             " FROM candidates ORDER BY idx"

@@ -61,9 +61,9 @@ class Candidate:
         iteration: the proposer's own ask number (warm-up sample, or LLM iteration).
         source: who proposed it: ``warmup``, ``llm``, ``fallback``, ``random``, ``cmaes``, ...
         params: raw theta, shape (D,), decoded and clipped into the box.
-        params_enc: the encoded theta~ = A theta (Eq. 3; hardened: A T(theta - m)), shape (D,).
+        params_enc: the encoded theta~ = A theta (Eq. 5; hardened: A (T(theta) - T(m))), shape (D,).
         feedback: raw feedback.
-        feedback_enc: feedback with returns and components scaled (Eq. 5-6); diagnostics as they are.
+        feedback_enc: feedback with returns and components scaled (Eq. 7-8); diagnostics as they are.
         clipped: coordinates that had to be clipped into the box.
         seeds: the episode seeds it was evaluated on.
         note: why a fallback was used, or other remarks.

@@ -49,7 +49,11 @@ class TrainingEpisode:
 
 
 class TrainingLog:
-    """The RL tables of one run.sqlite, on a connection of their own (WAL lets it share the file)."""
+    """The RL tables of one run.sqlite, on a connection of their own (WAL lets it share the file).
+
+    ``db_path`` is the run's ``run.sqlite``; the tables are created if missing. Use it in a ``with``
+    block (or call ``close``). Raises StoreError when the file is not a readable SQLite database.
+    """
 
     def __init__(self, db_path: Path) -> None:
         self.path = Path(db_path)
@@ -82,15 +86,22 @@ class TrainingLog:
             )
 
     def episodes(self) -> list[TrainingEpisode]:
+        """Every recorded training episode, in the order they finished (by ``index``); [] for none."""
         rows = self._db.execute("SELECT idx, timestep, ret, length FROM rl_episodes ORDER BY idx").fetchall()
         return [TrainingEpisode(index=r[0], timestep=r[1], ret=r[2], length=r[3]) for r in rows]
 
     def set_info(self, **values: Any) -> None:
+        """Store (or replace) each keyword as one ``rl_info`` entry, JSON-encoded, in one transaction.
+
+        The run records ``timesteps_done`` (agent steps) and ``wall_s`` (training time, seconds)
+        here. A value JSON cannot encode raises TypeError and nothing of the call is stored.
+        """
         with self._tx() as db:
             for k, v in values.items():
                 db.execute("INSERT OR REPLACE INTO rl_info (key, value) VALUES (?, ?)", (k, json.dumps(v)))
 
     def info(self) -> dict[str, Any]:
+        """Every ``rl_info`` entry, JSON-decoded; {} before training has ended."""
         return {k: json.loads(v) for k, v in self._db.execute("SELECT key, value FROM rl_info").fetchall()}
 
     def close(self) -> None:
@@ -167,7 +178,14 @@ def format_rl_summary(s: dict[str, Any]) -> str:
 
 
 def refuse_resume(run_dir: Path) -> None:
-    """``ppprops resume`` continues searches; an RL run (finished or not) gets one line, not a traceback."""
+    """``ppprops resume`` continues searches; an RL run (finished or not) gets one line, not a traceback.
+
+    Returns quietly when ``run_dir`` holds no store, or one that cannot be read (resume reports those
+    itself), or a search run.
+
+    Raises:
+        ConfigError: ``run_dir`` is an RL baseline run.
+    """
     path = Path(run_dir) / DB_NAME
     if not path.is_file():
         return  # resume reports missing or foreign directories itself

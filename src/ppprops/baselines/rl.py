@@ -63,6 +63,12 @@ class RLConfig:
         return rl_method(self.algo).name
 
     def validate(self) -> None:
+        """Check every setting before anything is built (CLI flag names in the messages).
+
+        Raises:
+            ConfigError: an unknown ``algo`` or ``device``, ``timesteps`` < 1, ``final_episodes`` < 0,
+                ``threads`` < 1, or a ``seed`` outside [0, 2^32).
+        """
         checks = [
             (self.algo in rl_algos(), f"--algo must be one of {', '.join(rl_algos())}, got {self.algo!r}"),
             (self.timesteps >= 1, f"--timesteps must be >= 1, got {self.timesteps}"),
@@ -94,10 +100,15 @@ class TaskObservation(gym.ObservationWrapper):  # type: ignore[type-arg]
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(task.n_s,), dtype=np.float32)
 
     def observation(self, observation: Any) -> NDArray[np.float32]:
+        """The task's state vector s of the env's raw ``observation``, float32, shape (n_s,)."""
         return np.asarray(self.task.observation(observation), dtype=np.float32)
 
 
 def make_env(task: Task) -> TaskObservation:
+    """A new env of ``task`` whose observations are the policy input s (shape (n_s,), float32).
+
+    Raises what ``task.make_env`` raises (a MissingExtraError for a simulator extra not installed).
+    """
     return TaskObservation(task.make_env(), task)
 
 
@@ -110,7 +121,15 @@ def _sb3() -> Any:
 
 
 def evaluate_model(model: BaseAlgorithm, task: Task, seeds: list[int]) -> tuple[float, ...]:
-    """Deterministic returns of ``model`` on ``seeds``, through PP-ProPS's episode runner."""
+    """Deterministic returns of ``model`` on ``seeds``, through PP-ProPS's episode runner.
+
+    One episode per seed on one env of ``task``; ``returns[i]`` (raw reward units) is the episode
+    reset with ``seeds[i]``, so the numbers compare with a search's final evaluation on the same seeds.
+
+    Raises:
+        MissingExtraError: the ``rl`` extra is not installed.
+        EpisodeLimitError, FeedbackKeyError: as ``ppprops.evaluation.run_episode``.
+    """
     policy = _sb3().ModelPolicy(model, task.discrete)
     env = task.make_env()
     try:
@@ -120,7 +139,13 @@ def evaluate_model(model: BaseAlgorithm, task: Task, seeds: list[int]) -> tuple[
 
 
 def load_model(run_dir: Path) -> BaseAlgorithm:
-    """The trained model of an RL run directory, on CPU."""
+    """The trained model (``model.zip``) of an RL run directory, loaded on CPU.
+
+    Raises:
+        StoreError: ``run_dir`` is not a run directory.
+        ConfigError: the run is not an RL baseline run.
+        MissingExtraError: the ``rl`` extra is not installed.
+    """
     with open_store(run_dir) as store:
         config = store.config()
     if RunKind.of_config(config) is not RunKind.RL:
@@ -130,6 +155,11 @@ def load_model(run_dir: Path) -> BaseAlgorithm:
 
 
 def default_run_dir(config: RLConfig) -> Path:
+    """``runs/<task>__rl-<algo>__<seed>__<YYYYmmdd-HHMMSS>`` (local time), relative to the working directory.
+
+    Raises:
+        UnknownTaskError, ConfigError: as ``ppprops.tasks.get_task`` for ``config.task``.
+    """
     task = get_task(config.task)
     return Path("runs") / f"{task.name}__{config.method}__{config.seed}__{time.strftime('%Y%m%d-%H%M%S')}"
 
@@ -145,7 +175,23 @@ def _claim_dir(run_dir: Path) -> None:
 
 
 def run_baseline(config: RLConfig, run_dir: Path, *, progress: bool = False) -> FinalEval | None:
-    """Train, save ``model.zip``, run the final evaluation; everything recorded in ``run_dir``."""
+    """Train, save ``model.zip``, run the final evaluation; everything recorded in ``run_dir``.
+
+    The paper's standard RL baselines (Sec. IV-E, Table tab:baselines): ``config.algo`` with SB3's
+    default hyperparameters trains for ``config.timesteps`` agent steps on the task's state vector,
+    then runs ``config.final_episodes`` deterministic episodes on ``final_eval_seeds(seed, n)``.
+    The run's status ends ``finished``, or ``interrupted`` when training or evaluation is stopped
+    (Ctrl-C) or fails; ``progress`` shows a bar of timesteps on stderr.
+
+    Returns:
+        The final evaluation (its ``returns`` in raw reward units), or None with ``final_episodes=0``.
+
+    Raises:
+        ConfigError: bad settings, an algorithm that does not take the task's action type, an
+            output directory that already holds files or cannot be created.
+        UnknownTaskError: ``config.task`` names no task.
+        MissingExtraError: the ``rl`` extra (or the task's simulator extra) is not installed.
+    """
     config.validate()
     task = get_task(config.task)
     algo = rl_method(config.algo).algorithm

@@ -32,6 +32,11 @@ _NOT_HYPERPARAMETERS = {"self", "policy", "env", "verbose", "seed", "device", "_
 
 
 def algorithm_class(algo: Algorithm) -> type[BaseAlgorithm]:
+    """The Stable-Baselines3 (or sb3-contrib) class of ``algo``, e.g. ``stable_baselines3.PPO``.
+
+    Raises:
+        MissingExtraError: the module is not installed (sb3-contrib is part of the ``rl`` extra).
+    """
     try:
         module = importlib.import_module(algo.module)
     except ImportError as e:  # sb3-contrib (TRPO) is part of the same extra
@@ -62,6 +67,7 @@ def set_threads(n: int) -> None:
 
 
 def versions() -> dict[str, str]:
+    """Installed versions of stable_baselines3, torch and (when installed) sb3_contrib, for the run record."""
     out = {"stable_baselines3": stable_baselines3.__version__, "torch": torch.__version__}
     try:
         import sb3_contrib
@@ -129,5 +135,7 @@ class ModelPolicy:
         self.discrete = discrete
 
     def act(self, s: NDArray[np.floating]) -> int | NDArray[np.floating]:
+        """The model's deterministic action for state ``s`` (shape (n_s,)): an int for discrete
+        actions, else an array of shape (n_a,) in the env's action units."""
         action, _ = self.model.predict(np.asarray(s, dtype=np.float32), deterministic=True)
         return int(action) if self.discrete else np.asarray(action)

@@ -57,9 +57,12 @@ class Codec:
         episodes: int = 1,
         reward_scale: float = 1000.0,
     ) -> None:
-        """``resolution``: public step of each reward quantity per episode ("return" or a component
-        name; integer returns: 1), dithered under ``warp_rewards``; a mean over ``episodes``
-        episodes has step 1/episodes of it. ``reward_scale``: bound of the component offsets s_k."""
+        """``secrets``: the run's key (``a`` of shape (D,) sets D). ``box``: the public (low, high) of
+        every raw parameter, needed by ``warp_params``. ``resolution``: public step of each reward
+        quantity per episode ("return" or a component name; integer returns: 1), dithered under
+        ``warp_rewards``; a mean over ``episodes`` episodes has step 1/episodes of it.
+        ``reward_scale``: bound of the component offsets s_k. Raises ValueError when
+        ``warp_params`` (with ``encode_params``) is on and ``box`` is None."""
         D = len(secrets.a)
         self._a = np.asarray(secrets.a, dtype=np.float64) if encode_params else np.ones(D)
         self._c = float(secrets.c) if scale_rewards else 1.0
@@ -102,7 +105,7 @@ class Codec:
 
     # -- parameters -----------------------------------------------------------------------
     def encode(self, theta: NDArray[np.floating]) -> NDArray[np.float64]:
-        """theta~ = A theta (paper Eq. 1, Sec. II-B); hardened: A (T(theta) - T(m)), clipped to +-ENCODED_LIMIT.
+        """theta~ = A theta (paper Eq. 5, Sec. II-B); hardened: A (T(theta) - T(m)), clipped to +-ENCODED_LIMIT.
 
         ``theta``: raw parameters, shape (D,). Returns the encoded vector, shape (D,), float64. The
         identity when ``encode_params`` is off.
@@ -113,7 +116,7 @@ class Codec:
         return self._a * (x - self._m)
 
     def decode(self, theta_enc: NDArray[np.floating]) -> NDArray[np.float64]:
-        """theta = A^-1 theta~, the inverse of ``encode``: shape (D,) in, shape (D,) float64 out.
+        """theta = A^-1 theta~ (paper Eq. 6), the inverse of ``encode``: shape (D,) in, shape (D,) float64 out.
 
         Under ``warp_params`` every real vector decodes into the open box (the LLM's answer cannot
         leave it); otherwise the caller clips the result into the box.
@@ -151,7 +154,11 @@ class Codec:
 
     def scale(self, r: float, quantity: str = "return", *, per_episode: bool = False) -> float:
         """Encode one reward-valued number: a return (mean over the episodes, or one episode's with
-        ``per_episode``), a component (``quantity`` = its name), the optimum when disclosed."""
+        ``per_episode``), a component (``quantity`` = its name), the optimum when disclosed.
+
+        r~ = c r for the return (paper Eq. 7) and each component (Eq. 8); with ``offsets``
+        c (r - s), with ``warp_rewards`` the warped map of the module docstring. The identity
+        when ``scale_rewards`` is off. Raw reward units in, encoded units out."""
         r = float(r)
         c, s, p = self._map(quantity)
         step = self._resolution.get(quantity, 0.0) / (1 if per_episode else self._episodes)

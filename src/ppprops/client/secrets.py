@@ -46,7 +46,7 @@ def os_rng() -> np.random.Generator:
 @dataclass(frozen=True, repr=False, eq=False)
 class Secrets:
     """A run's secrets, kept only in its key file: the diagonal ``a`` of A (shape (D,), all > 0) and
-    the reward scale ``c`` > 0 (paper Eq. 1-2), plus the hardening extras (docs/threat-model.md):
+    the reward scale ``c`` > 0 (paper Eq. 4-5, 7), plus the hardening extras (docs/threat-model.md):
     parameter origins ``m`` (shape (D,)), reward origin ``s``, warp exponent ``p``. Never printed.
     """
 

@@ -46,6 +46,17 @@ def add_subcommands(sub: Any) -> None:
 
 
 def cmd_experiment(a: argparse.Namespace) -> int:
+    """``ppprops experiment``: build the spec (a spec file, or ``--tasks`` and ``--methods``) and run its grid in ``--out``.
+
+    Run flags given on the command line override the spec's ``[run]`` tables; ``--seeds`` replaces
+    its seeds (every group's), ``--tasks`` and ``--methods`` keep a subset of its runs. Returns the
+    exit code: 0 when no run failed, 1 when one did (rerunning the command retries it), 130 after Ctrl-C.
+
+    Raises:
+        ConfigError: no spec and no ``--tasks``/``--methods``, a bad spec or flag, an ``--out`` that
+            is not this grid's directory, an unreachable Ray cluster.
+        MissingExtraError: YAML spec, Ray or RL runs without their extra.
+    """
     from ..errors import ConfigError
     from .run_grid import run_grid
     from .spec import build_spec, flags_table, load_spec
@@ -70,6 +81,12 @@ def cmd_experiment(a: argparse.Namespace) -> int:
 
 
 def cmd_report(a: argparse.Namespace) -> int:
+    """``ppprops report DIR``: write the report (``write_report``), print where ``index.html`` is; returns 0.
+
+    Raises:
+        ConfigError: ``DIR`` is not a directory or holds no run.
+        MissingExtraError: matplotlib (the ``report`` extra) is not installed.
+    """
     from .report import write_report
 
     t0 = time.monotonic()

@@ -70,6 +70,11 @@ class _Semaphore:
 
 
 def make_gate(permits: int) -> RayGate:
+    """A RayGate over a new semaphore actor (0 CPUs) with ``permits`` permits (>= 1), on the connected Ray instance.
+
+    Raises:
+        MissingExtraError: Ray (the ``ray`` extra) is not installed.
+    """
     ray = _ray()
     actor = ray.remote(num_cpus=0)(_Semaphore).remote(permits)
     return RayGate(actor)
@@ -87,6 +92,11 @@ def pack_dir(path: Path) -> bytes | None:
 
 
 def unpack_dir(data: bytes, dest: Path) -> None:
+    """Extract ``pack_dir``'s gzip tar bytes into ``dest`` (created if missing).
+
+    Uses tarfile's ``data`` filter: members that would land outside ``dest``, links pointing out of
+    it and special files raise ``tarfile.FilterError`` instead of being written.
+    """
     dest.mkdir(parents=True, exist_ok=True)
     with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
         tar.extractall(dest, filter="data")
@@ -142,7 +152,22 @@ def run_ray(
     transfer: str = "auto",
     on_outcome: Callable[[Outcome], None] = lambda o: None,
 ) -> list[Outcome]:
-    """Execute ``jobs`` on Ray (``address`` "local" starts a private instance on this machine)."""
+    """Execute ``jobs`` on Ray (``address`` "local" starts a private instance on this machine).
+
+    Each job is one Ray task of ``llm_threads`` CPUs (retried twice if its worker dies); at most
+    ``llm_concurrency`` LLM requests are in flight across all of them (None: no cap). With
+    ``transfer`` "auto" a task works in place when it sees the grid ``grid_id`` at the same path,
+    else (and always with "ship") on a copy of the run directory that comes back to the driver.
+    ``on_outcome`` is called in the driver as each run ends. A Ray instance this call started is
+    shut down at the end; one already connected is left as it is.
+
+    Returns:
+        One Outcome per job, in the order they ended; a task lost to Ray is an Outcome "failed".
+
+    Raises:
+        ConfigError: an unknown ``transfer``, or the cluster at ``address`` cannot be reached.
+        MissingExtraError: Ray (the ``ray`` extra) is not installed.
+    """
     if transfer not in TRANSFER:
         raise ConfigError(f"transfer must be one of {', '.join(TRANSFER)}, got {transfer!r}")
     ray = _ray()

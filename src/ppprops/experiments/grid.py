@@ -56,7 +56,11 @@ DONE, PARTIAL, PENDING = "done", "partial", "pending"
 
 # -- master key and derived secrets -------------------------------------------------------------
 def create_master_key(path: Path) -> bytes:
-    """32 bytes from the OS entropy source, written with mode 0600 from the start."""
+    """32 bytes from the OS entropy source, written with mode 0600 from the start; returns the key.
+
+    The file is JSON (``{"format": KEY_FORMAT, "key": <hex>}``). Raises FileExistsError when
+    ``path`` exists already: a key is never overwritten.
+    """
     key = _os_secrets.token_bytes(32)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -67,6 +71,12 @@ def create_master_key(path: Path) -> bytes:
 
 
 def read_master_key(path: Path) -> bytes:
+    """The key bytes of a master key file written by ``create_master_key``.
+
+    Raises:
+        ConfigError: the file is missing, is not a ``ppprops.grid-key/1`` document, or holds a key
+            shorter than 16 bytes.
+    """
     try:
         raw = json.loads(Path(path).read_text(encoding="utf-8"))
         if raw.get("format") != KEY_FORMAT:
@@ -82,6 +92,10 @@ def read_master_key(path: Path) -> bytes:
 
 
 def derived_rng(master_key: bytes, name: str) -> np.random.Generator:
+    """numpy's default generator seeded with HMAC-SHA256(master_key, DERIVE_TAG + name) (a 256-bit seed).
+
+    Deterministic: the same key and run name give the same stream on every machine.
+    """
     digest = hmac.new(master_key, DERIVE_TAG + name.encode("utf-8"), hashlib.sha256).digest()
     return np.random.default_rng(int.from_bytes(digest, "big"))
 
@@ -147,6 +161,14 @@ class Job:
 
 @dataclass(frozen=True)
 class Outcome:
+    """How the execution of one run ended, as a worker reports it to the grid.
+
+    ``action``: what was done (started, resumed, skipped, or failed with ``error`` holding the
+    one-line reason). ``best`` is the search-time best finite candidate return, ``final`` the mean
+    final-evaluation return (both raw reward units; None when there is none). ``wall_s``: seconds
+    the worker spent on it, waiting for its lock included.
+    """
+
     name: str
     action: str  # started | resumed | skipped | failed
     status: str  # the store's status afterwards ("" if none)
@@ -243,6 +265,16 @@ class Grid:
 
     @classmethod
     def open(cls, root: Path, spec: ExperimentSpec) -> Grid:
+        """Open the grid directory ``root`` for ``spec``, creating it (and its master key) if needed.
+
+        Adds the spec's runs to ``grid.json`` and this invocation to its list, and removes run
+        directories left half-created by a killed run. An empty directory, or one holding only a
+        copied ``master.key`` (to repeat that grid's secrets), becomes a new grid.
+
+        Raises:
+            ConfigError: ``root`` is a file, holds files but no ``grid.json``, its ``grid.json`` is
+                corrupt, or a run of ``spec`` is already planned there with other settings.
+        """
         grid = cls(root)
         if grid.root.exists() and not grid.root.is_dir():
             raise ConfigError(f"--out {root} is a file, not a directory")
@@ -278,9 +310,15 @@ class Grid:
 
     @property
     def grid_id(self) -> str:
+        """The random id (16 hex digits) written when the grid was created; Ray tasks use it to
+        tell whether they see this grid's directory."""
         return str(self.manifest()["grid_id"])
 
     def manifest(self) -> dict[str, Any]:
+        """``grid.json`` as read now (format, grid_id, runs, invocations).
+
+        Raises OSError or ValueError when the file is missing or not JSON (``open`` checks it).
+        """
         return dict(json.loads((self.root / MANIFEST).read_text(encoding="utf-8")))
 
     def record(self, **entry: Any) -> None:
@@ -290,12 +328,20 @@ class Grid:
         write_json_atomic(self.root / MANIFEST, m, indent=1, sort_keys=True)
 
     def run_dir(self, name: str) -> Path:
+        """``runs/<name>`` under the grid root (it may not exist yet)."""
         return self.runs_dir / name
 
     def state(self, run: PlannedRun) -> str:
+        """``DONE``, ``PARTIAL`` or ``PENDING`` for ``run`` (see ``run_state``)."""
         return run_state(self.run_dir(run.name), run.kind)
 
     def job(self, run: PlannedRun) -> Job:
+        """The Job that executes ``run``: its config, directory, lock and, for a search, its secrets
+        derived from the master key (``derive_secrets``).
+
+        Raises:
+            ConfigError: the master key is missing or corrupt, or the run's task cannot be built.
+        """
         secrets = None
         if run.kind != RL:
             from ..config import RunConfig

@@ -13,12 +13,19 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class PaperValue:
+    """One number of the paper: mean (std) over its five runs, in the task's raw reward units.
+
+    ``table`` is the LaTeX label it is printed under; ``note`` a footnote (or why there is no number).
+    """
+
     mean: float | None  # None: the paper reports no number (note says why)
     std: float | None
     table: str  # LaTeX label of the table (or figure) the value is printed in
     note: str = ""
 
     def text(self) -> str:
+        """As a table cell: ``mean (std)``, `` †`` after it when there is a note; the note alone
+        (or "n/a") when the paper has no number."""
         if self.mean is None:
             return self.note or "n/a"
         mark = " †" if self.note else ""

@@ -66,10 +66,12 @@ class RunRecord:
 
     @property
     def done(self) -> bool:
+        """True when the run is finished or stopped on purpose (it counts in the tables)."""
         return is_complete(self.status, self.kind)
 
     @property
     def column(self) -> str:
+        """Its table column (``column_name``)."""
         return column_name(self.method, self.top_k, self.kind)
 
     @property
@@ -89,6 +91,14 @@ def column_name(method: str, top_k: int | None, kind: str) -> str:
 
 # -- reading ---------------------------------------------------------------------------------
 def read_run(path: Path) -> RunRecord:
+    """The RunRecord of the run directory ``path``, read through ``ppprops.report.run_summary``.
+
+    Returns are raw reward units. ``D`` is None when the task's size cannot be known (neither a
+    stored task declaration nor a task of that name).
+
+    Raises:
+        StoreError: ``path`` holds no readable run.
+    """
     from ..report import run_summary
 
     s = run_summary(path)
@@ -123,6 +133,8 @@ def _mean_std(values: Sequence[float | None]) -> tuple[float | None, float | Non
 
 @dataclass
 class Group:
+    """The finished runs of one (task, column): the seeds of one cell of a table."""
+
     task: str
     column: str
     method: str
@@ -132,9 +144,16 @@ class Group:
 
     @property
     def method_kind(self) -> MethodKind:
+        """The group's method kind (``method_kind``): prompted, black-box or RL."""
         return method_kind(self.method, self.kind)
 
     def stats(self) -> dict[str, Any]:
+        """Mean and population std over the group's runs (finite values only), and the paper's number.
+
+        Keys: task, column, method, top_k, kind, n (runs), seeds, ``score_*`` (what tables compare:
+        the search-time best; RL: the final evaluation), ``best_*``, ``final_*`` (None when no run
+        has one), ``paper_mean``, ``paper_std``, ``paper_table``, ``paper_note`` (``paper_values``).
+        """
         bm, bs, bn = _mean_std([r.best for r in self.runs])
         fm, fs, fn = _mean_std([r.final for r in self.runs])
         sm, ss, sn = _mean_std([r.score for r in self.runs])
@@ -147,6 +166,7 @@ class Group:
 
 
 def group_runs(runs: Sequence[RunRecord]) -> dict[tuple[str, str], Group]:
+    """The finished runs by (task, column); unfinished runs are left out."""
     groups: dict[tuple[str, str], Group] = {}
     for r in runs:
         if not r.done:
@@ -283,6 +303,8 @@ def history_cost_rows(groups: dict[tuple[str, str], Group]) -> list[dict[str, An
 
 
 def history_cost_table(rows: list[dict[str, Any]]) -> Table | None:
+    """The ``history_cost`` table of ``history_cost_rows`` (chars, seconds, %), with the paper's
+    Ant-Ultra figures (Sec. IV-A) as a last row; None when there are no rows."""
     if not rows:
         return None
     f = lambda x, fmt: "" if x is None else format(x, fmt)  # noqa: E731
@@ -341,6 +363,11 @@ RUN_COLUMNS = ["name", "task", "method", "top_k", "seed", "status", "best", "fin
 
 
 def run_rows(runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
+    """One ``runs.csv`` row per run (keys ``RUN_COLUMNS``), sorted by task, column and seed.
+
+    ``mean_latency_s`` (seconds) is over the answered LLM calls; ``final_prompt_chars`` is the
+    prompt size of the last recorded call.
+    """
     rows = []
     for r in sorted(runs, key=lambda r: (task_key(r.task), column_key(r.column), r.seed)):
         lat = [c["latency_s"] for c in r.calls if c["ok"]]
@@ -353,6 +380,7 @@ def run_rows(runs: Sequence[RunRecord]) -> list[dict[str, Any]]:
 
 # -- the whole report ------------------------------------------------------------------------
 def require_matplotlib() -> None:
+    """Raise MissingExtraError naming the ``report`` extra when matplotlib is not installed."""
     try:
         import matplotlib  # noqa: F401
     except ImportError as e:
@@ -360,7 +388,14 @@ def require_matplotlib() -> None:
 
 
 def write_report(root: Path, out: Path | None = None) -> Path:
-    """Read every run under ``root``, write the report into ``out`` (default ``root/report``)."""
+    """Read every run under ``root``, write the report into ``out`` (default ``root/report``); returns ``out``.
+
+    Runs that cannot be read are listed under ``unreadable`` in ``summary.json``, not fatal.
+
+    Raises:
+        ConfigError: ``root`` is not a directory or holds no run directory.
+        MissingExtraError: matplotlib (the ``report`` extra) is not installed.
+    """
     require_matplotlib()
     from ..store import find_runs
     from . import html as html_page

@@ -17,12 +17,16 @@ DEFAULT_REMOTE_CONCURRENCY = 4
 
 @dataclass(frozen=True)
 class GridResult:
+    """What one ``ppprops experiment`` invocation did: an Outcome per run it executed (none for a
+    dry run), and how many runs it found done already."""
+
     root: Path
     outcomes: tuple[Outcome, ...]
     skipped: int  # runs found done before anything was executed
 
     @property
     def ok(self) -> bool:
+        """True when no executed run failed."""
         return all(o.action != "failed" for o in self.outcomes)
 
 
@@ -48,7 +52,19 @@ def run_grid(
     transfer: str = "auto",
     log: Callable[[str], None] = print,
 ) -> GridResult:
-    """Execute every run of ``spec`` in ``out`` that is not done yet."""
+    """Execute every run of ``spec`` in ``out`` that is not done yet.
+
+    Locally (``spec.execution.jobs`` processes, default cores // llm_threads) or on Ray when
+    ``ray_address`` is given (see ``execute_ray.run_ray``; ``transfer`` goes there). Progress lines
+    (a plan, one per finished run, a closing line) go to ``log``. ``dry_run`` lists every run's
+    state and writes nothing. A failed run does not stop the others; it is an Outcome "failed".
+
+    Raises:
+        ConfigError: ``out`` is not a grid directory of this spec (see ``Grid.open``), or Ray
+            cannot be reached.
+        MissingExtraError: the grid has RL runs to execute and the ``rl`` extra is missing, or Ray
+            is asked for and not installed.
+    """
     threads = spec.execution.llm_threads
     parallel = spec.execution.jobs or max(1, (os.cpu_count() or 1) // threads)
     cap = llm_concurrency(spec)

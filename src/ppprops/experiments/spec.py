@@ -69,6 +69,7 @@ class PlannedRun:
 
     @property
     def arm(self) -> str:
+        """The method with its group label (``pp-K0``), or the method alone: the middle of the run name."""
         return f"{self.method}-{self.label}" if self.label else self.method
 
 
@@ -81,6 +82,11 @@ class Execution:
     llm_concurrency: int | None = None  # cap on LLM requests in flight across the grid; None: 4 for a remote endpoint
 
     def validate(self) -> None:
+        """Check the ranges (flag names in the messages).
+
+        Raises:
+            ConfigError: ``jobs``, ``llm_threads`` or ``llm_concurrency`` outside [1, 1024].
+        """
         if self.jobs is not None and not (1 <= self.jobs <= 1024):
             raise ConfigError(f"--jobs must be in [1, 1024], got {self.jobs}")
         if not (1 <= self.llm_threads <= 1024):
@@ -91,6 +97,12 @@ class Execution:
 
 @dataclass(frozen=True)
 class ExperimentSpec:
+    """A spec expanded into its runs: name and description from the file, the runs in execution
+    order (seed-major), how to execute them, and the RL combinations skipped as the paper's "--".
+
+    ``source`` is the spec file's path, or "flags" for the ``--tasks``/``--methods`` form.
+    """
+
     name: str
     description: str
     runs: tuple[PlannedRun, ...]
@@ -193,7 +205,14 @@ def build_spec(
     execution: Mapping[str, Any] | None = None,
 ) -> ExperimentSpec:
     """Expand a spec table into its runs. ``overrides`` (parsed `run` flags), ``seeds`` and
-    ``execution`` win over the file; ``only_tasks``/``only_methods`` keep a subset of its runs."""
+    ``execution`` win over the file; ``only_tasks``/``only_methods`` keep a subset of its runs.
+
+    Raises:
+        ConfigError: an unknown key, a bad setting or seed list, no runs (or none left by the
+            selection), an unknown method or RL algorithm, an RL group without ``timesteps``, two
+            groups making the same run.
+        UnknownTaskError: a task that names no task.
+    """
     where = source
     _check_keys(raw, TOP_KEYS, where)
     if not raw.get("grid") and not raw.get("rl"):
@@ -285,4 +304,10 @@ def build_spec(
 
 
 def load_spec(path: Path, **kw: Any) -> ExperimentSpec:
+    """Read the spec file ``path`` (TOML, or YAML) and expand it: ``build_spec`` with the file's path as source.
+
+    Raises:
+        ConfigError: the file is missing or unreadable, or its content is wrong (see ``build_spec``).
+        MissingExtraError: a YAML file without the ``experiments`` extra.
+    """
     return build_spec(read_spec_file(path), source=str(path), **kw)

@@ -77,17 +77,27 @@ class Finding:
     count: int = 0
 
     def add(self, where: str) -> None:
+        """Count one more occurrence at ``where``; the first MAX_LOCATIONS places are kept."""
         self.count += 1
         if len(self.locations) < MAX_LOCATIONS:
             self.locations.append(where)
 
     def to_json(self) -> dict[str, Any]:
+        """The finding as a JSON object (severity, kind, detail, by_design, count, locations)."""
         return {"severity": self.severity, "kind": self.kind, "detail": self.detail, "by_design": self.by_design,
                 "count": self.count, "locations": self.locations}
 
 
 @dataclass
 class AuditReport:
+    """The outcome of ``audit_run``: what was read, and every finding, worst severity first.
+
+    ``requests`` and ``entries`` count the requests and the history entries read; ``checked``
+    counts the printed values compared, by kind (params, return, components, diagnostics);
+    ``coincidences`` counts printed values equal to both the raw and the encoded value. The paper's
+    promise it checks: only theta~ = A theta and r~ = c r (Sec. II-B, II-C, Eq. 5, 7, 8) reach the LLM.
+    """
+
     run_dir: str
     method: str
     mechanisms: dict[str, bool]
@@ -103,28 +113,35 @@ class AuditReport:
 
     @property
     def leaks(self) -> list[Finding]:
+        """Findings where a raw value was sent (by design for the presets that send raw values)."""
         return self._of("leak")
 
     @property
     def unverified(self) -> list[Finding]:
+        """Findings of request content the client's code would not produce from encoded values."""
         return self._of("unverified")
 
     @property
     def channels(self) -> list[Finding]:
+        """Known side channels with no secret recovered (warnings; failures only under ``strict``)."""
         return self._of("channel")
 
     @property
     def exposed(self) -> list[Finding]:
+        """Transcript-only attacks that recovered a secret (``c`` or some ``a_j``) within 1%."""
         return self._of("exposed")
 
     @property
     def clean(self) -> bool:
+        """True with no leak, nothing unverified and nothing exposed (channels allowed)."""
         return not self.leaks and not self.unverified and not self.exposed
 
     def exit_code(self, strict: bool = False) -> int:
+        """``ppprops audit``'s exit code: 0 when clean (and, with ``strict``, no channel), else 1."""
         return 0 if self.clean and not (strict and self.channels) else 1
 
     def verdict(self, strict: bool = False) -> str:
+        """One line naming the worst outcome: LEAK, UNVERIFIED, EXPOSED, CHANNELS (``strict`` only) or CLEAN."""
         if self.leaks:
             design = all(f.by_design for f in self.leaks)
             kinds = ", ".join(sorted({f.kind for f in self.leaks}))
@@ -146,12 +163,14 @@ class AuditReport:
         return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}"
 
     def to_json(self, strict: bool = False) -> dict[str, Any]:
+        """The ``ppprops audit --json`` object: the counts, the verdict, the exit code and every finding."""
         return {"run_dir": self.run_dir, "method": self.method, "mechanisms": self.mechanisms, "requests": self.requests,
                 "entries": self.entries, "checked": self.checked, "coincidences": self.coincidences,
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
                 "findings": [f.to_json() for f in self.findings]}
 
     def format(self, strict: bool = False) -> str:
+        """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
         c = self.checked
         lines = [
             f"audit of {self.run_dir} (method {self.method}): {self.requests} requests, {self.entries} history entries; "
@@ -711,7 +730,12 @@ def audit_run(run_dir: Path) -> AuditReport:
     """Audit every recorded outgoing request of a run against the raw values in its store.
 
     Every field of every request body is read; attacks on the transcript are scored against the
-    key file when it is in the run directory (else against the store, for pure scales).
+    key file when it is in the run directory (else against the store, for pure scales). A key file
+    that does not load is treated as absent.
+
+    Raises:
+        StoreError: ``run_dir`` is not a directory, holds no readable store, or is not a prompted
+            search run (an RL baseline).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():

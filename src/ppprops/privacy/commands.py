@@ -18,6 +18,10 @@ from ..errors import ConfigError
 
 
 def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
+    """Add the ``audit`` and ``privacy-report`` parsers to the main CLI's subparsers ``sub``.
+
+    ``parser_class`` is accepted for the main CLI's calling convention and not used here.
+    """
     au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean; 1 leak, unverified or exposed)")
     au.add_argument("dir", type=Path, help="a run directory")
     au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
@@ -39,6 +43,14 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
 
 
 def cmd_audit(a: argparse.Namespace) -> int:
+    """``ppprops audit DIR``: print the audit (text, or one JSON object with ``--json``); returns its exit code.
+
+    0 when nothing leaked, nothing is unverified and no secret is exposed (with ``--strict``: and
+    no known channel either), else 1.
+
+    Raises:
+        StoreError: ``DIR`` is not a prompted search run directory, or its store cannot be read.
+    """
     from .audit import audit_run
 
     report = audit_run(a.dir)
@@ -47,6 +59,16 @@ def cmd_audit(a: argparse.Namespace) -> int:
 
 
 def cmd_privacy_report(a: argparse.Namespace) -> int:
+    """``ppprops privacy-report``: analyse the runs under ``--runs``, or start the matrix of new runs
+    (tasks x schemes pp, pp-hardened x seeds) first; print the report, write it next to the runs. Returns 0.
+
+    Raises:
+        ConfigError: no run with its key file under ``--runs``, bad counts, an unfinished run in
+            the way of a new one.
+        UnknownTaskError: an ``--envs`` name that names no task.
+        StoreError, KeyFileError: a run directory or key file that cannot be read.
+        LLMError: the embedded model could not serve a new run.
+    """
     from ..store import DB_NAME, KEY_NAME, find_runs
     from .report import privacy_report, run_matrix, write_report
 

@@ -50,6 +50,7 @@ def client_codec(task: Task, config: RunConfig, secrets: Secrets | None) -> Code
 
 
 def context(task: Task, config: RunConfig, codec: Codec) -> PromptContext:
+    """The public prompt context of the run (``client.context.prompt_context``), as the proposer built it."""
     return prompt_context(task, config, codec)
 
 
@@ -167,6 +168,7 @@ def rollout_lines(text: str) -> list[str]:
 
 
 def critic_params(text: str) -> str | None:
+    """The printed parameter list (``[...]``, as text) of the candidate in an R2PO critic prompt; None if absent."""
     m = re.search(r"\n3\. The candidate:\nparams: (\[[^\]\n]*\])", text)
     return m.group(1) if m else None
 

@@ -29,6 +29,9 @@ class EchoOptimizer:
         self.config = config
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        """Answer a chat request: ``{"params": [...]}`` with D numbers, from the history entries of the
+        first message (the prompt); zeros plus noise when it shows none of length D. ``seed`` fixes
+        the noise. The Exchange's request is the body the run's client would send (latency 0)."""
         self.calls += 1
         prompt = messages[0]["content"]
         proposal = self._propose(history_entries(prompt, "chat"), D, seed)
@@ -73,10 +76,11 @@ class EchoOptimizer:
         return shape.body(messages, D=D, seed=seed)
 
     def count_tokens(self, text: str) -> int:
+        """A rough token count: one token per four characters."""
         return len(text) // 4
 
     def close(self) -> None:
-        pass
+        """Nothing to release."""
 
 
 @contextmanager

@@ -27,6 +27,7 @@ class Request:
 
     @property
     def where(self) -> str:
+        """Where it is in the run, for findings: ``call <id> (iteration <i>, attempt <k>)``."""
         return f"call {self.call_id} (iteration {self.iteration}, attempt {self.attempt})"
 
 

@@ -141,7 +141,7 @@ class Task:
 
     @property
     def D(self) -> int:
-        """D = (n_s + 1) n_a, the number of policy parameters (paper Sec. II-A)."""
+        """D = (n_s + 1) n_a, the number of policy parameters (theta in R^D, paper Sec. II-A; layout of Eq. 10)."""
         return param_count(self.n_s, self.n_a)
 
     @property

@@ -82,6 +82,13 @@ class FaultConfig:
     error_body_code: int = 502  # the code inside an "error_body" fault
 
     def validate(self) -> None:
+        """Check the settings (``FaultServer`` calls it).
+
+        Raises:
+            ValueError: ``fault_rate`` outside [0, 1], no or unknown ``kinds``, unknown ``personas``,
+                personas together with an upstream, an upstream that is not ``http://``,
+                ``max_requests`` < 1 or ``max_seconds`` <= 0.
+        """
         if not (0.0 <= self.fault_rate <= 1.0):
             raise ValueError(f"fault rate must be in [0, 1], got {self.fault_rate}")
         unknown = [k for k in self.kinds if k not in ALL_KINDS]
@@ -405,6 +412,7 @@ class FaultServer:
         self.base_url = f"http://127.0.0.1:{self.port}/v1"
 
     def start(self) -> FaultServer:
+        """Serve in a daemon thread, with a watchdog that stops the server after ``max_seconds``; returns self."""
         serve = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
         watch = threading.Thread(target=self._watchdog, daemon=True)
         self._threads = [serve, watch]
@@ -426,12 +434,15 @@ class FaultServer:
             t.join(timeout=5)
 
     def stop(self) -> None:
+        """Stop serving, wait for the threads (up to 5 s each) and close the socket."""
         self._state.stop.set()
         for t in self._threads:
             t.join(timeout=5)
         self._server.server_close()
 
     def stats(self) -> dict[str, Any]:
+        """Counts so far: requests, passed, injected (by kind) and injected_total, personas (replies by
+        persona), elapsed_s (seconds since the server was made); the body of ``GET /stats``."""
         return self._state.stats()
 
     def answers(self) -> list[tuple[int, str, list[float]]]:
@@ -458,6 +469,12 @@ def _kinds(text: str) -> tuple[str, ...]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line (see the module docstring): serve until the budget is spent, SIGTERM or Ctrl-C.
+
+    Prints ``listening URL`` first and the stats as JSON at the end; ``--answers-file`` gets the
+    proposed vectors. Returns 0, or 2 for bad settings or a port that cannot be bound (one line on
+    stderr); argparse exits 2 itself on a malformed flag.
+    """
     p = argparse.ArgumentParser(prog="python -m ppprops.testing.fault_server", description=__doc__.splitlines()[0])
     p.add_argument("--port", type=int, default=0, help="0 = any free port (printed)")
     src = p.add_mutually_exclusive_group()

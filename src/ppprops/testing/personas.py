@@ -29,6 +29,9 @@ REASONING_TOKENS = 300  # what a persona's reasoning costs out of the token budg
 
 @dataclass(frozen=True)
 class Reply:
+    """One HTTP reply of a persona: status, body bytes, content type, and ``answer``, the new vector
+    (length D) it proposes, or None when the reply holds none."""
+
     status: int
     body: bytes
     content_type: str = "application/json"
@@ -61,11 +64,15 @@ class Turn:
 
     @property
     def schema(self) -> bool:
+        """True when the request asks for a ``json_schema`` response format."""
         rf = self.body.get("response_format")
         return isinstance(rf, dict) and rf.get("type") == "json_schema"
 
 
 def read_turn(body: dict[str, Any], D: int, answer: list[float], rng: random.Random, n: int) -> Turn:
+    """The Turn of request number ``n``: its chat ``body``, the vector length ``D``, the ``answer`` to
+    propose, and what the first message shows (the best history entry of length D, the indexed form,
+    whether a correction was already made)."""
     messages = [m for m in body.get("messages") or [] if isinstance(m, dict)]
     prompt = str(messages[0].get("content") or "") if messages else ""
     entries = [e for e in history_entries(prompt) if len(e.params) == D]
@@ -76,6 +83,7 @@ def read_turn(body: dict[str, Any], D: int, answer: list[float], rng: random.Ran
 
 # -- building blocks ------------------------------------------------------------------------------
 def params_json(values: list[Any]) -> str:
+    """The answer object the prompt asks for, ``{"params": [v0, v1, ...]}``, each value as ``str`` prints it."""
     return '{"params": [' + ", ".join(str(v) for v in values) + "]}"
 
 
@@ -102,12 +110,16 @@ def cut(text: str) -> str:
 
 
 def short_of_budget(turn: Turn, answer_text: str) -> bool:
+    """True when the request's token limit cannot hold REASONING_TOKENS plus ``answer_text``
+    (four characters a token); False when the request sets no limit."""
     budget = turn.budget
     return budget is not None and budget < REASONING_TOKENS + len(answer_text) // 4 + 1
 
 
 def completion(turn: Turn, content: str | None, *, message: dict[str, Any] | None = None, finish: str = "stop",
                reasoning_tokens: int | None = None, answer: list[float] | None = None) -> Reply:
+    """A 200 chat-completion body with ``content`` (and the extra ``message`` fields), ``finish`` as
+    its finish_reason and a usage block (four characters a token, plus ``reasoning_tokens``)."""
     msg: dict[str, Any] = {"role": "assistant", "content": content}
     msg.update(message or {})
     visible = len(content or "") + sum(len(v) for v in (message or {}).values() if isinstance(v, str))
@@ -127,6 +139,7 @@ def completion(turn: Turn, content: str | None, *, message: dict[str, Any] | Non
 
 
 def error(status: int, doc: Any) -> Reply:
+    """An error reply: ``status`` with the JSON of ``doc`` as its body."""
     return Reply(status, json.dumps(doc).encode())
 
 
@@ -137,6 +150,7 @@ def plain(turn: Turn) -> Reply:
 
 
 def vllm_gpt_oss(turn: Turn) -> Reply:
+    """vLLM with gpt-oss: analysis in ``message.reasoning``, the answer in content; cut off: content null, "length"."""
     # vLLM serving gpt-oss with --reasoning-parser openai_gptoss: the analysis channel in
     # message.reasoning (vLLM renamed reasoning_content to reasoning, vllm-project/vllm#27752,
     # docs.vllm.ai features/reasoning_outputs), the final channel in content, plus vLLM's empty
@@ -149,6 +163,7 @@ def vllm_gpt_oss(turn: Turn) -> Reply:
 
 
 def vllm_gpt_oss_final_in_reasoning(turn: Turn) -> Reply:
+    """vLLM with gpt-oss, final channel filed under reasoning: content null, the answer at the end of ``reasoning``."""
     # vLLM gpt-oss when the parser files the final channel under reasoning (vllm-project/vllm#23694):
     # content null, the reasoning holds the analysis (quoting the history) and then the final JSON.
     ans = params_json(turn.answer)
@@ -161,6 +176,7 @@ OLLAMA_SCHEMA_JUNK = 'The user says "\n\n    \t}\n       \t\t \t\t    '
 
 
 def ollama_gpt_oss(turn: Turn) -> Reply:
+    """Ollama with gpt-oss: thinking in ``reasoning`` (off for reasoning_effort "none"); junk content under a json_schema."""
     # Ollama's OpenAI-compatible /v1 with gpt-oss: thinking in message.reasoning and the answer in
     # content (ollama/ollama#15288); reasoning_effort "none" turns thinking off (ollama#12004 as
     # cited in aictrl-dev/cli#75); under a json_schema response_format gpt-oss returns junk content
@@ -176,6 +192,7 @@ def ollama_gpt_oss(turn: Turn) -> Reply:
 
 
 def llamacpp_gpt_oss(turn: Turn) -> Reply:
+    """llama-server with gpt-oss: analysis in ``reasoning_content``, the answer in content; cut off: content "", "length"."""
     # llama.cpp llama-server --jinja with the default --reasoning-format (auto): harmony parsed into
     # reasoning_content and content (ggml-org/llama.cpp#15181); out of tokens: content "", "length".
     ans = params_json(turn.answer)
@@ -192,6 +209,7 @@ HARMONY_TEMPLATE_ERROR = (
 
 
 def harmony_markup(turn: Turn) -> Reply:
+    """Raw gpt-oss harmony markup in content; HTTP 500 when an assistant turn sent back holds ``<|channel|>`` tags."""
     # llama.cpp with --reasoning-format none (or a build before harmony parsing): the raw harmony
     # markup in content, "<|channel|>analysis<|message|>...<|end|><|start|>assistant<|channel|>final
     # <|message|>..." (ggml-org/llama.cpp#15181). Its gpt-oss chat template raises on an assistant
@@ -209,6 +227,7 @@ def harmony_markup(turn: Turn) -> Reply:
 
 
 def harmony_markup_repeats_once(turn: Turn) -> Reply:
+    """``harmony_markup`` whose first final answer repeats the best history entry; a new vector once corrected."""
     # The harmony_markup server, with a final channel that first repeats the best history entry
     # (so the client must correct it, and an assistant turn that echoed the markup would get the 500).
     if turn.best is not None and not turn.corrected:
@@ -230,6 +249,7 @@ def r1_thought(turn: Turn) -> str:
 
 
 def r1_open_think(turn: Turn) -> Reply:
+    """An R1 distill whose reasoning is not split out: reasoning, a lone ``</think>``, then the answer, all in content."""
     # DeepSeek-R1 distills behind a server that does not split reasoning (llama.cpp
     # --reasoning-format none, vLLM without --reasoning-parser): the chat template opens <think> in
     # the prompt, so the content is reasoning, a lone "</think>", then the answer.
@@ -238,6 +258,7 @@ def r1_open_think(turn: Turn) -> Reply:
 
 
 def r1_think_tags(turn: Turn) -> Reply:
+    """An R1-style model with ``<think>...</think>`` and then the answer in content."""
     # R1-style models served with the reasoning left in content, <think>...</think> then the answer
     # (Ollama before it split thinking out, ollama/ollama#9137).
     content = "<think>\n" + r1_thought(turn) + "</think>\n\n" + params_json(turn.answer)
@@ -245,6 +266,7 @@ def r1_think_tags(turn: Turn) -> Reply:
 
 
 def deepseek_reasoner(turn: Turn) -> Reply:
+    """DeepSeek's deepseek-reasoner: ``reasoning_content`` and content; a json_schema response_format gets a plain-text 422."""
     # DeepSeek's API with deepseek-reasoner: reasoning_content and content (api-docs.deepseek.com,
     # reasoning model guide). Its JSON output takes {"type": "json_object"} only; a json_schema
     # response_format gets HTTP 422 with a plain-text body (quoted in browser-use/browser-use#215
@@ -258,6 +280,7 @@ def deepseek_reasoner(turn: Turn) -> Reply:
 
 
 def openai_reasoning(turn: Turn) -> Reply:
+    """OpenAI reasoning models: 400 for ``max_tokens`` or a temperature other than 1; hidden reasoning counted in usage."""
     # OpenAI's reasoning models (o-series, gpt-5) on chat completions: max_tokens is refused in
     # favour of max_completion_tokens, a temperature other than 1 is refused (error bodies as quoted
     # in microsoft/vscode-copilot-release#8065 and holoviz/lumen#1087); the reasoning is hidden but
@@ -281,6 +304,7 @@ def openai_reasoning(turn: Turn) -> Reply:
 
 
 def gemini_openai(turn: Turn) -> Reply:
+    """Gemini's OpenAI-compatible endpoint: a list-wrapped 400 for a ``seed`` field, else the plain answer."""
     # Gemini's OpenAI-compatible endpoint refusing a field it does not know: HTTP 400 with a
     # list-wrapped google.rpc error, 'Invalid JSON payload received. Unknown name "seed": Cannot
     # find field.' (the shape quoted in MinLL/SkyrimNet-GamePlugin#77 and Alishahryar1/free-claude-code#542).
@@ -292,6 +316,7 @@ def gemini_openai(turn: Turn) -> Reply:
 
 
 def restates_history(turn: Turn) -> Reply:
+    """A chatty model: restates the best entry as ``params[i]: v`` pairs, then gives the answer object."""
     # A chatty instruct model that restates the best entry in the ProPS form (params[i]: v, the
     # form of the ProPS paper's prompts) before giving the JSON object the prompt asks for.
     vals = turn.best or tuple(f"{v:.2f}" for v in turn.answer)
@@ -301,12 +326,14 @@ def restates_history(turn: Turn) -> Reply:
 
 
 def unicode_minus(turn: Turn) -> Reply:
+    """The answer object with its minus signs typeset as U+2212 or en dashes."""
     # Answers typeset with U+2212 minus signs or en dashes, as models trained on typeset text write them.
     text = ", ".join(str(v).replace("-", turn.rng.choice(["\u2212", "\u2013"])) for v in turn.answer)
     return completion(turn, '{"params": [' + text + "]}", answer=turn.answer)
 
 
 def repeats_history_once(turn: Turn) -> Reply:
+    """First proposes the best history entry again, as printed; a new vector once corrected."""
     # A model that first proposes the best history entry again, as printed, and a new policy once told.
     if turn.best is not None and not turn.corrected:
         return completion(turn, '{"params": [' + ", ".join(turn.best) + "]}")
