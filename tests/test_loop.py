@@ -79,9 +79,9 @@ def test_run_loop_evaluates_records_and_tells_in_order(tmp_path: Path, codec: Co
     raw = [0.0, 1.0, 10.0, 11.0, 12.0]
     for c, r, s in zip(out, raw, stored, strict=True):
         assert np.array_equal(c.params, np.full(3, r))
-        assert np.allclose(c.params_enc, A * r)  # theta~ = A theta (Eq. 1)
+        assert np.allclose(c.params_enc, A * r)  # theta~ = A theta (Eq. 5)
         assert c.ret == -(3 * r) ** 2
-        assert c.feedback_enc.ret == pytest.approx(C * c.ret)  # r~ = c r (Eq. 2)
+        assert c.feedback_enc.ret == pytest.approx(C * c.ret)  # r~ = c r (Eq. 7)
         assert c.feedback_enc.components == {"alive": pytest.approx(C)}
         assert c.seeds == (100 * c.index, 100 * c.index + 1)
         assert (c.clipped, c.note) == (c.iteration % 2, f"it{c.iteration}")
