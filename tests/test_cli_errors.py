@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ppprops.cli import main
@@ -204,3 +205,45 @@ def test_no_space_for_the_policy_file_is_one_line_and_resumable(capsys, tmp_path
     monkeypatch.undo()
     assert _call(capsys, ["resume", str(out), "--quiet"])[0] == 0
     assert (out / "best_policy.json").exists()
+
+
+def _pendulum_policy_doc() -> dict:  # type: ignore[type-arg]
+    from ppprops.policy_file import policy_document
+    from ppprops.tasks import load_task
+
+    task = load_task("Pendulum-v1")
+    env = task.make_env()
+    try:
+        return policy_document(task, np.zeros(task.D), env=env, search={}, final_eval=None)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(
+    "edit,needle",
+    [
+        (lambda d: d.pop("action_type"), 'action_type must be "discrete" or "continuous"'),
+        (lambda d: d.update(action_type="multi-binary"), 'action_type must be "discrete" or "continuous"'),
+        (lambda d: d["action"].pop("low"), "continuous action needs low and high of length n_a"),
+        (lambda d: d["action"].update(high=[2.0, 2.0]), "continuous action needs low and high of length n_a"),
+        (lambda d: d["action"].update(low=[3.0]), "low <= high"),
+        (lambda d: d["action"].update(rule="argmax"), "lacks a valid observation, action or env block"),
+        (lambda d: d.update(action_type="discrete"), "lacks a valid observation, action or env block"),
+    ],
+)
+def test_policy_file_with_a_broken_action_block_is_one_line(capsys, tmp_path: Path, edit, needle: str) -> None:  # type: ignore[no-untyped-def]
+    """A hand-edited policy file whose action block does not fit its action type (no bounds, bounds of
+    the wrong length or order, the other type's rule) is refused with one line, never a KeyError."""
+    from ppprops.errors import PPPropsError
+    from ppprops.policy_file import load_policy
+
+    doc = _pendulum_policy_doc()
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(doc))
+    assert load_policy(path)(np.zeros(3)).shape == (1,)  # the untouched file is a valid policy
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    code, err = _call(capsys, ["policy", "eval", str(path), "--episodes", "1"])
+    assert code == 2 and needle in err and err.count("\n") == 1 and "Traceback" not in err
+    with pytest.raises(PPPropsError, match="policy file"):
+        load_policy(path)

@@ -126,7 +126,8 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     """The policy file's document and its flat theta (shape (D,)).
 
     Raises:
-        PPPropsError: missing, unreadable, not JSON, not a ppprops policy file, or lacking a block.
+        PPPropsError: missing, unreadable, not JSON, not a ppprops policy file, an action_type other
+            than "discrete" or "continuous", or lacking a block (continuous actions: bounds of length n_a).
         ConfigError: W is not n_s x n_a, b not of length n_a, or a value is not finite.
     """
     try:
@@ -145,13 +146,22 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
         raise PPPropsError(f"policy file {path} lacks n_s, n_a, W or b") from None
     if W.shape != (n_s, n_a) or b.shape != (n_a,) or not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
         raise ConfigError(f"policy file {path}: W must be {n_s}x{n_a} and b length {n_a}, all finite")
+    if doc.get("action_type") not in ("discrete", "continuous"):
+        raise PPPropsError(f"policy file {path}: action_type must be \"discrete\" or \"continuous\"")
     if doc["format"] == FORMAT:
         try:
             Selection.from_json(doc["observation"])
-            if doc["action"]["rule"] not in ("argmax", "clip") or not isinstance(doc["env"], dict):
+            action = doc["action"]
+            rule = "argmax" if doc["action_type"] == "discrete" else "clip"
+            if action["rule"] != rule or not isinstance(doc["env"], dict):
                 raise ValueError
+            if rule == "clip":
+                low, high = (np.asarray(action[k], dtype=np.float64) for k in ("low", "high"))
+                if low.shape != (n_a,) or high.shape != (n_a,) or np.isnan(low).any() or np.isnan(high).any() or (low > high).any():
+                    raise ValueError
         except (KeyError, TypeError, ValueError):
-            raise PPPropsError(f"policy file {path} lacks a valid observation, action or env block") from None
+            raise PPPropsError(f"policy file {path} lacks a valid observation, action or env block "
+                               "(a continuous action needs low and high of length n_a, low <= high)") from None  # fmt: skip
     theta = np.concatenate([W.reshape(-1), b])
     assert theta.shape == (param_count(n_s, n_a),)
     return doc, theta
