@@ -185,6 +185,21 @@ def test_rerunning_a_grid_with_other_settings_is_refused(tmp_path: Path) -> None
         Grid.open(tmp_path / "h", spec)
 
 
+@pytest.mark.parametrize("text", ["not json", "[]", "{}", '{"format": "ppprops.grid/0", "runs": {}, "invocations": []}',
+                                  '{"format": "ppprops.grid/1", "runs": [], "invocations": []}'])  # fmt: skip
+def test_a_corrupt_grid_manifest_is_refused_and_left_as_it_is(tmp_path: Path, text: str) -> None:
+    """A grid.json that is not JSON, not an object, of another format or with a malformed run table
+    is one ConfigError naming the file (never an AssertionError, also under python -O), and the file
+    is not rewritten."""
+    spec = build_spec(flags_table(["CartPole"], ["random"], 1), overrides={"iterations": 3})
+    Grid.open(tmp_path / "g", spec)
+    manifest = tmp_path / "g" / "grid.json"
+    manifest.write_text(text)
+    with pytest.raises(ConfigError, match=r"grid\.json is corrupt"):
+        Grid.open(tmp_path / "g", spec)
+    assert manifest.read_text() == text
+
+
 def test_paper_values_match_the_papers_main_table() -> None:
     text = PAPER.read_text(encoding="utf-8")
     body = text[text.index(r"\label{tab:all_results}"):text.index(r"\end{tabular}", text.index(r"\label{tab:all_results}"))]

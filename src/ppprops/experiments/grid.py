@@ -288,9 +288,11 @@ class Grid:
         if manifest_path.exists():
             try:
                 manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-                assert manifest.get("format") == GRID_FORMAT
-            except (OSError, ValueError, AssertionError):
-                raise ConfigError(f"{manifest_path} is corrupt; it is not a grid this ppprops can continue") from None
+            except (OSError, ValueError):
+                manifest = None
+            if not (isinstance(manifest, dict) and manifest.get("format") == GRID_FORMAT and isinstance(manifest.get("runs"), dict)
+                    and isinstance(manifest.get("invocations"), list)):  # fmt: skip
+                raise ConfigError(f"{manifest_path} is corrupt; it is not a grid this ppprops can continue")
         for run in spec.runs:
             known = manifest["runs"].get(run.name)
             if known is not None and not _same_config(known["config"], run.config):
