@@ -188,6 +188,19 @@ def test_resume_refuses_an_rl_run_in_one_line(capsys, trained: dict[str, Path]) 
     assert code == 2 and err.count("\n") == 1 and "is an RL baseline run (rl-dqn)" in err
 
 
+def test_the_python_api_refuses_an_rl_run_as_a_search(trained: dict[str, Path]) -> None:
+    """``ppprops.load_run`` and ``ppprops.resume`` read searches; an RL run is one ConfigError, not a KeyError."""
+    import ppprops
+    from ppprops.errors import ConfigError
+
+    before = {p.name: p.read_bytes() for p in trained["dqn"].iterdir()}
+    with pytest.raises(ConfigError, match=r"is an RL baseline run \(rl-dqn\), not a search"):
+        ppprops.load_run(trained["dqn"])
+    with pytest.raises(ConfigError, match=r"is an RL baseline run \(rl-dqn\); it cannot be resumed"):
+        ppprops.resume(trained["dqn"])
+    assert {p.name: p.read_bytes() for p in trained["dqn"].iterdir()} == before
+
+
 def test_the_agent_sees_the_ultra_observation() -> None:
     """Ant-Ultra's agent observes the 10 Ultra variables, not Ant-v5's 27-dim state."""
     pytest.importorskip("mujoco")

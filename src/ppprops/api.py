@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from .config import RunConfig
 from .errors import ConfigError
 from .policy_file import Policy, load_policy
+from .status import RunKind
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
@@ -285,11 +286,13 @@ def resume(
 
     Raises:
         StoreError, KeyFileError: not a run directory, or its store / key file is damaged.
-        ConfigError, LLMError: as ``search``.
+        ConfigError, LLMError: as ``search``; ConfigError also for an RL baseline run.
     """
+    from .baselines.record import refuse_resume
     from .runner import Endpoint
     from .runner import resume as _resume
 
+    refuse_resume(Path(run_dir))  # an RL baseline run has no search to continue
     endpoint = Endpoint(base_url=base_url, model=model, api_key_env=api_key_env)
     with _progress(progress, str(run_dir)) as events:
         _resume(Path(run_dir), events, endpoint=endpoint, chat=chat)
@@ -301,13 +304,18 @@ def load_run(run_dir: Pathish) -> SearchResult:
 
     Raises:
         StoreError: not a run directory, or its store is damaged.
+        ConfigError: an RL baseline run (``ppprops baseline rl``): it has no search history.
     """
     from .loop import best_candidate
     from .store import open_store
 
     run_dir = Path(run_dir)
     with open_store(run_dir) as store:
-        config = RunConfig.from_json(store.config())
+        stored = store.config()
+        if RunKind.of_config(stored) is RunKind.RL:
+            raise ConfigError(f"{run_dir} is an RL baseline run ({stored.get('method')}), not a search: "
+                              f"`ppprops show {run_dir}` and `ppprops report` read it")  # fmt: skip
+        config = RunConfig.from_json(stored)
         history = tuple(store.candidates())
         fe = store.final_eval()
         status = store.status()

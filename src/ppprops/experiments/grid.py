@@ -287,12 +287,13 @@ class Grid:
         manifest: dict[str, Any] = {"format": GRID_FORMAT, "grid_id": _os_secrets.token_hex(8), "runs": {}, "invocations": []}
         if manifest_path.exists():
             try:
-                manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+                stored: Any = json.loads(manifest_path.read_text(encoding="utf-8"))
             except (OSError, ValueError):
-                manifest = None
-            if not (isinstance(manifest, dict) and manifest.get("format") == GRID_FORMAT and isinstance(manifest.get("runs"), dict)
-                    and isinstance(manifest.get("invocations"), list)):  # fmt: skip
+                stored = None
+            if not (isinstance(stored, dict) and stored.get("format") == GRID_FORMAT and isinstance(stored.get("runs"), dict)
+                    and isinstance(stored.get("invocations"), list)):  # fmt: skip
                 raise ConfigError(f"{manifest_path} is corrupt; it is not a grid this ppprops can continue")
+            manifest = stored
         for run in spec.runs:
             known = manifest["runs"].get(run.name)
             if known is not None and not _same_config(known["config"], run.config):
