@@ -73,12 +73,11 @@ def run(ctx: Context) -> Section:
     ctx.cache["prompt_data"] = data
     quality = ctx.cache.get("quality_forms")
     if quality:
-        body += ["- Search results of the two prompt forms at an equal budget (CartPole, embedded model; from benchmark 6):", "",
-                 table(["prompt form", "seeds", "best return", "final-evaluation return", "median"], quality)]
+        body += ["- Search results of the two prompt forms at an equal budget (embedded model; from benchmark 6):", "",
+                 table(["task", "prompt form", "seeds", "best return", "final-evaluation return", "median"], quality)]
     targets = [(f"final prompt, D=88, K=10 <= {TARGET_CHARS:,} chars (document form, the embedded default)",
                 f"{doc['chars']:,} chars (chat form: {ours['chars']:,})", data["met"])]
-    if quality:
-        targets.append(("search results of the document form no worse than the chat form (CartPole, final evaluation)",
-                        f"{quality[0][3]} vs {quality[1][3]}; median {quality[0][4]} vs {quality[1][4]} "
-                        f"({quality[0][1]} vs {quality[1][1]} seeds)", None))
+    for d, c in zip(quality[::2], quality[1::2]) if quality else ():  # rows: document, then chat, per task
+        targets.append((f"search results of the document form no worse than the chat form ({d[0]}, final evaluation)",
+                        f"{d[4]} vs {c[4]}; median {d[5]} vs {c[5]} ({d[2]} vs {c[2]} seeds)", None))
     return Section("prompt", "1. Prompt compactness", "\n".join(body), data, targets=targets)

@@ -4,7 +4,7 @@ A grid (``benchmarks/quality.toml``) run with ``ppprops experiment`` on both cor
 thread per run): CartPole, Acrobot and Pendulum-v1 with ten seeds, Ant-Ultra (D=88) with three,
 every method with the same number of evaluated policies (10 random warm-up + 50 proposals); pp
 uses the embedded model's default, the document form (``wire.document``). The same grid runs pp
-in the paper's chat form on CartPole, for benchmark 1's "no loss in search results". The figure
+in the paper's chat form on the three target tasks, for benchmark 1's "no loss in search results". The figure
 of merit is the final evaluation: the mean return over 20 fresh episodes of the policy with the
 best single-episode return of the search. Every pp run is also audited (``ppprops audit``).
 
@@ -155,12 +155,16 @@ def run(ctx: Context) -> Section:
              table(["task", "prompt form", "LLM candidates", "fallback candidates", "answers refused as a history repeat",
                     "requests", "mean request (s)", "prefill / decoding share of request time", "prompt tokens from the cache"],
                    use_rows)]
-    chat, doc = results.get(("CartPole", "pp-chat")), results.get(("CartPole", "pp"))
-    if chat and doc:
-        ctx.cache["quality_forms"] = [["document (default for the embedded model)", len(doc["final"]), mean_std(doc["best"]),
-                                       mean_std(doc["final"]), median_of(doc["final"])],
-                                      ["chat (the paper's prompt, list form)", len(chat["final"]), mean_std(chat["best"]),
-                                       mean_std(chat["final"]), median_of(chat["final"])]]
+    forms = []
+    for task in TARGET_TASKS:
+        chat, doc = results.get((task, "pp-chat")), results.get((task, "pp"))
+        if chat and doc:
+            forms.append([task, "document (default for the embedded model)", len(doc["final"]), mean_std(doc["best"]),
+                          mean_std(doc["final"]), median_of(doc["final"])])
+            forms.append([task, "chat (the paper's prompt, list form)", len(chat["final"]), mean_std(chat["best"]),
+                          mean_std(chat["final"]), median_of(chat["final"])])
+    if forms:
+        ctx.cache["quality_forms"] = forms
     audits["verdicts"] = dict(audits["verdicts"])
     data["audits"] = audits
     data["unfinished"] = unfinished

@@ -69,7 +69,8 @@ def run(ctx: Context) -> Section:
             f"{load:.2f} at its start on {os.cpu_count()} logical CPUs, so the embedded server chose {threads} thread(s):", "",
             table(["part", "count", "seconds", "share of the wall time"], rows), "",
             f"- Wall time **{int(wall // 60)} min {wall % 60:.0f} s** (target at most 3 min on 2 idle cores: "
-            f"{'met' if data['met'] else ('NOT met' if idle else 'no verdict: the cores were busy')}); {len(calls)} requests, mean {llm_s / max(1, len(calls)):.2f} s; "
+            f"{'met' if data['met'] else ('NOT met' if idle else 'no verdict: the cores were busy')}); "
+            f"{len(calls)} requests, mean {llm_s / max(1, len(calls)):.2f} s; "
             f"{100 * cached / max(1.0, cached + processed):.0f}% of the prompt tokens came from llama.cpp's cache "
             f"({cached:,.0f} of {cached + processed:,.0f})."]
     if not idle:
