@@ -3,6 +3,7 @@ grid secrets derive deterministically from the master key with Secrets' own dist
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -185,17 +186,39 @@ def test_rerunning_a_grid_with_other_settings_is_refused(tmp_path: Path) -> None
         Grid.open(tmp_path / "h", spec)
 
 
-@pytest.mark.parametrize("text", ["not json", "[]", "{}", '{"format": "ppprops.grid/0", "runs": {}, "invocations": []}',
-                                  '{"format": "ppprops.grid/1", "runs": [], "invocations": []}'])  # fmt: skip
-def test_a_corrupt_grid_manifest_is_refused_and_left_as_it_is(tmp_path: Path, text: str) -> None:
-    """A grid.json that is not JSON, not an object, of another format or with a malformed run table
-    is one ConfigError naming the file (never an AssertionError, also under python -O), and the file
-    is not rewritten."""
+def _spoil(doc: dict, how: str) -> str:  # type: ignore[type-arg]
+    run = next(iter(doc["runs"]))
+    if how == "run entry is a number":
+        doc["runs"][run] = 5
+    elif how == "run config is a string":
+        doc["runs"][run]["config"] = "x"
+    elif how == "run seed is missing":
+        del doc["runs"][run]["seed"]
+    elif how == "runs is a list":
+        doc["runs"] = []
+    elif how == "other format":
+        doc["format"] = "ppprops.grid/0"
+    elif how == "no invocations":
+        del doc["invocations"]
+    return json.dumps(doc)
+
+
+@pytest.mark.parametrize("how,problem", [
+    ("not json", "not a JSON object"), ("a list", "not a JSON object"), ("other format", "format is not"),
+    ("runs is a list", "runs missing or of the wrong type"), ("no invocations", "invocations or runs missing"),
+    ("run entry is a number", "run entry 'CartPole__random__0'"), ("run config is a string", "run entry 'CartPole__random__0'"),
+    ("run seed is missing", "run entry 'CartPole__random__0'"),
+])  # fmt: skip
+def test_a_corrupt_grid_manifest_is_refused_and_left_as_it_is(tmp_path: Path, how: str, problem: str) -> None:
+    """A grid.json that is not JSON, not an object, of another format, or with a malformed run table
+    or run entry is one ConfigError naming the file and the problem (never an AssertionError, a
+    TypeError or an AttributeError), and the file is not rewritten."""
     spec = build_spec(flags_table(["CartPole"], ["random"], 1), overrides={"iterations": 3})
     Grid.open(tmp_path / "g", spec)
     manifest = tmp_path / "g" / "grid.json"
+    text = {"not json": "not json", "a list": "[]"}.get(how) or _spoil(json.loads(manifest.read_text()), how)
     manifest.write_text(text)
-    with pytest.raises(ConfigError, match=r"grid\.json is corrupt"):
+    with pytest.raises(ConfigError, match=r"grid\.json is corrupt \(.*" + re.escape(problem)):
         Grid.open(tmp_path / "g", spec)
     assert manifest.read_text() == text
 

@@ -255,6 +255,26 @@ def execute_job(job: Job, *, llm_threads: int = 1, llm_gate: Any = None) -> Outc
 
 
 # -- the grid directory ----------------------------------------------------------------------
+def manifest_problem(doc: Any) -> str:
+    """What makes ``doc`` (a parsed ``grid.json``) unusable, or "" when it is a grid manifest.
+
+    A manifest is an object of format ``GRID_FORMAT`` with a ``grid_id`` string, an ``invocations``
+    list and a ``runs`` object whose entries each hold ``kind``, ``task``, ``method`` (strings), an
+    integer ``seed`` and a ``config`` object.
+    """
+    if not isinstance(doc, dict):
+        return "not a JSON object"
+    if doc.get("format") != GRID_FORMAT:
+        return f"format is not {GRID_FORMAT}"
+    if not isinstance(doc.get("grid_id"), str) or not isinstance(doc.get("invocations"), list) or not isinstance(doc.get("runs"), dict):
+        return "grid_id, invocations or runs missing or of the wrong type"
+    for name, entry in doc["runs"].items():
+        if not (isinstance(entry, dict) and all(isinstance(entry.get(k), str) for k in ("kind", "task", "method"))
+                and isinstance(entry.get("seed"), int) and isinstance(entry.get("config"), dict)):  # fmt: skip
+            return f"run entry {name!r} is not an object with kind, task, method, seed and config"
+    return ""
+
+
 class Grid:
     """A grid directory: opens (or creates) it, checks the spec against it, and makes jobs."""
 
@@ -290,9 +310,9 @@ class Grid:
                 stored: Any = json.loads(manifest_path.read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 stored = None
-            if not (isinstance(stored, dict) and stored.get("format") == GRID_FORMAT and isinstance(stored.get("runs"), dict)
-                    and isinstance(stored.get("invocations"), list)):  # fmt: skip
-                raise ConfigError(f"{manifest_path} is corrupt; it is not a grid this ppprops can continue")
+            problem = manifest_problem(stored)
+            if problem:
+                raise ConfigError(f"{manifest_path} is corrupt ({problem}); it is not a grid this ppprops can continue")
             manifest = stored
         for run in spec.runs:
             known = manifest["runs"].get(run.name)
