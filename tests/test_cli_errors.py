@@ -224,11 +224,14 @@ def _pendulum_policy_doc() -> dict:  # type: ignore[type-arg]
     [
         (lambda d: d.pop("action_type"), 'action_type must be "discrete" or "continuous"'),
         (lambda d: d.update(action_type="multi-binary"), 'action_type must be "discrete" or "continuous"'),
-        (lambda d: d["action"].pop("low"), "continuous action needs low and high of length n_a"),
-        (lambda d: d["action"].update(high=[2.0, 2.0]), "continuous action needs low and high of length n_a"),
-        (lambda d: d["action"].update(low=[3.0]), "low <= high"),
-        (lambda d: d["action"].update(rule="argmax"), "lacks a valid observation, action or env block"),
-        (lambda d: d.update(action_type="discrete"), "lacks a valid observation, action or env block"),
+        (lambda d: d["action"].pop("low"), "a continuous action needs numeric low and high bounds of length n_a = 1"),
+        (lambda d: d["action"].update(high=[2.0, 2.0]), "a continuous action needs numeric low and high bounds of length n_a = 1"),
+        (lambda d: d["action"].update(low=["a"]), "a continuous action needs numeric low and high bounds of length n_a = 1"),
+        (lambda d: d["action"].update(low=[3.0]), "the action bounds have low > high"),
+        (lambda d: d["action"].update(rule="argmax"), "the action block's rule must be 'clip' for action_type 'continuous'"),
+        (lambda d: d.update(action_type="discrete"), "the action block's rule must be 'argmax' for action_type 'discrete'"),
+        (lambda d: d.pop("env"), "the env block is missing or not an object"),
+        (lambda d: d.update(observation=7), "the observation block is missing or not valid"),
     ],
 )
 def test_policy_file_with_a_broken_action_block_is_one_line(capsys, tmp_path: Path, edit, needle: str) -> None:  # type: ignore[no-untyped-def]

@@ -63,6 +63,15 @@ def test_switched_off_mechanisms_are_identity() -> None:
     assert codec.scale(7.5) == 7.5
 
 
+@pytest.mark.parametrize("theta", [2.0, [1.0, 2.0], [[1.0, 2.0, 3.0]], [1.0, 2.0, 3.0, 4.0]])
+@pytest.mark.parametrize("encode_params", [True, False])
+def test_encode_refuses_a_vector_of_another_shape(theta: object, encode_params: bool) -> None:
+    """A scalar or a vector of the wrong length is an error, never broadcast into D encoded values."""
+    codec = Codec(_secrets(3, 1), encode_params=encode_params, scale_rewards=True)
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        codec.encode(np.asarray(theta))
+
+
 def test_secrets_are_fresh_positive_and_in_documented_range() -> None:
     a = Secrets.generate("x", 500)
     b = Secrets.generate("x", 500)

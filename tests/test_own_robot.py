@@ -434,7 +434,8 @@ SCRIPT = textwrap.dedent(
         except ConfigError as e:
             print(json.dumps({"error": str(e)}))
             return
-        print(json.dumps({"final": list(result.final.returns), "n": len(result.history), "status": result.status}))
+        print(json.dumps({"final": list(result.final.returns), "n": len(result.history), "status": result.status,
+                          "repr": repr(result)}))
 
     if __name__ == "__main__":
         main(sys.argv[1], int(sys.argv[2]), sys.argv[3] == "local")
@@ -454,6 +455,10 @@ def test_a_task_registered_in_main_runs_with_two_workers_and_evaluates_elsewhere
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads(res.stdout.strip().splitlines()[-1])
     assert got["n"] == 10 and got["status"] == "finished" and len(got["final"]) == 3
+    mean = sum(got["final"]) / 3
+    assert got["repr"].startswith(f"SearchResult(run_dir={str(out)!r}, task='Byor-Pos', method='cmaes', status='finished', "
+                                  "history=<10 candidates>, best_index=")  # one line, not every candidate
+    assert got["repr"].endswith(f", final={mean:.2f} over 3 episodes)") and "\n" not in got["repr"]
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     ev = _python(["-m", "ppprops", "policy", "eval", str(out / "best_policy.json"), "--episodes", "3", "--seed", "0", "--json"],

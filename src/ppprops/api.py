@@ -62,7 +62,7 @@ class Evaluation:
         return float(np.std(self.returns)) if self.returns else float("nan")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class SearchResult:
     """A run: where it is, how it ended, its best policy and every candidate it evaluated.
 
@@ -98,6 +98,13 @@ class SearchResult:
     def b(self) -> NDArray[np.float64] | None:
         """Bias of u = s @ W + b, shape (n_a,)."""
         return None if self.policy is None else self.policy.b
+
+    def __repr__(self) -> str:
+        """One line: the run, its outcome and the history's length (not every candidate)."""
+        final = "None" if self.final is None else f"{self.final.mean:.2f} over {len(self.final.returns)} episodes"
+        return (f"SearchResult(run_dir={str(self.run_dir)!r}, task={self.task!r}, method={self.method!r}, status={self.status!r}, "
+                f"history=<{len(self.history)} candidates>, best_index={self.best_index}, best_return={self.best_return}, "
+                f"final={final})")
 
 
 def _default_out(task: str, method: str, seed: int) -> Path:
@@ -304,7 +311,9 @@ def load_run(run_dir: Pathish) -> SearchResult:
 
     Raises:
         StoreError: not a run directory, or its store is damaged.
-        ConfigError: an RL baseline run (``ppprops baseline rl``): it has no search history.
+        ConfigError: an RL baseline run (``ppprops baseline rl``): it has no search history; or the
+            stored configuration names a method unknown in this process (a plugin not installed).
+        PPPropsError: the run's ``best_policy.json`` is damaged (``load_policy``).
     """
     from .loop import best_candidate
     from .store import open_store

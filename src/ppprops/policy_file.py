@@ -122,6 +122,30 @@ def policy_document(
     }
 
 
+def _format2_problem(doc: dict[str, Any], n_a: int) -> str:
+    """What is wrong with a format-2 file's observation, action or env block, or "" (read_policy)."""
+    try:
+        Selection.from_json(doc["observation"])
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return "the observation block is missing or not valid"
+    if not isinstance(doc.get("env"), dict):
+        return "the env block is missing or not an object"
+    action = doc.get("action")
+    rule = "argmax" if doc["action_type"] == "discrete" else "clip"
+    if not isinstance(action, dict) or action.get("rule") != rule:
+        return f"the action block's rule must be {rule!r} for action_type {doc['action_type']!r}"
+    if rule == "clip":
+        try:
+            low, high = (np.asarray(action[k], dtype=np.float64) for k in ("low", "high"))
+        except (KeyError, TypeError, ValueError):
+            return f"a continuous action needs numeric low and high bounds of length n_a = {n_a}"
+        if low.shape != (n_a,) or high.shape != (n_a,) or np.isnan(low).any() or np.isnan(high).any():
+            return f"a continuous action needs numeric low and high bounds of length n_a = {n_a}"
+        if (low > high).any():
+            return "the action bounds have low > high"
+    return ""
+
+
 def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     """The policy file's document and its flat theta (shape (D,)).
 
@@ -149,19 +173,9 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     if doc.get("action_type") not in ("discrete", "continuous"):
         raise PPPropsError(f"policy file {path}: action_type must be \"discrete\" or \"continuous\"")
     if doc["format"] == FORMAT:
-        try:
-            Selection.from_json(doc["observation"])
-            action = doc["action"]
-            rule = "argmax" if doc["action_type"] == "discrete" else "clip"
-            if action["rule"] != rule or not isinstance(doc["env"], dict):
-                raise ValueError
-            if rule == "clip":
-                low, high = (np.asarray(action[k], dtype=np.float64) for k in ("low", "high"))
-                if low.shape != (n_a,) or high.shape != (n_a,) or np.isnan(low).any() or np.isnan(high).any() or (low > high).any():
-                    raise ValueError
-        except (KeyError, TypeError, ValueError):
-            raise PPPropsError(f"policy file {path} lacks a valid observation, action or env block "
-                               "(a continuous action needs low and high of length n_a, low <= high)") from None  # fmt: skip
+        problem = _format2_problem(doc, n_a)
+        if problem:
+            raise PPPropsError(f"policy file {path}: {problem}")
     theta = np.concatenate([W.reshape(-1), b])
     assert theta.shape == (param_count(n_s, n_a),)
     return doc, theta

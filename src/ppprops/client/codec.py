@@ -105,12 +105,18 @@ class Codec:
 
     # -- parameters -----------------------------------------------------------------------
     def encode(self, theta: NDArray[np.floating]) -> NDArray[np.float64]:
-        """theta~ = A theta (paper Eq. 5, Sec. II-B); hardened: A (T(theta) - T(m)), clipped to +-ENCODED_LIMIT.
+        """theta~ = A theta (paper Eq. 5, Sec. II-B), clipped to +-ENCODED_LIMIT when warped.
 
-        ``theta``: raw parameters, shape (D,). Returns the encoded vector, shape (D,), float64. The
-        identity when ``encode_params`` is off.
+        With secret offsets m (``pp-hardened``) it is A (theta - m), and with the parameter warp T
+        as well A (T(theta) - T(m)) (docs/threat-model.md). ``theta``: raw parameters, shape (D,).
+        Returns the encoded vector, shape (D,), float64. The identity when ``encode_params`` is off.
+
+        Raises:
+            ValueError: ``theta`` is not of shape (D,).
         """
         x = np.asarray(theta, dtype=np.float64)
+        if x.shape != self._a.shape:
+            raise ValueError(f"theta has shape {x.shape}; the codec encodes vectors of shape {self._a.shape}")
         if self.warp_params:
             return np.clip(self._a * (self._t(x) - self._m_t), -ENCODED_LIMIT, ENCODED_LIMIT)
         return self._a * (x - self._m)

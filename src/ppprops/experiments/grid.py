@@ -34,13 +34,17 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import ConfigError, PPPropsError, StoreError
 from ..fileio import write_json_atomic
 from .spec import RL, ExperimentSpec, PlannedRun
+
+if TYPE_CHECKING:
+    from ..client.secrets import Secrets
+    from ..config import RunConfig
 
 MASTER_KEY = "master.key"
 MANIFEST = "grid.json"
@@ -100,9 +104,13 @@ def derived_rng(master_key: bytes, name: str) -> np.random.Generator:
     return np.random.default_rng(int.from_bytes(digest, "big"))
 
 
-def derive_secrets(master_key: bytes, name: str, config: Any) -> Any:
+def derive_secrets(master_key: bytes, name: str, config: RunConfig) -> Secrets:
     """The run's secrets, drawn by ``client.hardening.generate_secrets`` (the one routine runs use
-    too) from a generator keyed by the master key and the run's name instead of the OS."""
+    too) from a generator keyed by the master key and the run's name instead of the OS.
+
+    Raises:
+        ConfigError, UnknownTaskError: the run's task cannot be built here (``RunConfig.make_task``).
+    """
     from ..client.hardening import generate_secrets
 
     return generate_secrets(name, config.make_task(), config, rng=derived_rng(master_key, name))

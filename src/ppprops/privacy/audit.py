@@ -720,7 +720,13 @@ def _num(v: object) -> float:
 
 
 def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
-    """The configuration of a prompted search run; anything else (an RL baseline) is a StoreError."""
+    """The configuration of a prompted search run.
+
+    Raises:
+        StoreError: not a prompted search run (an RL baseline).
+        ConfigError: the stored configuration names a method or task this process does not know (a
+            method from a plugin that is not installed here).
+    """
     if "mechanisms" not in stored:
         raise StoreError(f"{run_dir} is not a prompted search run (no mechanisms in its configuration)")
     return RunConfig.from_json(stored)
@@ -736,19 +742,17 @@ def audit_run(run_dir: Path) -> AuditReport:
     Raises:
         StoreError: ``run_dir`` is not a directory, holds no readable store, or is not a prompted
             search run (an RL baseline).
+        ConfigError: its configuration names a method or task unknown here (``search_config``).
     """
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise StoreError(f"{run_dir} is not a directory")
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         config = search_config(store.config(), run_dir)
         candidates = store.candidates()
         calls = store.llm_calls()
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         run_id, fingerprint = store.run_id(), store.key_fingerprint()
-    finally:
-        store.close()
     secrets = None
     if (run_dir / "secrets.key").exists():
         try:

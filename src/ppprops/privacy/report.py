@@ -67,16 +67,13 @@ def _rel(est: float | np.ndarray, true: float | np.ndarray) -> Any:
 def analyse_run(run_dir: Path) -> RunAnalysis:
     """Attacks on one run's transcript, scored against its key file; plus its search result."""
     run_dir = Path(run_dir)
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         config = search_config(store.config(), run_dir)
         task = config.make_task()
         secrets = Secrets.load(run_dir / "secrets.key", run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
         cands = store.candidates()
         fe = store.final_eval()
         calls = store.llm_calls()
-    finally:
-        store.close()
     m = config.mechanisms
     true_c = secrets.c if m.scale_rewards else 1.0
     true_a = np.asarray(secrets.a) if m.encode_params else np.ones(task.D)
@@ -109,11 +106,8 @@ def analyse_run(run_dir: Path) -> RunAnalysis:
 
 
 def _model_of(run_dir: Path) -> str:
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         calls = store.llm_calls()
-    finally:
-        store.close()
     try:
         if calls[0]["response"] is None and calls[0]["ok"]:
             return "offline stand-in (EchoOptimizer)"  # it answers without an HTTP response body

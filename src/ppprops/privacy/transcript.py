@@ -62,10 +62,7 @@ def load_requests(run_dir: Path) -> list[Request]:
     """Every recorded request of a run, in the order sent."""
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
-    store = open_store(run_dir)
-    try:
+    with open_store(run_dir) as store:
         calls = store.llm_calls()
-    finally:
-        store.close()
     return [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"))
             for c in calls]
