@@ -54,6 +54,23 @@ def _llm_use(run_dir: Path, summary: dict[str, Any]) -> dict[str, float]:
     }
 
 
+def _steps(run_dir: Path, warmup: int) -> dict[str, float]:
+    """How far the search-phase proposals go from the best policy found before them, and how often
+    they beat it: the median RMS per coordinate of theta - theta_best (raw units; the box is 12
+    wide), and the number of new bests after the warm-up."""
+    import numpy as np
+
+    from ppprops.store import open_store
+
+    with open_store(run_dir) as store:
+        cands = store.candidates()
+    P = np.array([c.params for c in cands], dtype=np.float64)
+    R = np.array([c.ret for c in cands], dtype=np.float64)
+    steps = [float(np.linalg.norm(P[i] - P[int(np.argmax(R[:i]))]) / np.sqrt(P.shape[1])) for i in range(warmup, len(R))]
+    return {"step": statistics.median(steps) if steps else float("nan"),
+            "new_bests": float(sum(R[i] > R[:i].max() for i in range(warmup, len(R))))}
+
+
 def median_of(values: list[float]) -> str:
     return f"{statistics.median(values):.1f}" if values else "-"
 
@@ -70,7 +87,8 @@ def run(ctx: Context) -> Section:
         cmd += ["--seeds", "2", "--warmup", "3", "--iterations", "2", "--final-episodes", "2"]
     if not ctx.collect:
         subprocess.run(cmd, check=True)
-    results: dict[tuple[str, str], dict[str, list[Any]]] = defaultdict(lambda: {"best": [], "final": [], "llm": [], "seeds": []})
+    results: dict[tuple[str, str], dict[str, list[Any]]] = defaultdict(
+        lambda: {"best": [], "final": [], "llm": [], "seeds": [], "steps": []})
     dirs: dict[tuple[str, str, int], Path] = {}
     audits: dict[str, Any] = {"runs": 0, "clean": 0, "not_clean": [], "verdicts": defaultdict(int)}
     unfinished = []
@@ -84,6 +102,7 @@ def run(ctx: Context) -> Section:
         r["best"].append(s["best"]["return"])
         r["final"].append(s["final_eval"]["mean"])
         r["seeds"].append(s["seed"])
+        r["steps"].append(_steps(run_dir, int(s["config"].get("warmup", 10))))
         if s["method"] == "pp":
             r["llm"].append(_llm_use(run_dir, s))
             report = audit_run(run_dir)
@@ -155,6 +174,16 @@ def run(ctx: Context) -> Section:
              table(["task", "prompt form", "LLM candidates", "fallback candidates", "answers refused as a history repeat",
                     "requests", "mean request (s)", "prefill / decoding share of request time", "prompt tokens from the cache"],
                    use_rows)]
+    step_rows = []
+    for task in TASKS:
+        for arm, label in (*ARMS[:1], ("pp-chat", "PP-ProPS, chat form"), *ARMS[1:]):
+            r = results.get((task, arm))
+            if r and r["steps"]:
+                step_rows.append([task, label, len(r["steps"]), f"{statistics.median(x['step'] for x in r['steps']):.2f}",
+                                  f"{statistics.fmean(x['new_bests'] for x in r['steps']):.1f}"])
+    body += ["", "How far each method's proposals go from the best policy found before them (search phase only; raw "
+             "parameters, RMS per coordinate, the box [-6, 6] is 12 wide), and how often a proposal beats it:", "",
+             table(["task", "method", "seeds", "median step from the best so far", "new bests per run"], step_rows)]
     forms = []
     for task in TARGET_TASKS:
         chat, doc = results.get((task, "pp-chat")), results.get((task, "pp"))
