@@ -69,3 +69,10 @@ def recording_proxy(upstream: str) -> Iterator[tuple[str, list[bytes]]]:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def doc_block(doc: str, first_line: str) -> str:
+    """The code block of a doc page that starts with ``first_line`` (a comment naming the file), up
+    to its closing fence: the code exactly as the page shows it."""
+    start = doc.index(first_line + "\n")
+    return doc[start:doc.index("```", start)]

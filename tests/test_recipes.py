@@ -1,34 +1,35 @@
 """The recipes of docs/architecture.md, followed as written: a toy method, a toy task, a toy attack.
 
-Each test also checks that the doc still shows the code it runs (so the page and the test cannot
-drift apart), then asserts what the recipe promises: the method runs through the loop, the task
-file is searched, the attack appears in the privacy report with its error scored.
+Each test runs the code the page shows (its code blocks, written to the files they name), then
+asserts what the recipe promises in this process: the method runs through the loop, the task file
+is searched, the attack appears in the privacy report with its error scored. The same modules
+declared as ``ppprops.plugins`` entry points, in fresh processes: tests/test_plugins.py.
 """
 
 from __future__ import annotations
 
-import textwrap
+import importlib
+import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
 import ppprops
+from ppprops.cli import main
 from ppprops.client.secrets import Secrets
 from ppprops.errors import ConfigError
-from ppprops.loop import Phase
-from ppprops.methods import METHODS, Method, MethodKind, register_method
+from ppprops.methods import METHODS, Method, register_method
 from ppprops.privacy import attacks
 from ppprops.privacy.attacks import register_attack
 from ppprops.privacy.report import privacy_report
 from ppprops.privacy.simulate import offline_llm
-from ppprops.privacy.view import Estimate, View
-from ppprops.proposers.base import Proposal, clip_to_box
 from ppprops.runner import start
-from ppprops.values import Candidate
 
-from support import make_config
+from support import doc_block, make_config
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text(encoding="utf-8")
 
@@ -38,34 +39,35 @@ def _in_doc(*snippets: str) -> None:
         assert s in DOC, f"docs/architecture.md no longer shows: {s}"
 
 
+@contextmanager
+def _import_doc_module(root: Path, monkeypatch: pytest.MonkeyPatch, name: str) -> Iterator[ModuleType]:
+    """Write the page's block ``# my_ppprops/<name>.py`` into a package under ``root``, import it, and
+    forget the package afterwards (so the next test imports it afresh)."""
+    pkg = root / "my_ppprops"
+    pkg.mkdir(parents=True, exist_ok=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / f"{name}.py").write_text(doc_block(DOC, f"# my_ppprops/{name}.py"))
+    monkeypatch.syspath_prepend(str(root))
+    try:
+        yield importlib.import_module(f"my_ppprops.{name}")
+    finally:
+        for mod in ("my_ppprops", f"my_ppprops.{name}"):
+            sys.modules.pop(mod, None)
+
+
 # -- add a method ----------------------------------------------------------------------------
-class Shrink:
-    """Black box: the best policy so far, shrunk towards 0 by half each ask."""
-
-    def __init__(self, D: int, box: tuple[float, float]) -> None:
-        self.D, self.box, self.best = D, box, None
-
-    def ask(self, iteration: int) -> Proposal:
-        base = np.zeros(self.D) if self.best is None else self.best.params
-        theta, clipped = clip_to_box(0.5 * base, self.box)
-        return Proposal(theta, "shrink", clipped)
-
-    def tell(self, candidate: Candidate) -> None:
-        if self.best is None or candidate.ret > self.best.ret:
-            self.best = candidate
-
-
 @pytest.fixture
-def shrink_method() -> Iterator[Method]:
-    m = register_method(Method("shrink", MethodKind.BLACK_BOX, "shrink the best policy towards 0",
-                               iteration_unit="samples",
-                               phase=lambda s: Phase("shrink", Shrink(s.task.D, s.config.box), s.config.iterations)))  # fmt: skip
-    yield m
-    del METHODS["shrink"]
+def shrink_method(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Method]:
+    assert "shrink" not in METHODS
+    try:
+        with _import_doc_module(tmp_path / "src", monkeypatch, "shrink"):  # registers "shrink" on import
+            yield METHODS["shrink"]
+    finally:
+        METHODS.pop("shrink", None)
 
 
 def test_recipe_add_a_method(shrink_method: Method, tmp_path: Path) -> None:
-    _in_doc("class Shrink:", "register_method(Method(\"shrink\", MethodKind.BLACK_BOX", 'ppprops.search(task, method="shrink")')
+    _in_doc('ppprops.search(task, method="shrink")', '[project.entry-points."ppprops.plugins"]\nshrink = "my_ppprops.shrink"')
     result = ppprops.search("CartPole", method="shrink", warmup=4, iterations=3, final_episodes=0, seed=1, out=tmp_path / "r")
     assert result.status == "finished"
     sources = [c.source for c in result.history]
@@ -75,40 +77,23 @@ def test_recipe_add_a_method(shrink_method: Method, tmp_path: Path) -> None:
         before = result.history[:i]
         best = max(before, key=lambda c: c.ret)  # ties: the first, as Shrink.tell keeps it
         np.testing.assert_allclose(result.history[i].params, np.clip(0.5 * best.params, -6.0, 6.0))
+    # ppprops run --method shrink in the same process (the CLI's main, not a shell)
+    out = tmp_path / "cli"
+    code = main(["run", "--env", "CartPole", "--method", "shrink", "--warmup", "2", "--iterations", "2",
+                             "--final-episodes", "0", "--out", str(out), "--quiet"])  # fmt: skip
+    assert code == 0 and [c.source for c in ppprops.load_run(out).history] == ["warmup"] * 2 + ["shrink"] * 2
     with pytest.raises(ConfigError, match="already registered"):
         register_method(shrink_method)
 
 
 # -- add a task ------------------------------------------------------------------------------
-DRIFT_ENV = '''
-import gymnasium as gym
-import numpy as np
-
-
-class Drift(gym.Env):
-    """A point on a line moves 0.1 left (action 0) or right (1); reward -|x| per step."""
-
-    def __init__(self):
-        self.observation_space = gym.spaces.Box(-10.0, 10.0, (1,), dtype=np.float64)
-        self.action_space = gym.spaces.Discrete(2)
-        self.x = 0.0
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.x = float(self.np_random.uniform(-1.0, 1.0))
-        return np.array([self.x]), {}
-
-    def step(self, action):
-        self.x += 0.1 if int(action) == 1 else -0.1
-        return np.array([self.x]), -abs(self.x), False, False, {"distance": abs(self.x)}
-'''
 
 
 def test_recipe_add_a_task(tmp_path: Path) -> None:
     start_, end = DOC.index("# drift.toml, next to drift_env.py"), DOC.index("```", DOC.index("# drift.toml"))
     toml = DOC[start_:end]  # the task file exactly as the doc shows it
     _in_doc('ppprops.search("drift.toml", method="random")')
-    (tmp_path / "drift_env.py").write_text(textwrap.dedent(DRIFT_ENV))
+    (tmp_path / "drift_env.py").write_text(doc_block(DOC, "# drift_env.py, next to drift.toml"))  # the env the page shows
     (tmp_path / "drift.toml").write_text(toml)
     result = ppprops.search(tmp_path / "drift.toml", method="random", warmup=3, iterations=4, final_episodes=2, seed=0,
                             out=tmp_path / "run")  # fmt: skip
@@ -125,24 +110,20 @@ def test_recipe_add_a_task(tmp_path: Path) -> None:
 
 
 # -- add a privacy attack --------------------------------------------------------------------
-def return_per_step(v: View) -> Estimate:
-    """c = printed return / episode_length (CartPole pays 1 per step)."""
-    ratios = [e.ret / float(e.diagnostics["episode_length"]) for e in v.entries
-              if e.diagnostics.get("episode_length", "").replace(".", "").isdigit()]  # fmt: skip
-    if not ratios:
-        return Estimate("return-per-step", "c", None, "no episode_length shown")
-    return Estimate("return-per-step", "c", float(np.median(ratios)), f"{len(ratios)} entries")
-
-
 @pytest.fixture
-def toy_attack() -> Iterator[None]:
-    register_attack("return-per-step", "c", return_per_step)
-    yield
-    del attacks.ATTACKS["return-per-step"], attacks.TARGET["return-per-step"]
+def toy_attack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[ModuleType]:
+    assert "return-per-step" not in attacks.ATTACKS
+    try:
+        with _import_doc_module(tmp_path / "src", monkeypatch, "attacks") as module:  # registers "return-per-step" on import
+            yield module
+    finally:
+        attacks.ATTACKS.pop("return-per-step", None)
+        attacks.TARGET.pop("return-per-step", None)
 
 
-def test_recipe_add_a_privacy_attack(toy_attack: None, tmp_path: Path) -> None:
-    _in_doc("def return_per_step(v):", 'register_attack("return-per-step", "c", return_per_step)')
+def test_recipe_add_a_privacy_attack(toy_attack: ModuleType, tmp_path: Path) -> None:
+    _in_doc('[project.entry-points."ppprops.plugins"]\nreturn-per-step = "my_ppprops.attacks"')
+    assert attacks.TARGET["return-per-step"] == "c" and attacks.ATTACKS["return-per-step"] is toy_attack.return_per_step
     c = 3.7
     secrets = Secrets(run_id="recipe", a=np.exp(np.random.default_rng(0).uniform(-2.3, 2.3, 10)), c=c)
     out = tmp_path / "run"
@@ -154,7 +135,9 @@ def test_recipe_add_a_privacy_attack(toy_attack: None, tmp_path: Path) -> None:
     assert analyses[0].applicable["return-per-step"]
     # CartPole's return is its episode length, so the estimate is c up to the printed rounding
     assert err < 0.01
-    with pytest.raises(ValueError, match="already registered"):
-        register_attack("return-per-step", "c", return_per_step)
-    with pytest.raises(ValueError, match="'c' or 'a'"):
-        register_attack("other", "x", return_per_step)
+    # the same error type as register_method's
+    with pytest.raises(ConfigError, match="already registered"):
+        register_attack("return-per-step", "c", toy_attack.return_per_step)
+    with pytest.raises(ConfigError, match="'c' or 'a'"):
+        register_attack("other", "x", toy_attack.return_per_step)
+    assert "other" not in attacks.ATTACKS

@@ -284,7 +284,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except PPPropsError as e:  # a plugin that fails to load while --method is checked (ppprops.plugins)
+        print(f"ppprops: error: {e}", file=sys.stderr)
+        return EXIT_INPUT
     if getattr(args, "config", None) is not None and args.command == "run":
         try:
             _read_config_file(args, args.config)

@@ -18,7 +18,7 @@ import functools
 import json
 import math
 import tomllib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import asdict
 from dataclasses import dataclass as plain_dataclass
 from pathlib import Path
@@ -67,7 +67,10 @@ class Flag:
         hint: added to a bound error in parentheses (``the history starts from it``).
         default_text: the default as help shows it, when the field's own default does not say it.
         repeatable: a list given by repeating the flag (``--component a --component b``).
-        choices: the allowed values, for a string field whose choices are known only at run time.
+        choices: the allowed values, for a string field whose choices are known only at run time;
+            a collection other than a list is lazy (``methods.MethodChoices``: the plugins' methods
+            are listed when a name is not found), and the flag then shows ``metavar`` (default the
+            key in capitals) instead of the choices, which only ``--help`` lists.
     """
 
     help: str
@@ -77,7 +80,7 @@ class Flag:
     hint: str = ""
     default_text: str | None = None
     repeatable: bool = False
-    choices: Callable[[], Sequence[str]] | None = None
+    choices: Callable[[], Collection[str]] | None = None
 
 
 # -- values as users write them -------------------------------------------------------------------

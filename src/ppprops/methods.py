@@ -11,17 +11,21 @@ black-box optimizer at the same budget, or an RL baseline), its mechanisms, its 
 settings it refuses, and how its search phase is built (a builder in ``ppprops.strategies``, or
 any callable). The CLI, the experiment specs, the runner and the reports ask it instead of keeping
 lists of their own. Adding a method is one ``Method`` entry here (or ``register_method`` from
-outside), plus, for a search, one phase builder. docs/architecture.md has the recipe.
+outside), plus, for a search, one phase builder. ``register_method`` changes this process's
+registry only; an installed package makes its methods known to every process (a CLI in a shell,
+``ppprops show``, a grid's runs) through the ``ppprops.plugins`` entry points, loaded the first
+time a name is not found here (``ppprops.plugins``). docs/architecture.md has the recipe.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import MISSING, asdict, dataclass, fields, replace
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
 from .errors import ConfigError
+from .plugins import load_plugins
 
 if TYPE_CHECKING:
     from .baselines.algorithms import Algorithm
@@ -300,11 +304,15 @@ METHODS: dict[str, Method] = {
 
 
 def register_method(method: Method) -> Method:
-    """Add ``method`` to the registry (after the built-in ones) and return it.
+    """Add ``method`` to this process's registry (after the built-in ones) and return it.
 
-    From then on ``--method``, ``ppprops.search(method=...)``, the experiment specs and the reports
-    know it. A search method needs a ``phase``. Raises ConfigError if the name is taken or a search
-    method has no phase builder.
+    From then on ``--method`` (of ``ppprops.cli.main`` called in this process),
+    ``ppprops.search(method=...)``, the experiment specs and the reports of this process know it.
+    Another process (a shell's ``ppprops run``, ``ppprops show RUN``, the runs of a grid) knows it
+    only if it registers it too: call this from a module named by a ``ppprops.plugins`` entry point
+    of an installed package (``ppprops.plugins``; docs/architecture.md, "Recipe: add a method").
+    A search method needs a ``phase``. Raises ConfigError if the name is taken or a search method
+    has no phase builder.
     """
     if method.name in METHODS:
         raise ConfigError(f"a method named {method.name!r} is already registered")
@@ -315,25 +323,64 @@ def register_method(method: Method) -> Method:
 
 
 def methods(kind: MethodKind | None = None, *, search: bool | None = None) -> Iterator[Method]:
-    """The registered methods in table order, optionally of one kind, or only searches (``search=True``)."""
+    """The methods registered so far, in table order, optionally of one kind, or only searches
+    (``search=True``). Plugins not yet loaded are not listed (``search_method_names`` loads them)."""
     for m in METHODS.values():
         if (kind is None or m.kind is kind) and (search is None or m.is_search == search):
             yield m
 
 
-def search_method_names() -> list[str]:
-    """The ``ppprops run --method`` choices."""
-    return [m.name for m in methods(search=True)]
+class MethodChoices(Collection[str]):
+    """The ``ppprops run --method`` choices: every search method, the plugins' included.
+
+    A membership test of a registered name (``"pp" in choices``) loads no plugin; a name not yet
+    registered, ``len`` and iteration load the plugins first (``ppprops.plugins.load_plugins``),
+    so a command line naming a built-in method never scans the installed packages. Raises
+    ConfigError, as ``load_plugins`` does, when a plugin fails to load.
+    """
+
+    def __contains__(self, name: object) -> bool:
+        if not isinstance(name, str):
+            return False
+        m = find_method(name)
+        return m is not None and m.is_search
+
+    def __iter__(self) -> Iterator[str]:
+        load_plugins()
+        return iter([m.name for m in methods(search=True)])
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def __bool__(self) -> bool:
+        return True  # the built-in methods are always there; no plugin load to say so
+
+    def __repr__(self) -> str:
+        return f"MethodChoices({list(self)!r})"
+
+
+def search_method_names() -> MethodChoices:
+    """The ``ppprops run --method`` choices, the plugins' methods included (a lazy ``MethodChoices``)."""
+    return MethodChoices()
 
 
 def find_method(name: str) -> Method | None:
-    """The method a run stores as ``name`` (``rl-<algo>`` for RL baselines), or None if unknown."""
-    return METHODS.get(name)
+    """The method a run stores as ``name`` (``rl-<algo>`` for RL baselines), or None if unknown.
+
+    A name not registered in this process loads the ``ppprops.plugins`` entry points once
+    (``ppprops.plugins.load_plugins``) before it counts as unknown. Raises ConfigError when a
+    plugin fails to load.
+    """
+    m = METHODS.get(name)
+    if m is None:
+        load_plugins()
+        m = METHODS.get(name)
+    return m
 
 
 def get_method(name: str) -> Method:
     """Like ``find_method``; an unknown name is a ConfigError listing the choices."""
-    m = METHODS.get(name)
+    m = find_method(name)
     if m is None:
         raise ConfigError(f"unknown method {name!r}; choose one of {', '.join(search_method_names())} "
                           f"(RL baselines: ppprops baseline rl --algo {'|'.join(rl_algos())})")  # fmt: skip

@@ -23,7 +23,7 @@ import difflib
 import functools
 import types
 import typing
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -120,10 +120,11 @@ class Setting:
         parse.__name__ = self.key
         return parse
 
-    def choices(self) -> list[str] | None:
-        """The allowed values of a choice setting (a ``Literal`` field, or ``Flag.choices``)."""
+    def choices(self) -> Collection[str] | None:
+        """The allowed values of a choice setting (a ``Literal`` field: a list; ``Flag.choices``: its
+        collection as it is, which may be lazy, like the ``--method`` choices of ``methods.MethodChoices``)."""
         if self.info.choices is not None:
-            return list(self.info.choices())
+            return self.info.choices()
         literal = _literal(self.annotation)
         return list(literal) if literal else None
 
@@ -212,6 +213,9 @@ def add_flags(parser: argparse.ArgumentParser | argparse._ArgumentGroup, *, excl
             kw["action"] = "append"
         elif choices is not None:
             kw["choices"] = choices
+            if not isinstance(choices, list):  # lazy (plugins): argparse would list it when the flag is added
+                kw.setdefault("metavar", s.key.upper())
+                kw["help"] += " (one of: %(choices)s)"
         else:
             kw["type"] = s.parse_flag()
         target.add_argument(s.flag, **kw)

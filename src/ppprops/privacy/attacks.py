@@ -31,6 +31,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from .. import seeding
+from ..errors import ConfigError
+from ..plugins import load_plugins
 from ..proposers.llm import FALLBACK_SIGMA
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
 from .tokens import token_value
@@ -340,22 +342,30 @@ assert TARGET.keys() == ATTACKS.keys()
 
 
 def register_attack(name: str, target: str, attack: Callable[[View], Estimate]) -> None:
-    """Add ``attack`` to every privacy report (``ppprops privacy-report``, ``run_attacks``).
+    """Add ``attack`` to every privacy report of this process (``ppprops privacy-report``, ``run_attacks``).
 
     ``attack(view)`` reads only the provider's view of one transcript (``privacy.view.View``) and
     returns an ``Estimate`` named ``name`` of the secret ``target``: ``"c"`` (a float) or ``"a"``
     (an array of shape (D,), NaN where not estimated), or ``value=None`` when it finds nothing.
-    Raises ValueError for a taken name or another target.
+    Another process (a shell's ``ppprops privacy-report``) runs it only if it registers it too:
+    call this from a module named by a ``ppprops.plugins`` entry point of an installed package
+    (``ppprops.plugins``; docs/architecture.md, "Recipe: add a privacy attack").
+    Raises ConfigError (as ``methods.register_method`` does) for a taken name or another target.
     """
     if name in ATTACKS:
-        raise ValueError(f"an attack named {name!r} is already registered")
+        raise ConfigError(f"an attack named {name!r} is already registered")
     if target not in ("c", "a"):
-        raise ValueError(f"an attack estimates 'c' or 'a', not {target!r}")
+        raise ConfigError(f"an attack estimates 'c' or 'a', not {target!r}")
     ATTACKS[name] = attack
     TARGET[name] = target
 
 
 def run_attacks(requests: Sequence[Request], task: str, box: tuple[float, float]) -> list[Estimate]:
-    """Every registered attack on one transcript (the recorded request bodies), in registry order."""
+    """Every registered attack on one transcript (the recorded request bodies), in registry order.
+
+    Loads the ``ppprops.plugins`` entry points first (once per process), so the attacks of
+    installed plugins run too. Raises ConfigError when a plugin fails to load.
+    """
+    load_plugins()
     v = view_of(requests, task, box)
     return [f(v) for f in ATTACKS.values()]
