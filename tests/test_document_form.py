@@ -223,12 +223,11 @@ def test_audit_flags_a_raw_return_or_a_wrong_target_in_a_document(run_dir: Path,
 
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)
-    store = open_store(copy)
-    try:
+    with open_store(copy) as store:
         call = store.llm_calls()[-1]
-        best_raw = max(c.ret for c in store.candidates())
-    finally:
-        store.close()
+        # a raw return the audit must call raw_return: not the optimum (500), which it names as such
+        optimum = RunConfig.from_json(store.config()).make_task().optimal_return
+        best_raw = max(c.ret for c in store.candidates() if c.ret != optimum)
     body = json.loads(call["request"])
     at, tok = open_target(body["prompt"])  # type: ignore[misc]
     new = f"{best_raw:.2f}" if tamper == "raw_return" else f"{float(tok) + 1.0:.2f}"
