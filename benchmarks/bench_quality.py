@@ -201,7 +201,7 @@ def run(ctx: Context) -> Section:
     sent_ok = audits["runs"] - len(audits["not_clean"])
     body += ["", f"- `ppprops audit` on the {audits['runs']} pp runs: {verdicts or 'none'}. "
              f"{sent_ok} of {audits['runs']} sent no raw value and nothing the audit cannot account for"
-             + ("." if not audits["not_clean"] else "; not: " + "; ".join(audits["not_clean"]))
+             + ("." if not audits["not_clean"] else "; not: " + "; ".join(audits["not_clean"]) + ".")
              + (" EXPOSED is the verdict on the channels the paper's scheme keeps under `pp` (integer-return lattice, "
                 "diagnostics, caps, small run seeds; docs/threat-model.md), which only `pp-hardened` closes; the prompt form "
                 "changes none of them." if audits["verdicts"].get("EXPOSED") else "")]

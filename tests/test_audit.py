@@ -39,8 +39,12 @@ def shown_vector(values: object) -> str:
     return fmt_vector(list(values), 2, digits=3, sep=",")  # type: ignore[call-overload]
 
 
-def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False, **settings: object) -> Path:
-    """12 candidates (6 warm-up, then one request and one answer each), CartPole-like feedback with components."""
+def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool = False, repeat: tuple[int, int] | None = None,
+              **settings: object) -> Path:
+    """12 candidates (6 warm-up, then one request and one answer each), CartPole-like feedback with components.
+
+    ``repeat=(i, j)``: candidate j is candidate i's policy again, with the same return but an episode
+    that ended another way (as when the LLM proposes a policy a second time)."""
     task = get_task("CartPole")
     cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3, **settings)
     run_dir = root / (name or method)
@@ -57,11 +61,18 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
     client = ChatClient(cfg.llm, base_url="http://127.0.0.1:9/v1", model=MODEL_ALIAS, api_key="x", grammar_ok=True)  # the real body
     rng = np.random.default_rng(5)
     entries = []
+    thetas: list[np.ndarray] = []
+    rets: list[float] = []
     for i in range(12):
         theta = rng.uniform(-6, 6, task.D)
         r = float(rng.integers(8, 200))
+        end = "pole_fell"
+        if repeat is not None and i == repeat[1]:
+            theta, r, end = thetas[repeat[0]], rets[repeat[0]], "out_of_bounds"
+        thetas.append(theta)
+        rets.append(r)
         fb = Feedback(ret=r, components={"alive": r, "ctrl": round(-0.37 * (i + 1), 4)},
-                      diagnostics={"episode_length": r, "termination": "pole_fell"}, episode_returns=(r,))
+                      diagnostics={"episode_length": r, "termination": end}, episode_returns=(r,))
         enc = encode_feedback(codec, fb)
         c = Candidate(i, i if i < 6 else i - 6, "warmup" if i < 6 else "llm", theta, codec.encode(theta), fb, enc, 0, (i,))
         if i >= 6:  # the request that produced candidate i shows the history so far
@@ -279,3 +290,20 @@ def test_cli_audit_exit_codes_and_the_self_audit_after_a_run(tmp_path: Path, cap
 def test_a_directory_without_a_search_is_an_input_error(tmp_path: Path) -> None:
     with pytest.raises(StoreError):
         audit_run(tmp_path)
+
+
+@pytest.mark.parametrize("method", ["pp", "df"])
+def test_a_policy_evaluated_twice_is_matched_by_every_printed_field(tmp_path: Path, method: str) -> None:
+    """The LLM may propose a policy again: two candidates share the parameters and the return but not
+    the episode's diagnostics. Each printed entry is the candidate whose fields it prints, so the
+    audit accounts for both (it used to take the first for both and flag the second's diagnostics)."""
+    run = build_run(tmp_path, method, repeat=(2, 9))
+    _, text = _last_request(run)
+    with open_store(run) as store:
+        cands = store.candidates()
+    assert text.count(shown_vector(cands[2].params_enc)) == 2  # both entries are in the last prompt
+    assert "termination=out_of_bounds" in text and "termination=pole_fell" in text
+    report = audit_run(run)
+    assert not report.unverified and not [f for f in report.leaks if not f.by_design], report.format()
+    plant(run, "termination=out_of_bounds", "termination=pole_flew")  # a field neither candidate has is still caught
+    assert audit_run(run).unverified

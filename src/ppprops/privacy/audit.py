@@ -233,7 +233,14 @@ class _Auditor:
             self.finding("unverified", kind, f"{label} is neither its raw nor its encoded value", where)
 
     # -- one history entry --------------------------------------------------------------------
-    def match(self, vals: np.ndarray, tols: np.ndarray, ret_tok: str) -> tuple[int | None, str]:
+    def match(self, vals: np.ndarray, tols: np.ndarray, shown: ShownEntry | None = None) -> tuple[int | None, str]:
+        """The candidate whose parameters (encoded, else raw) the printed ``vals`` show, and which.
+
+        A policy evaluated more than once (the LLM proposed it again) matches several candidates
+        whose returns and diagnostics differ with the episode: among them, the one whose return,
+        components and diagnostics, as printed in ``shown``, are its own (raw or encoded), else the
+        one whose return is, else the first.
+        """
         if not self.cands or vals.shape[0] != self.enc.shape[1]:
             return None, ""
         need = math.ceil(vals.shape[0] / 2)
@@ -242,14 +249,31 @@ class _Auditor:
             best = int(score.max())
             if best < need:
                 continue
-            tied = [i for i in np.flatnonzero(score == best)]
-            rv = token_value(ret_tok)
-            for i in tied:  # among equal params (a repeated policy), the one whose return was printed
-                c = self.cands[i]
-                if rv is not None and (renders(c.feedback_enc.ret, *rv) or renders(c.ret, *rv)):
-                    return int(i), name
-            return int(tied[0]), name
+            tied = [int(i) for i in np.flatnonzero(score == best)]
+            if shown is not None and len(tied) > 1:
+                fits = [i for i in tied if self._fields_fit(self.cands[i], shown)]
+                ret_fits = [i for i in tied if self._fits(shown.ret, self.cands[i].ret, self.cands[i].feedback_enc.ret)]
+                return (fits or ret_fits or tied)[0], name
+            return tied[0], name
         return None, ""
+
+    @staticmethod
+    def _fits(tok: str, raw: object, enc: object) -> bool:
+        """The printed ``tok`` renders the raw or the encoded value (a word: is it, as printed)."""
+        parsed = token_value(tok)
+        if parsed is None:
+            return any(x is not None and tok == str(x) for x in (raw, enc))
+        return any(isinstance(x, (int, float)) and renders(float(x), *parsed) for x in (raw, enc))
+
+    def _fields_fit(self, c: Candidate, shown: ShownEntry) -> bool:
+        """Every printed scalar of ``shown`` (return, components, diagnostics) is ``c``'s own."""
+        if not self._fits(shown.ret, c.ret, c.feedback_enc.ret):
+            return False
+        for key, tok in shown.components:
+            if not self._fits(tok, c.feedback.components.get(key), c.feedback_enc.components.get(key)):
+                return False
+        return all(self._fits(tok, c.feedback.diagnostics.get(key), c.feedback_enc.diagnostics.get(key))
+                   for key, tok in shown.diagnostics)
 
     def entry(self, req: Request, k: int, e: ShownEntry) -> Candidate | None:
         """Check one shown entry; returns the candidate it shows, or None if it matches none."""
@@ -260,7 +284,7 @@ class _Auditor:
             return None
         vals = np.array([p[0] for p in parsed if p is not None])
         tols = np.array([p[1] for p in parsed if p is not None])
-        idx, how = self.match(vals, tols, e.ret)
+        idx, how = self.match(vals, tols, e)
         if idx is None:
             self.finding("unverified", "entry", "history entry that matches no evaluated candidate", where)
             return None
@@ -609,7 +633,7 @@ class _Auditor:
             if toks and all(t is not None for t in toks):
                 vals = np.array([t[0] for t in toks if t])
                 tols = np.array([t[1] for t in toks if t])
-                idx, _ = self.match(vals, tols, "")
+                idx, _ = self.match(vals, tols)
                 c = self.cands[idx] if idx is not None else None
         if c is None:
             self.free(text, "a critic prompt whose candidate matches no evaluated candidate", req.where)
