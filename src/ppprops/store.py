@@ -131,7 +131,7 @@ class RunStore:
         except sqlite3.Error as e:
             raise StoreError(f"run store {self.path} cannot be opened ({e})") from None
         try:
-            self._db.execute("PRAGMA journal_mode=WAL")
+            self._wal()
             self._db.execute("PRAGMA synchronous=NORMAL")
             with self._tx() as db:  # one writer creates or migrates; the others wait for it
                 self._create_or_migrate(db)
@@ -141,6 +141,22 @@ class RunStore:
         except sqlite3.DatabaseError as e:
             self._db.close()
             raise StoreError(f"run store {self.path} is not a readable SQLite database ({e})") from None
+
+    def _wal(self) -> None:
+        """Switch the store to WAL mode, waiting up to BUSY_TIMEOUT_S while another process holds the
+        lock: SQLite may answer this pragma "database is locked" at once, without its busy handler,
+        while another connection creates the file or recovers its WAL index."""
+        deadline = time.monotonic() + BUSY_TIMEOUT_S
+        delay = 0.005
+        while True:
+            try:
+                self._db.execute("PRAGMA journal_mode=WAL")
+                return
+            except sqlite3.OperationalError as e:
+                if "locked" not in str(e) and "busy" not in str(e) or time.monotonic() >= deadline:
+                    raise
+            time.sleep(delay)
+            delay = min(delay * 2, 0.2)
 
     def _create_or_migrate(self, db: sqlite3.Connection) -> None:
         for stmt in _SCHEMA.split(";"):
