@@ -24,10 +24,12 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from _common import Context, Section, llm_calls, mean_std, table, timings
 
 from ppprops.privacy.audit import audit_run
 from ppprops.report import run_summary
+from ppprops.store import open_store
 
 SPEC = Path(__file__).with_name("quality.toml")
 ARMS = (("pp", "PP-ProPS (embedded Gemma 3 270M)"), ("random", "random search"), ("cmaes", "CMA-ES"))
@@ -58,10 +60,6 @@ def _steps(run_dir: Path, warmup: int) -> dict[str, float]:
     """How far the search-phase proposals go from the best policy found before them, and how often
     they beat it: the median RMS per coordinate of theta - theta_best (raw units; the box is 12
     wide), and the number of new bests after the warm-up."""
-    import numpy as np
-
-    from ppprops.store import open_store
-
     with open_store(run_dir) as store:
         cands = store.candidates()
     P = np.array([c.params for c in cands], dtype=np.float64)

@@ -250,10 +250,8 @@ class _Auditor:
             if best < need:
                 continue
             tied = [int(i) for i in np.flatnonzero(score == best)]
-            if shown is not None and len(tied) > 1:
-                fits = [i for i in tied if self._fields_fit(self.cands[i], shown)]
-                ret_fits = [i for i in tied if self._fits(shown.ret, self.cands[i].ret, self.cands[i].feedback_enc.ret)]
-                return (fits or ret_fits or tied)[0], name
+            if shown is not None and len(tied) > 1:  # max keeps the first of equal ranks
+                return max(tied, key=lambda i: self._rank(self.cands[i], shown)), name
             return tied[0], name
         return None, ""
 
@@ -265,15 +263,14 @@ class _Auditor:
             return any(x is not None and tok == str(x) for x in (raw, enc))
         return any(isinstance(x, (int, float)) and renders(float(x), *parsed) for x in (raw, enc))
 
-    def _fields_fit(self, c: Candidate, shown: ShownEntry) -> bool:
-        """Every printed scalar of ``shown`` (return, components, diagnostics) is ``c``'s own."""
-        if not self._fits(shown.ret, c.ret, c.feedback_enc.ret):
-            return False
-        for key, tok in shown.components:
-            if not self._fits(tok, c.feedback.components.get(key), c.feedback_enc.components.get(key)):
-                return False
-        return all(self._fits(tok, c.feedback.diagnostics.get(key), c.feedback_enc.diagnostics.get(key))
-                   for key, tok in shown.diagnostics)
+    def _rank(self, c: Candidate, shown: ShownEntry) -> tuple[bool, bool]:
+        """(every printed scalar of ``shown`` is ``c``'s own, its printed return is): the higher, the likelier ``c``."""
+        ret = self._fits(shown.ret, c.ret, c.feedback_enc.ret)
+        rest = all(self._fits(tok, c.feedback.components.get(key), c.feedback_enc.components.get(key))
+                   for key, tok in shown.components) and all(
+                   self._fits(tok, c.feedback.diagnostics.get(key), c.feedback_enc.diagnostics.get(key))
+                   for key, tok in shown.diagnostics)  # fmt: skip
+        return ret and rest, ret
 
     def entry(self, req: Request, k: int, e: ShownEntry) -> Candidate | None:
         """Check one shown entry; returns the candidate it shows, or None if it matches none."""
