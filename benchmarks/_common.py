@@ -29,6 +29,7 @@ from ppprops.llm.client import ChatClient
 from ppprops.methods import resolve
 from ppprops.proposers.llm import LLMProposer
 from ppprops.runner import chat_client, load_run, start
+from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -147,10 +148,10 @@ def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **ove
     finally:
         store.close()
     task = cfg.make_task()
-    codec = codec_for(secrets, task, cfg)
+    codec = codec_for(secrets, task, cfg.encoding)
     k = cfg.top_k if top_k is None else top_k
-    ctx = replace(prompt_context(task, cfg, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
-    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, seed=cfg.seed, form=form), cands  # type: ignore[arg-type]
+    ctx = replace(prompt_context(task, cfg.prompt, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
+    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, streams=Streams(cfg.seed), form=form), cands  # type: ignore[arg-type]
 
 
 def replay_prompts(run_dir: Path, form: str = "chat", **overrides: Any) -> list[tuple[int, str]]:

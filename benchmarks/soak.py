@@ -78,7 +78,7 @@ def _proposal_checks(out: Path, answers: list[list[float]]) -> tuple[int, int, i
         cands = store.candidates()
     finally:
         store.close()
-    codec = codec_for(secrets, config.make_task(), config)
+    codec = codec_for(secrets, config.make_task(), config.encoding)
 
     def printed(v: np.ndarray) -> str:
         if config.prompt_params == "list":

@@ -19,7 +19,7 @@ import ppprops
 out = sys.argv[1] if len(sys.argv) > 1 else "runs/example"
 iterations = int(os.environ.get("PPPROPS_EXAMPLE_ITERATIONS", "10"))
 
-result = ppprops.search("CartPole", method="pp", warmup=10, iterations=iterations, final_episodes=10, seed=0, out=out)
+result = ppprops.search("CartPole", method="pp", warmup=10, iterations=iterations, seed=0, out=out, evaluation={"final_episodes": 10})
 print(f"{result.task} {result.method}: {len(result.history)} candidates, best search return {result.best_return:.1f}, "
       f"final {result.final.mean:.1f} over {len(result.final.returns)} fresh episodes")
 

@@ -37,7 +37,7 @@ def case_config(name: str) -> Any:
 
 def case_secrets(name: str, config: Any) -> Any:
     rng = np.random.default_rng(sum(map(ord, name)))  # fixed per case
-    return generate_secrets(f"golden-{name}", get_task("CartPole"), config, rng=rng)
+    return generate_secrets(f"golden-{name}", get_task("CartPole"), config.encoding, rng=rng)
 
 
 def run_case(name: str, run_dir: Path) -> None:

@@ -56,8 +56,8 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
             a[0] = 1.0  # a factor of 1: that coordinate is sent as it is, which is not a leak anyone can see
         secrets = Secrets(run_id=f"audit-{method}", a=a, c=3.7193)
     store, secrets = create_run(cfg, run_dir, secrets)
-    codec = codec_for(secrets, task, cfg)
-    ctx = prompt_context(task, cfg, codec)
+    codec = codec_for(secrets, task, cfg.encoding)
+    ctx = prompt_context(task, cfg.prompt, codec)
     client = ChatClient(cfg.llm, base_url="http://127.0.0.1:9/v1", model=MODEL_ALIAS, api_key="x", grammar_ok=True)  # the real body
     rng = np.random.default_rng(5)
     entries = []
@@ -284,7 +284,8 @@ def test_cli_audit_exit_codes_and_the_self_audit_after_a_run(tmp_path: Path, cap
     out = capsys.readouterr().out
     assert "privacy audit: CLEAN" in out and "Known channels" not in out
     key = json.loads((tmp_path / "h" / "secrets.key").read_text())
-    assert f"{key['c']:.2f}" not in out and f"{key['s']:.2f}" not in out
+    # the secrets as a line would print them (4 decimals: 2 would match a return such as 11.00 when c rounds to 1.00)
+    assert f"{key['c']:.4f}" not in out and f"{key['s']:.4f}" not in out
 
 
 def test_a_directory_without_a_search_is_an_input_error(tmp_path: Path) -> None:

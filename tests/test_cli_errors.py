@@ -197,7 +197,7 @@ def test_no_space_for_the_policy_file_is_one_line_and_resumable(capsys, tmp_path
     def full(path: Path, doc: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(ppprops.runner, "write_json_atomic", full)
+    monkeypatch.setattr(ppprops.study, "write_json_atomic", full)
     out = tmp_path / "r"
     code, err = _call(capsys, RUN + ["--warmup", "2", "--iterations", "0", "--final-episodes", "2", "--out", str(out)])
     assert code == 2 and err.count("\n") == 1 and "No space left on device" in err and "ppprops resume" in err

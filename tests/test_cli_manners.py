@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tomllib
@@ -100,8 +101,11 @@ def test_default_run_directory_is_printed_at_the_start(tmp_path: Path) -> None:
     proc = _ppprops(["run", *TINY], cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     first = proc.stderr.splitlines()[0]
-    assert first.startswith("run directory: runs/CartPole__random__0__")
-    run_dir = first.removeprefix("run directory: ")
+    # no --seed: a seed is drawn, printed and stored; the directory is named by the run's id (no ':' in it)
+    m = re.fullmatch(r"run directory: (runs/CartPole__random__(\d+)__\d{8}-\d{6}-[0-9a-f]{4}) \(seed (\d+)\)", first)
+    assert m is not None and m.group(2) == m.group(3), first
+    run_dir = m.group(1)
+    assert json.loads(_ppprops(["show", run_dir, "--json"], cwd=tmp_path).stdout)["run_id"] == Path(run_dir).name
     assert (tmp_path / run_dir / "best_policy.json").exists()
     assert f"run directory: {run_dir}" in proc.stdout.splitlines()  # and again with the summary
     assert "final evaluation" in proc.stderr and "3/3" in proc.stderr  # the final evaluation's progress
@@ -146,7 +150,7 @@ def test_ctrl_c_before_the_run_directory_exists(monkeypatch, tmp_path: Path, cap
     def interrupted(*args: object, **kw: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(runner, "create_run", interrupted)
+    monkeypatch.setattr(runner.Study, "create", interrupted)
     out = tmp_path / "r"
     assert main(["run", *TINY, "--out", str(out), "--quiet"]) == 130
     assert capsys.readouterr().err == f"ppprops: interrupted before the run directory {out} was created; nothing was saved\n"

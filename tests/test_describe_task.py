@@ -30,7 +30,7 @@ def _contexts(task_name: str, method: str):  # type: ignore[no-untyped-def]
     on = make_config(task_name, method)
     off = replace(on, mechanisms=resolve(method, describe_task=False))
     codec = Codec(secrets, encode_params=on.mechanisms.encode_params, scale_rewards=on.mechanisms.scale_rewards)
-    return task, prompt_context(task, on, codec), prompt_context(task, off, codec)
+    return task, prompt_context(task, on.prompt, codec), prompt_context(task, off.prompt, codec)
 
 
 def _described(task) -> list[str]:  # type: ignore[no-untyped-def]

@@ -24,6 +24,7 @@ from ppprops.privacy.audit import audit_run
 from ppprops.proposers import LLMProposer
 from ppprops.proposers.base import clip_to_box
 from ppprops.runner import load_run, start
+from ppprops.seeding import Streams
 from ppprops.store import open_store
 from ppprops.wire import EncodedEntry, PromptContext, build_document, continuation_grammar, document_target, read_continuation
 from ppprops.wire.document import document_temperature
@@ -170,9 +171,9 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
     finally:
         store.close()
     task = cfg.make_task()
-    codec = codec_for(secrets, task, cfg)
-    rebuilt = LLMProposer(chat=None, codec=codec, context=prompt_context(task, cfg, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
-                          box=cfg.box, seed=cfg.seed, form="document")
+    codec = codec_for(secrets, task, cfg.encoding)
+    rebuilt = LLMProposer(chat=None, codec=codec, context=prompt_context(task, cfg.prompt, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
+                          box=cfg.box, streams=Streams(cfg.seed), form="document")
     by_iteration: dict[int, list[dict[str, object]]] = {}
     for c in calls:
         by_iteration.setdefault(int(c["iteration"]), []).append(c)
@@ -185,7 +186,7 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
             body = json.loads(str(call["request"]))
             assert "messages" not in body and body["prompt"] == rebuilt.prompt()  # exactly the document, nothing else
             assert body["prompt"].endswith("\nparams: [")
-            assert body["grammar"] == rebuilt.grammar()
+            assert body["grammar"] == continuation_grammar(task.D, rebuilt.shown(), rebuilt.ctx)
             assert body["temperature"] == document_temperature(c.iteration, int(call["attempt"]))
             assert json.loads(str(call["response"]))["object"] == "text_completion"  # the completions endpoint
         last = by_iteration[c.iteration][-1]

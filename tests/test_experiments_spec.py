@@ -166,7 +166,7 @@ def test_hardened_runs_get_every_hardened_secret() -> None:
     # the same fields are set as on secrets drawn the ordinary way (the grid refuses to run otherwise)
     from ppprops.client.hardening import generate_secrets
 
-    ref = generate_secrets("x", cfg.make_task(), cfg)
+    ref = generate_secrets("x", cfg.make_task(), cfg.encoding)
     assert [f for f in Secrets.__dataclass_fields__ if getattr(ref, f) is None] == \
            [f for f in Secrets.__dataclass_fields__ if getattr(s, f) is None]  # fmt: skip
 

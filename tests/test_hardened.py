@@ -23,6 +23,7 @@ from ppprops.errors import ConfigError, KeyFileError
 from ppprops.evaluation import Feedback
 from ppprops.methods import PRESETS, Mechanisms, resolve
 from ppprops.proposers.uniform import warmup_sampler
+from ppprops.seeding import Streams
 from ppprops.tasks import get_task
 from ppprops.wire import build_prompt
 
@@ -203,16 +204,16 @@ def test_hardened_locomotion_hides_the_survive_component() -> None:
     ant = get_task("Ant-Ultra")
     assert residual_component(ant) == frozenset({"reward_survive"})
     cfg = make_config("Ant-Ultra", "pp-hardened")
-    codec = codec_for(generate_secrets("h", ant, cfg), ant, cfg)
+    codec = codec_for(generate_secrets("h", ant, cfg.encoding), ant, cfg.encoding)
     fb = Feedback(ret=900.0, components={"reward_forward": 100.0, "reward_survive": 1000.0, "reward_ctrl": -199.0, "reward_contact": -1.0},
                   diagnostics={"episode_length": 1000.0, "termination": "time_limit"}, episode_returns=(900.0,))
     enc = encode_feedback(codec, fb)
     assert set(enc.components) == {"reward_forward", "reward_ctrl", "reward_contact"}
-    text = build_prompt(prompt_context(ant, cfg, codec), [codec.entry(0, codec.encode(np.zeros(ant.D)), enc.ret, enc.components,
+    text = build_prompt(prompt_context(ant, cfg.prompt, codec), [codec.entry(0, codec.encode(np.zeros(ant.D)), enc.ret, enc.components,
                                                                          enc.diagnostics)])
     assert "reward_survive" not in text and "episode_length" not in text
     pp = make_config("Ant-Ultra", "pp")
-    assert "reward_survive" in encode_feedback(codec_for(generate_secrets("p", ant, pp), ant, pp), fb).components
+    assert "reward_survive" in encode_feedback(codec_for(generate_secrets("p", ant, pp.encoding), ant, pp.encoding), fb).components
 
 
 def test_warmup_shows_the_same_numbers_whatever_the_secrets() -> None:
@@ -221,9 +222,9 @@ def test_warmup_shows_the_same_numbers_whatever_the_secrets() -> None:
     cfg = make_config("CartPole", "pp-hardened", seed=4)
     shown = []
     for k in range(3):
-        secrets = generate_secrets(f"h{k}", task, cfg)
-        codec = codec_for(secrets, task, cfg)
-        sampler = warmup_sampler(task.D, cfg, codec)
+        secrets = generate_secrets(f"h{k}", task, cfg.encoding)
+        codec = codec_for(secrets, task, cfg.encoding)
+        sampler = warmup_sampler(task.D, cfg.box, Streams(cfg.seed), cfg.mechanisms, codec)
         raws = [sampler.ask(i).theta for i in range(5)]
         assert all(np.all((t > -6) & (t < 6)) for t in raws)
         shown.append(np.round([codec.encode(t) for t in raws], 9))
@@ -231,16 +232,16 @@ def test_warmup_shows_the_same_numbers_whatever_the_secrets() -> None:
     assert np.all(np.abs(shown[0]) <= 6)
     # the paper's warm-up: the shown numbers are A theta, different for every key
     pp = make_config("CartPole", "pp", seed=4)
-    enc = [codec_for(generate_secrets(f"p{k}", task, pp), task, pp).encode(warmup_sampler(task.D, pp, codec).ask(0).theta)
-           for k in range(2)]
+    sampler = warmup_sampler(task.D, pp.box, Streams(pp.seed), pp.mechanisms, codec)
+    enc = [codec_for(generate_secrets(f"p{k}", task, pp.encoding), task, pp.encoding).encode(sampler.ask(0).theta) for k in range(2)]
     assert not np.allclose(enc[0], enc[1])
 
 
 def test_hardened_prompt_wording_states_nothing_the_encoding_does_not_keep() -> None:
     task = get_task("CartPole")
     cfg = make_config("CartPole", "pp-hardened")
-    codec = codec_for(generate_secrets("h", task, cfg), task, cfg)
-    ctx = prompt_context(task, cfg, codec)
+    codec = codec_for(generate_secrets("h", task, cfg.encoding), task, cfg.encoding)
+    ctx = prompt_context(task, cfg.prompt, codec)
     fb = Feedback(ret=23.0, components={}, diagnostics={"episode_length": 23.0, "termination": "pole_fell"}, episode_returns=(23.0,))
     enc = encode_feedback(codec, fb)
     e = codec.entry(0, codec.encode(np.full(task.D, 0.5)), enc.ret, enc.components, enc.diagnostics)
@@ -254,11 +255,11 @@ def test_hardened_prompt_wording_states_nothing_the_encoding_does_not_keep() -> 
 def test_each_switch_draws_only_the_secret_it_needs() -> None:
     task = get_task("CartPole")
     pp = make_config("CartPole", "pp")
-    s = generate_secrets("x", task, replace(pp, mechanisms=resolve("pp", hide_return_diagnostics=True)))
+    s = generate_secrets("x", task, replace(pp, mechanisms=resolve("pp", hide_return_diagnostics=True)).encoding)
     assert s.m is None and s.s is None and s.p is None
-    s = generate_secrets("y", task, replace(pp, mechanisms=resolve("pp", secret_offsets=True)))
+    s = generate_secrets("y", task, replace(pp, mechanisms=resolve("pp", secret_offsets=True)).encoding)
     assert s.m is not None and s.s is not None and s.p is None
-    full = generate_secrets("z", task, make_config("CartPole", "pp-hardened"))
+    full = generate_secrets("z", task, make_config("CartPole", "pp-hardened").encoding)
     assert full.has_extras and full.m is not None and full.p is not None
 
 
@@ -281,7 +282,7 @@ def test_an_interrupted_hardened_run_resumes_to_the_same_history(tmp_path: Path)
                 raise KeyboardInterrupt
             return super().complete(messages, D=D, seed=seed)
 
-    with mock.patch("ppprops.runner.LazyChat", lambda *args, **kwargs: Dies()), pytest.raises(KeyboardInterrupt):
+    with mock.patch("ppprops.study.LazyChat", lambda *args, **kwargs: Dies()), pytest.raises(KeyboardInterrupt):
         start(cfg, tmp_path / "cut", secrets=secrets)
     with offline_llm():
         resume(tmp_path / "cut")

@@ -430,7 +430,8 @@ SCRIPT = textwrap.dedent(
                   "observation": {"indices": [0, 1], "values": {"x": "position", "v": "velocity"}},
                   "components": {"reward_pos": "minus the distance from 0"}})
         try:
-            result = ppprops.search("Byor-Pos", method="cmaes", warmup=4, iterations=6, final_episodes=3, workers=workers, out=out)
+            result = ppprops.search("Byor-Pos", method="cmaes", warmup=4, iterations=6, evaluation={"final_episodes": 3, "workers": workers},
+                                    seed=0, out=out)
         except ConfigError as e:
             print(json.dumps({"error": str(e)}))
             return
@@ -508,8 +509,9 @@ def test_search_with_an_env_factory_and_two_workers(tmp_path: Path) -> None:
     try:
         from point_robot import make_point_robot
 
-        result = ppprops.search(make_point_robot, env_kwargs={"mass": 2.0}, components=["reward_distance", "reward_effort"],
-                                method="random", warmup=4, iterations=4, final_episodes=4, workers=2, out=tmp_path / "r")  # fmt: skip
+        result = ppprops.search(make_point_robot, task_options={"env_kwargs": {"mass": 2.0}, "components": ["reward_distance", "reward_effort"]},
+                                method="random", warmup=4, iterations=4, evaluation={"final_episodes": 4, "workers": 2},
+                                seed=0, out=tmp_path / "r")  # fmt: skip
     finally:
         sys.path.remove(str(EXAMPLE))
     assert isinstance(result, ppprops.SearchResult) and result.status == "finished" and len(result.history) == 8
@@ -529,7 +531,7 @@ def test_search_with_a_chat_object(tmp_path: Path) -> None:
     from ppprops.privacy.simulate import EchoOptimizer
 
     chat = EchoOptimizer()
-    result = ppprops.search("CartPole", method="pp", warmup=3, iterations=3, final_episodes=2, chat=chat, out=tmp_path / "r")
+    result = ppprops.search("CartPole", method="pp", warmup=3, iterations=3, evaluation={"final_episodes": 2}, llm=chat, out=tmp_path / "r")
     assert chat.calls == 3 and [c.source for c in result.history] == ["warmup"] * 3 + ["llm"] * 3
     store = open_store(tmp_path / "r")
     calls = store.llm_calls()

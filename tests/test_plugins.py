@@ -41,7 +41,7 @@ CALLS = []
 def register():
     CALLS.append(1)
     register_method(Method("halve", MethodKind.BLACK_BOX, "shrink, under another name", iteration_unit="samples",
-                           phase=lambda s: Phase("halve", Shrink(s.task.D, s.config.box), s.config.iterations)))
+                           phase=lambda s: Phase("halve", Shrink(s.task.D, s.box), s.iterations)))
 '''
 
 BROKEN = """

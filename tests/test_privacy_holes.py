@@ -28,7 +28,7 @@ from ppprops.privacy.audit import audit_run
 from ppprops.privacy.report import privacy_report
 from ppprops.privacy.simulate import EchoOptimizer, offline_llm
 from ppprops.privacy.transcript import load_requests
-from ppprops.runner import LazyChat, start
+from ppprops.runner import LazyChat, start, use_chat
 from ppprops.store import open_store
 from ppprops.wire.numbers import fmt
 
@@ -62,13 +62,13 @@ def test_grid_secrets_come_from_the_one_routine_for_each_switch_alone(switch: st
     key = bytes(range(32))
     s = derive_secrets(key, spec.runs[0].name, cfg)
     assert s.fingerprint() == derive_secrets(key, spec.runs[0].name, cfg).fingerprint()
-    ref = generate_secrets("x", cfg.make_task(), cfg)
+    ref = generate_secrets("x", cfg.make_task(), cfg.encoding)
     assert [f for f in ("m", "s", "p") if getattr(s, f) is None] == [f for f in ("m", "s", "p") if getattr(ref, f) is None]
     assert (s.m is not None) == (switch == "secret_offsets") and (s.p is not None) == (switch == "warp_rewards")
     # the same routine with the same generator gives the same secrets: runs and grids cannot drift apart
     from ppprops.experiments.grid import derived_rng
 
-    again = generate_secrets(spec.runs[0].name, cfg.make_task(), cfg, rng=derived_rng(key, spec.runs[0].name))
+    again = generate_secrets(spec.runs[0].name, cfg.make_task(), cfg.encoding, rng=derived_rng(key, spec.runs[0].name))
     assert again.fingerprint() == s.fingerprint()
 
 
@@ -185,11 +185,10 @@ class _Unusable(EchoOptimizer):
 
 
 def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secret(tmp_path: Path) -> None:
-    from unittest import mock
 
     run = tmp_path / "fb"
     secrets = seeded_secrets("pp", "CartPole", 3)
-    with mock.patch("ppprops.runner.LazyChat", lambda config, *a, **k: _Unusable(config)):
+    with use_chat(lambda config: _Unusable(config)):
         start(make_config("CartPole", "pp", warmup=6, iterations=16, final_episodes=0, seed=0, parse_retries=0), run, secrets=secrets)
     store = open_store(run)
     cands = store.candidates()
@@ -261,7 +260,7 @@ def test_ant_survive_component_gives_c_under_pp_and_nothing_under_pp_hardened(tm
 
 # -- token counting sends nothing ------------------------------------------------------------------
 def test_counting_tokens_starts_no_client_and_sends_nothing() -> None:
-    chat = LazyChat(make_config("CartPole", "vanilla"))
+    chat = LazyChat(make_config("CartPole", "vanilla").llm)
     assert chat.count_tokens("x" * 1000) >= 500 and chat._client is None
     chat.close()
 
@@ -273,7 +272,7 @@ def test_r2po_estimates_prompt_tokens_from_the_usage_of_its_answers() -> None:
 
     p, _ = _proposer()
     assert p.prompt_tokens("y" * 1000) == 1000  # before any answer: the runner's estimate (here len)
-    p._observe(0, 0, Exchange("{}", None, "{}", None, 2000, 500, 10, 0.1, True), None)  # 1 token per 4 characters
+    p._observe(Exchange("{}", None, "{}", None, 2000, 500, 10, 0.1, True))  # 1 token per 4 characters
     assert p.prompt_tokens("y" * 1000) == 263 + 32
 
 

@@ -29,7 +29,7 @@ def _setup(method: str, task: str = "CartPole", **kw: object):  # type: ignore[n
     rng = np.random.default_rng(3)
     secrets = Secrets(run_id="r", a=np.exp(rng.uniform(np.log(0.1), np.log(10), t.D)), c=3.7193)
     codec = Codec(secrets, encode_params=cfg.mechanisms.encode_params, scale_rewards=cfg.mechanisms.scale_rewards)
-    ctx = prompt_context(t, cfg, codec)
+    ctx = prompt_context(t, cfg.prompt, codec)
     cands = []
     for i, r in enumerate([23.0, 131.0, 47.0]):
         theta = rng.uniform(-6, 6, t.D)
@@ -115,7 +115,7 @@ def test_each_mechanism_is_its_own_setting() -> None:
     cfg = replace(make_config("CartPole", "vanilla"), mechanisms=resolve("vanilla", scale_rewards=True, disclose_optimum=False))
     secrets = Secrets(run_id="r", a=np.ones(t.D), c=2.0)
     codec = Codec(secrets, encode_params=False, scale_rewards=True)
-    ctx = prompt_context(t, cfg, codec)
+    ctx = prompt_context(t, cfg.prompt, codec)
     text = build_prompt(ctx, entries)
     assert "multiplied by one positive constant" in text and "optimal return" not in text
     assert "Every parameter must lie in [-6, 6]" in text
@@ -129,7 +129,7 @@ def test_optimum_is_scaled_when_both_disclosed_and_scaled() -> None:
     t = get_task("CartPole")
     cfg = replace(make_config("CartPole", "pp"), mechanisms=resolve("pp", disclose_optimum=True))
     codec = Codec(Secrets(run_id="r", a=np.ones(t.D), c=0.5), encode_params=True, scale_rewards=True)
-    assert "The global optimal return is about 250.00" in build_prompt(prompt_context(t, cfg, codec), [])
+    assert "The global optimal return is about 250.00" in build_prompt(prompt_context(t, cfg.prompt, codec), [])
 
 
 def test_raw_candidates_are_refused_by_the_prompt_builder() -> None:

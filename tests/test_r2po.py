@@ -15,6 +15,7 @@ from ppprops.client.secrets import Secrets
 from ppprops.evaluation import Feedback
 from ppprops.proposers.base import StopSearch
 from ppprops.proposers.r2po import R2POProposer
+from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task
 
@@ -24,9 +25,9 @@ from support import make_config
 def _proposer(window: int = 10**6) -> tuple[R2POProposer, Codec]:
     task = get_task("CartPole")
     codec = Codec(Secrets(run_id="r", a=np.ones(task.D), c=1.0), encode_params=False, scale_rewards=False)
-    ctx = prompt_context(task, make_config("CartPole", "vanilla"), codec)
+    ctx = prompt_context(task, make_config("CartPole", "vanilla").prompt, codec)
     steps = [((0.1, 0.2, 0.3, 0.4), "1")] * 50
-    p = R2POProposer(chat=None, codec=codec, context=ctx, top_k=10, box=(-6, 6), seed=0,  # type: ignore[arg-type]
+    p = R2POProposer(chat=None, codec=codec, context=ctx, top_k=10, box=(-6, 6), streams=Streams(0),  # type: ignore[arg-type]
                      rollout=lambda theta, seed: (50.0, steps), count_tokens=len, context_window=window, max_tokens=100)
     return p, codec
 

@@ -109,7 +109,7 @@ def decoded(out: Path, answer: list[float]) -> np.ndarray:
     """What the run evaluates for an encoded answer: decoded with its own secrets, clipped to the box."""
     store, config, secrets = load_run(out)
     store.close()
-    theta = codec_for(secrets, config.make_task(), config).decode(np.asarray(answer))
+    theta = codec_for(secrets, config.make_task(), config.encoding).decode(np.asarray(answer))
     return clip_to_box(theta, config.box)[0]
 
 

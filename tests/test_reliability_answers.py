@@ -78,7 +78,7 @@ def test_endpoint_down_stops_resumably_then_resumes(tmp_path: Path, capsys) -> N
         with pytest.raises(LLMError, match="ppprops resume"):
             start(make_config(warmup=3, iterations=2, final_episodes=0, llm=_llm(server, transport_retries=2)), out)
         s = run_summary(out)
-        assert s["status"] == "running" and s["counts"]["candidates"] == 3
+        assert s["status"].startswith("failed: LLM endpoint failed 3 times in a row") and s["counts"]["candidates"] == 3
         assert s["counts"]["transport_failures"] == {"http_503": 3} and s["counts"]["retries"] == 2
         assert [c["retry"] for c in s["llm_calls"]] == [0, 1, 2] and not any(c["ok"] for c in s["llm_calls"])
 

@@ -80,7 +80,7 @@ def test_endpoint_failure_stops_cleanly_and_resumes(tmp_path: Path, monkeypatch)
         start(make_config(warmup=3, iterations=4, parse_retries=0), out)
     store = open_store(out)
     partial = store.candidates()
-    assert store.status() == "running" and len(partial) == 5  # 3 warm-up + 2 LLM candidates
+    assert store.status() == "failed: injected: endpoint gone" and len(partial) == 5  # 3 warm-up + 2 LLM candidates; resumable
     store.close()
 
     resume(out)

@@ -24,14 +24,11 @@ def main() -> None:
     out = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/point-robot")
     result = ppprops.search(
         make_point_robot,
-        env_kwargs={"mass": 2.0},
-        components=["reward_distance", "reward_effort"],
-        diagnostics=["distance"],
+        task_options={"env_kwargs": {"mass": 2.0}, "components": ["reward_distance", "reward_effort"], "diagnostics": ["distance"]},
         method=os.environ.get("PPPROPS_EXAMPLE_METHOD", "random"),
         warmup=10,
         iterations=int(os.environ.get("PPPROPS_EXAMPLE_ITERATIONS", "40")),
-        final_episodes=10,
-        workers=2,
+        evaluation={"final_episodes": 10, "workers": 2},
         seed=0,
         out=out,
     )

@@ -5,6 +5,8 @@ the rewards and the secrets. The Python API (``ppprops.api``, loaded on first us
 ``import ppprops`` stays light):
 
     result = ppprops.search("CartPole", method="pp", iterations=50, out="runs/x")
+    with ppprops.create_study("robot.toml", storage="study/") as study:   # your robot drives it
+        trial = study.ask(); study.tell(trial, episode_return)
     policy = ppprops.load_policy("runs/x/best_policy.json")   # raw observation -> action
     ppprops.evaluate_policy(policy, episodes=20, seed=0)
     ppprops.resume("runs/x"); ppprops.load_run("runs/x")
@@ -16,11 +18,24 @@ from typing import TYPE_CHECKING, Any
 
 from .version import __version__
 
-_API = ("search", "resume", "load_run", "evaluate_policy", "load_policy", "SearchResult", "Evaluation", "Policy")
+_API = ("search", "resume", "load_run", "evaluate_policy", "load_policy", "create_study", "load_study", "SearchResult", "Evaluation",
+        "Policy", "Study")
 __all__ = ["__version__", *_API]
 
 if TYPE_CHECKING:
-    from .api import Evaluation, Policy, SearchResult, evaluate_policy, load_policy, load_run, resume, search  # noqa: F401
+    from .api import (  # noqa: F401
+        Evaluation,
+        Policy,
+        SearchResult,
+        Study,
+        create_study,
+        evaluate_policy,
+        load_policy,
+        load_run,
+        load_study,
+        resume,
+        search,
+    )
 
 
 def __getattr__(name: str) -> Any:

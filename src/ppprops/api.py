@@ -3,15 +3,16 @@ resumed run, a stored run and a policy evaluation.
 
     import ppprops
 
-    result = ppprops.search("CartPole", method="pp", warmup=10, iterations=50, final_episodes=20, seed=0, out="runs/x")
+    result = ppprops.search("CartPole", method="pp", seed=0, out="runs/x", evaluation={"final_episodes": 20})
     result.final.mean, result.policy.W        # final-evaluation mean return; W of shape (n_s, n_a)
     action = result.policy(obs)               # the deployable policy on a raw env observation
 
 ``search`` takes a task in every form ``ppprops run`` does, and more: a paper task name, a
 Gymnasium id, ``module:EnvId`` or ``module:attr``, a task file path, an env factory (a class or a
-function returning a Gymnasium env), or a ``TaskSpec`` / ``Task``. Keyword names are those of the
-``ppprops run`` flags (``--final-episodes`` is ``final_episodes``). Any method; any LLM, by endpoint
-settings (``base_url``, ``model``, ...) or as a ``chat`` object (``ppprops.runner.ChatModel``).
+function returning a Gymnasium env), or a ``TaskSpec`` / ``Task``; options come in groups (``llm``,
+``privacy``, ``prompt``, ``evaluation``, ``method_options``, ``task_options``), each a mapping
+keyed like the ``ppprops run`` flags. It is a short loop over a ``Study`` (``create_study``,
+``load_study``), whose public ask/tell serves a robot that ppprops cannot step itself.
 
 Errors are ``ppprops.errors.PPPropsError`` subclasses with a one-line message (``ConfigError`` for
 bad input, ``LLMError`` when the endpoint stays down, ``StoreError`` for run directories);
@@ -21,9 +22,7 @@ nothing here prints unless ``progress=True``.
 from __future__ import annotations
 
 import os
-import re
-import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ from .config import RunConfig
 from .errors import ConfigError
 from .policy_file import Policy, load_policy
 from .status import RunKind
+from .study import Study
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
@@ -107,9 +107,77 @@ class SearchResult:
                 f"final={final})")
 
 
-def _default_out(task: str, method: str, seed: int) -> Path:
-    safe = re.sub(r"[^A-Za-z0-9_.+-]", "_", task)
-    return Path("runs") / f"{safe}__{method}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
+# The option groups of ``search`` / ``create_study``: group -> {key a user writes: setting key}.
+# The setting keys are the ``ppprops run`` flags with underscores (``ppprops.settings``).
+GROUPS: dict[str, dict[str, str]] = {
+    "llm": {"base_url": "base_url", "model": "model", "api_key_env": "api_key_env", "temperature": "temperature",
+            "max_tokens": "max_tokens", "timeout": "timeout", "reasoning_effort": "reasoning_effort", "structured": "structured",
+            "context_size": "context_size", "retries": "retries", "retry_base_delay": "retry_base_delay",
+            "retry_max_delay": "retry_max_delay", "retry_after_cap": "retry_after_cap", "on_llm_failure": "on_llm_failure"},
+    "prompt": {"top_k": "top_k", "form": "prompt_form", "params": "prompt_params", "digits": "param_digits",
+               "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries"},
+    "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers"},
+    "task_options": {"env_kwargs": "env_kwargs", "max_episode_steps": "max_episode_steps", "gym_packages": "gym_packages",
+                     "obs_keys": "obs_keys", "components": "components", "diagnostics": "diagnostics"},
+}  # fmt: skip
+
+
+def _group_values(group: str, given: Any) -> dict[str, Any]:
+    """One option group (a mapping, or a settings object such as ``LLMConfig``) as setting keys.
+
+    Raises ConfigError for a value that is not a mapping or an unknown key (naming the group and
+    the closest key)."""
+    import difflib
+    from dataclasses import asdict, is_dataclass
+
+    if given is None:
+        return {}
+    if is_dataclass(given) and not isinstance(given, type):
+        given = asdict(given)
+        if group == "llm":  # LLMConfig's field names -> its flags' keys
+            renames = {"timeout_s": "timeout", "transport_retries": "retries", "retry_base_s": "retry_base_delay",
+                       "retry_max_s": "retry_max_delay", "retry_after_cap_s": "retry_after_cap"}
+            given = {renames.get(k, k): v for k, v in given.items()}
+    if not isinstance(given, Mapping):
+        raise ConfigError(f"{group}= must be a mapping of options (e.g. {group}={{...}}), got {type(given).__name__}")
+    keys = GROUPS[group]
+    out: dict[str, Any] = {}
+    for key, value in given.items():
+        if key not in keys:
+            close = difflib.get_close_matches(str(key), list(keys), n=1)
+            hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(keys)}"
+            raise ConfigError(f"{group}: unknown option {key!r} ({hint})")
+        out[keys[key]] = tuple(value) if isinstance(value, list) else value
+    return out
+
+
+def _build(task: TaskLike, *, method: str, warmup: int, iterations: int, seed: int | None, box: tuple[float, float],
+           llm: Any, privacy: Mapping[str, bool | None] | None, prompt: Any, evaluation: Any, method_options: Mapping[str, Any] | None,
+           task_options: Any) -> tuple[RunConfig, Any]:  # fmt: skip
+    """The RunConfig of ``search``'s arguments (and whether ``llm`` is a chat object instead of settings)."""
+    from .methods import get_method
+    from .seeding import draw_seed
+    from .settings import build_config
+    from .tasks import load_task
+
+    chat = None
+    if llm is not None and callable(getattr(llm, "complete", None)):
+        chat, llm = llm, None
+    switches = dict(privacy or {})
+    entry = get_method(method)  # a bad method or switch fails before the env is made
+    entry.mechanisms(**switches)
+    values: dict[str, Any] = {"method": method, "warmup": warmup, "iterations": iterations, "box": tuple(box),
+                              "seed": draw_seed() if seed is None else seed}  # fmt: skip
+    for group, given in (("llm", llm), ("prompt", prompt), ("evaluation", evaluation)):
+        values.update(_group_values(group, given))
+    values.update({k: v for k, v in switches.items() if v is not None})
+    if method_options:
+        values["method_options"] = dict(method_options)
+    topts = _group_values("task_options", task_options)
+    t = load_task(task, env_kwargs=topts.get("env_kwargs"), max_episode_steps=topts.get("max_episode_steps"),
+                  gym_packages=topts.get("gym_packages", ()), obs_keys=topts.get("obs_keys"), components=topts.get("components", ()),
+                  diagnostics=topts.get("diagnostics", ()))  # fmt: skip
+    return build_config(values, task=t), chat
 
 
 def search(
@@ -118,155 +186,140 @@ def search(
     method: str = "pp",
     warmup: int = 10,
     iterations: int = 50,
-    top_k: int = 10,
-    episodes: int | None = None,
-    final_episodes: int = 20,
-    seed: int = 0,
+    seed: int | None = None,
     out: Pathish | None = None,
     box: tuple[float, float] = (-6.0, 6.0),
-    decimals: int = 2,
-    workers: int = 1,
-    env_kwargs: Mapping[str, Any] | None = None,
-    max_episode_steps: int | None = None,
-    gym_packages: Sequence[str] = (),
-    obs_keys: Sequence[str] | None = None,
-    components: Sequence[str] = (),
-    diagnostics: Sequence[str] = (),
-    encode_params: bool | None = None,
-    scale_rewards: bool | None = None,
-    detailed_feedback: bool | None = None,
-    disclose_optimum: bool | None = None,
-    disclose_reward_structure: bool | None = None,
-    secret_offsets: bool | None = None,
-    warp_params: bool | None = None,
-    warp_rewards: bool | None = None,
-    hide_return_diagnostics: bool | None = None,
-    encoded_warmup: bool | None = None,
-    describe_task: bool | None = None,
-    prompt_params: str = "list",
-    param_digits: int | None = None,
-    prompt_layout: str = "static-first",
-    prompt_form: str = "auto",
-    parse_retries: int = 2,
-    on_llm_failure: str = "stop",
-    base_url: str | None = None,
-    model: str | None = None,
-    api_key_env: str | None = None,
-    temperature: float | None = None,
-    max_tokens: int | None = None,
-    timeout: float = 300.0,
-    reasoning_effort: str | None = None,
-    structured: str = "auto",
-    context_size: int = 16384,
-    retries: int = 4,
-    chat: Any = None,
+    llm: Any = None,
+    privacy: Mapping[str, bool | None] | None = None,
+    prompt: Mapping[str, Any] | None = None,
+    evaluation: Mapping[str, Any] | None = None,
+    method_options: Mapping[str, Any] | None = None,
+    task_options: Mapping[str, Any] | None = None,
+    callbacks: Sequence[Callable[[Candidate, Any], bool | None]] = (),
     progress: bool = False,
 ) -> SearchResult:
     """Run a policy search (paper Sec. II-E, Algorithm 1; settings of Sec. III) on ``task`` and return its result.
 
+    A short loop over a study (``create_study``: ask, evaluate on the task's env, tell; then the
+    final evaluation and the policy file). Options come in groups, each a mapping whose keys are
+    the ``ppprops run`` flags of that group with underscores (``ppprops run --help``)::
+
+        ppprops.search("CartPole", method="pp", seed=0, out="runs/x",
+                       llm={"base_url": "http://localhost:11434/v1", "model": "gpt-oss:20b"},
+                       prompt={"top_k": 10, "form": "chat"}, evaluation={"final_episodes": 20, "workers": 2},
+                       privacy={"scale_rewards": False}, method_options=None)
+
     Args:
         task: a paper task name (``"Ant-Ultra"``), a Gymnasium id, ``"module:EnvId"`` or
             ``"module:attr"``, a task file path (``.toml``), an env factory (an ``Env`` class or a
-            function returning an env, called with ``env_kwargs``), a ``TaskSpec`` or a ``Task``.
-            A factory with no importable name (a lambda, a local function) works in this process
-            only; one defined at the top level of a module (or of the script being run) also works
-            with ``workers > 1``, ``resume`` and ``policy eval`` from a fresh process.
+            function returning an env, called with ``task_options["env_kwargs"]``), a ``TaskSpec``
+            or a ``Task``. A factory with no importable name (a lambda, a local function) works in
+            this process only; one defined at the top level of a module (or of the script being
+            run) also works with ``workers > 1``, ``resume`` and ``policy eval`` from a fresh process.
         method: a search method of the registry (``ppprops.methods``): ``vanilla``, ``pe``, ``df``,
             ``pp`` (default), ``pp-hardened``, ``r2po``, ``random`` or ``cmaes``.
-        warmup: random warm-up policies (``--warmup``).
+        warmup: random warm-up policies.
         iterations: LLM proposals (r2po: LLM calls; random, cmaes: samples) after the warm-up.
-        top_k: history entries in the prompt, best last (Eq. 9, Sec. II-D); 0 keeps every entry.
-        episodes: episodes per candidate (default: the method's, 1; 20 for r2po).
-        final_episodes: fresh episodes for the best policy at the end.
-        seed: the run seed (episode seeds, warm-up, fallbacks; never the secrets).
-        out: the run directory (default ``runs/<task>__<method>__<seed>__<time>``); it must not
-            hold anything yet.
+        seed: the run seed (episode seeds, with the run's key; never the secrets). None draws one
+            from the OS (stored with the run; pass it back to reproduce).
+        out: the run directory (default ``runs/<run id>``); it must not hold anything yet.
         box: (low, high), the feasible range of every raw parameter.
-        decimals: decimals of the numbers in the prompt.
-        workers: processes that run episodes in parallel (results identical to one).
-        env_kwargs: keyword arguments of the env's constructor (win over a task file's).
-        max_episode_steps: time limit of an episode (needed when the env has none).
-        gym_packages: modules to import before the env is made (e.g. one that registers it).
-        obs_keys: for a Dict observation, the entries the policy sees, in this order.
-        components: info keys summed over an episode as reward components.
-        diagnostics: info keys reported as diagnostics (last value of an episode).
-        encode_params: switch Eq. 5 (theta~ = A theta) on or off; None keeps the preset's.
-        scale_rewards: switch Eq. 7-8 (r~ = c r, for the return and each component) on or off; None keeps the preset's.
-        detailed_feedback: switch component and diagnostic feedback (Sec. II-C); None keeps the preset's.
-        disclose_optimum: state the optimal return (Vanilla ProPS); None keeps the preset's.
-        disclose_reward_structure: state the numeric reward definition; None keeps the preset's.
-        secret_offsets: hardening switch (docs/threat-model.md); None keeps the preset's.
-        warp_params: hardening switch (docs/threat-model.md); None keeps the preset's.
-        warp_rewards: hardening switch (docs/threat-model.md); None keeps the preset's.
-        hide_return_diagnostics: hardening switch (docs/threat-model.md); None keeps the preset's.
-        encoded_warmup: hardening switch (docs/threat-model.md); None keeps the preset's.
-        describe_task: the task description in the prompt (ProPS+ on, ProPS off); None keeps on.
-        prompt_params: history parameters as one ``list`` or ProPS ``indexed`` pairs.
-        param_digits: significant digits of each listed parameter (0: fixed decimals; None: the
-            form's default, 3 in the chat form, 2 in the document form).
-        prompt_layout: ``static-first`` (fixed sections first) or ``history-first``.
-        prompt_form: ``auto`` (the document form for the embedded model, the paper's chat prompt
-            otherwise), ``chat`` or ``document`` (a completions-endpoint document the model continues).
-        parse_retries: corrections asked for before a fallback candidate.
-        on_llm_failure: ``stop`` (resumable) or ``skip`` (fallback candidate) when the endpoint stays down.
-        base_url: OpenAI-compatible API root (default: the embedded model).
-        model: the model name at ``base_url``.
-        api_key_env: the environment variable holding the API key (never stored).
-        temperature: sampling temperature, 0 to 2 (None: 1.0 for the chat form; the document form
-            alternates 0.6 and 1.0).
-        max_tokens: answer budget in tokens (default: room for D numbers, and for reasoning).
-        timeout: seconds per request.
-        reasoning_effort: ``none``, ``minimal``, ``low``, ``medium`` or ``high`` (reasoning models).
-        structured: ``auto``, ``json_schema``, ``grammar`` or ``none``.
-        context_size: the embedded model's context window, in tokens.
-        retries: retries of one request after a transient fault.
-        chat: instead of an endpoint, any object with ``complete(messages, *, D, seed)`` returning
-            a ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()``; the caller
-            keeps it (it is not closed). Its exchanges are recorded like an endpoint's. With
-            ``complete_document(prompt, *, D, seed, grammar)`` too it gets the document form under
-            ``prompt_form="auto"``; without, the chat form.
+        llm: the LLM: None for the embedded model; the endpoint's settings as a mapping or an
+            ``LLMConfig`` (``base_url``, ``model``, ``api_key_env``, ``temperature``, ``max_tokens``,
+            ``timeout``, ``reasoning_effort``, ``structured``, ``context_size``, ``retries``,
+            ``retry_base_delay``, ``retry_max_delay``, ``retry_after_cap``, ``on_llm_failure``); or a
+            chat object with ``complete(messages, *, D, seed)`` returning a
+            ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()`` (the caller keeps
+            it; with ``complete_document(prompt, *, D, seed, grammar, temperature)`` too it gets the
+            document form under ``form="auto"``). Every exchange is recorded like an endpoint's.
+        privacy: mechanism switches over the method's preset (paper Sec. II; docs/threat-model.md):
+            ``encode_params`` (Eq. 5), ``scale_rewards`` (Eq. 7-8), ``detailed_feedback``,
+            ``disclose_optimum``, ``disclose_reward_structure``, ``describe_task`` and the hardening
+            switches, each True/False (None keeps the preset's).
+        prompt: ``top_k`` (history entries shown, best last, Eq. 9; 0 keeps all), ``form``
+            (``auto``, ``chat``, ``document``), ``params`` (``list``/``indexed``), ``digits``,
+            ``layout``, ``decimals``, ``parse_retries``.
+        evaluation: ``episodes`` per candidate (default: the method's, 1; 20 for r2po),
+            ``final_episodes`` (fresh episodes for the best policy, default 20), ``workers``
+            (processes running episodes; results identical to one).
+        method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
+        task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
+            ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
+        callbacks: called after each told candidate as ``callback(candidate, study)``; one returning
+            ``False`` stops the search cleanly (status ``stopped: stopped by a callback``).
         progress: show a progress bar on stderr.
 
     Returns:
         The finished run (``SearchResult``).
 
     Raises:
-        ConfigError: bad settings or task (one line: unknown id, a module that fails to import and
-            why, an info key missing from the env's info or not a scalar, an occupied ``out``).
+        ConfigError: bad settings or task (one line: an unknown option or id, a module that fails to
+            import and why, an occupied ``out``).
         LLMError: the endpoint stayed down past the retry bound (the run is saved: ``resume`` it).
         StoreError: the run directory cannot be written.
         MissingExtraError: the task needs an extra that is not installed (``mujoco``, ``robotics``, ...).
     """
-    from .methods import get_method
-    from .settings import build_config
-    from .tasks import load_task
-
-    switches = dict(encode_params=encode_params, scale_rewards=scale_rewards, detailed_feedback=detailed_feedback,
-                    disclose_optimum=disclose_optimum, disclose_reward_structure=disclose_reward_structure,
-                    secret_offsets=secret_offsets, warp_params=warp_params, warp_rewards=warp_rewards,
-                    hide_return_diagnostics=hide_return_diagnostics, encoded_warmup=encoded_warmup,
-                    describe_task=describe_task)  # fmt: skip
-    entry = get_method(method)  # a bad method fails before the env is made
-    entry.mechanisms(**switches)
-    values: dict[str, Any] = dict(
-        method=method, warmup=warmup, iterations=iterations, top_k=top_k, final_episodes=final_episodes, seed=seed,
-        box=tuple(box), decimals=decimals, workers=workers, prompt_params=prompt_params, param_digits=param_digits,
-        prompt_layout=prompt_layout, prompt_form=prompt_form, parse_retries=parse_retries, on_llm_failure=on_llm_failure, base_url=base_url, model=model,
-        api_key_env=api_key_env, temperature=temperature, max_tokens=max_tokens, timeout=timeout,
-        reasoning_effort=reasoning_effort, structured=structured, context_size=context_size, retries=retries,
-        **{k: v for k, v in switches.items() if v is not None},
-    )  # fmt: skip
-    if episodes is not None:
-        values["episodes"] = episodes
-    t = load_task(task, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
-                  obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
-    config = build_config(values, task=t)
-    run_dir = Path(out) if out is not None else _default_out(t.name, method, seed)
+    config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
+                          prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    from .naming import default_run_dir
     from .runner import start
 
-    with _progress(progress, f"{t.name} {method}") as events:
-        start(config, run_dir, events, chat=chat)
+    run_dir = Path(out) if out is not None else default_run_dir(config)
+    with _progress(progress, f"{config.task} {method}") as events:
+        start(config, run_dir, events, chat=chat, callbacks=callbacks)
     return load_run(run_dir)
+
+
+def create_study(
+    task: TaskLike,
+    *,
+    method: str = "pp",
+    storage: Pathish | None = None,
+    warmup: int = 10,
+    iterations: int = 50,
+    seed: int | None = None,
+    box: tuple[float, float] = (-6.0, 6.0),
+    llm: Any = None,
+    privacy: Mapping[str, bool | None] | None = None,
+    prompt: Mapping[str, Any] | None = None,
+    evaluation: Mapping[str, Any] | None = None,
+    method_options: Mapping[str, Any] | None = None,
+    task_options: Mapping[str, Any] | None = None,
+) -> Study:
+    """A new study in ``storage`` (a run directory, default ``runs/<run id>``), to drive by hand:
+    ``trial = study.ask()``, evaluate ``trial.theta`` (or ``trial.W``, ``trial.b``) on your robot
+    or simulator, ``study.tell(trial, episode_return, components=..., diagnostics=...)``, until
+    ``study.done``; then ``study.finalize()``. Arguments as for ``search``. Use it in a ``with``
+    block (it holds the store and, once asked, the LLM client). ``ppprops.load_study(storage)``
+    reopens it in another process, after a restart or a crash (``ppprops.study``).
+
+    Raises:
+        ConfigError: bad settings or task, an occupied ``storage``.
+    """
+    from .naming import default_run_dir
+    from .status import RunStatus
+
+    config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
+                          prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    run_dir = Path(storage) if storage is not None else default_run_dir(config)
+    study = Study.create(config, run_dir, chat=chat)
+    study.store.set_status(RunStatus.OPEN)
+    return study
+
+
+def load_study(storage: Pathish, *, llm: Any = None) -> Study:
+    """The study stored in ``storage`` (made by ``create_study``, ``ppprops study create`` or any
+    run), as it was left: a pending trial is asked again without a second LLM call. ``llm``: a chat
+    object replacing the configured LLM in this process (the caller keeps it).
+
+    Raises:
+        StoreError, KeyFileError: not a run directory, or its store / key file is damaged.
+        ConfigError: an RL baseline run, or a task or method unknown in this process.
+    """
+    from .baselines.record import refuse_resume
+
+    refuse_resume(Path(storage))
+    return Study.load(Path(storage), chat=llm)
 
 
 def resume(
@@ -387,4 +440,5 @@ class _progress:
         self._events.__exit__(*exc)
 
 
-__all__ = ["Evaluation", "Policy", "SearchResult", "evaluate_policy", "load_policy", "load_run", "resume", "search"]
+__all__ = ["Evaluation", "Policy", "SearchResult", "Study", "create_study", "evaluate_policy", "load_policy", "load_run", "load_study",
+           "resume", "search"]

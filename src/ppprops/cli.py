@@ -14,7 +14,6 @@ import json
 import os
 import re
 import sys
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -32,6 +31,7 @@ EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: whoever read our output stopped reading
 
 class _Parser(argparse.ArgumentParser):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)  # --warm 2 is an error, not --warmup 2
         super().__init__(*args, **kwargs)
         # Values such as "-6,6" (--box) start like an option; argparse accepts only plain negative
         # numbers as values. Treat anything that starts with "-" and a digit (or "-." and a digit)
@@ -54,15 +54,7 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     r = sub.add_parser("run", help="start a search")
-    add_flags(r, groups=None, only=[s.key for s in SETTINGS if s.group in ("task", "run")])
-    r.add_argument("--out", type=Path, default=None, help="run directory (default runs/<task>__<method>__<seed>__<time>)")
-    r.add_argument("--config", type=Path, default=None, metavar="FILE",
-                   help="TOML or YAML file whose keys mirror these flags (env = \"CartPole\", top-k = 5, box = [-6, 6]); "
-                        "flags given here win")  # fmt: skip
-    add_flags(r, only=[s.key for s in SETTINGS if s.group not in ("task", "run")])
-    r.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    r.add_argument("--json", action="store_true",
-                   help="print one JSON object (the `show --json` summary, the run directory, the audit verdict) on stdout")
+    add_run_flags(r)
 
     rs = sub.add_parser("resume", help="continue an interrupted run with its own secrets")
     rs.add_argument("dir", type=Path, help="the run directory (as `run` printed it)")
@@ -78,7 +70,7 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     pol = sub.add_parser("policy", help="work with a policy file")
     polsub = pol.add_subparsers(dest="policy_command", required=True, parser_class=_Parser)
     pe = polsub.add_parser("eval", help="run a best_policy.json with no encoding involved")
-    pe.add_argument("file", type=Path, help="a policy file (best_policy.json of a run)")
+    pe.add_argument("file", type=Path, help="a policy file (best_policy.json of a run), or a run or study directory")
     pe.add_argument("--episodes", type=int, default=20, help="episodes to run (default 20)")
     pe.add_argument("--seed", type=int, default=0,
                     help="seed of the fresh episode seeds; the run's seed and --final-episodes repeat its final evaluation (default 0)")
@@ -99,6 +91,13 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     brl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: small MLPs gain nothing from more)")
     brl.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    ps = polsub.add_parser("show", help="the best policy so far of a run or study directory (or a policy file) as one JSON object")
+    ps.add_argument("path", type=Path, help="a run or study directory, or a policy file")
+
+    from .study_commands import add_study_commands  # study create/finalize, ask, tell
+
+    add_study_commands(sub, _Parser, add_run_flags)
+
     from .privacy.commands import add_privacy_commands  # audit, privacy-report
 
     add_privacy_commands(sub, _Parser)
@@ -115,6 +114,21 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
 ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
 
 
+def add_run_flags(r: argparse.ArgumentParser) -> None:
+    """The flags of ``ppprops run`` (``study create`` takes the same): every setting, ``--out``,
+    ``--config``, ``--quiet`` and ``--json``."""
+    add_flags(r, groups=None, only=[s.key for s in SETTINGS if s.group in ("task", "run")])
+    r.add_argument("--out", type=Path, default=None,
+                   help="run directory (default runs/<task>__<method>__<seed>__<time>-<id>, named by the run's id)")
+    r.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="TOML or YAML file whose keys mirror these flags (env = \"CartPole\", top-k = 5, box = [-6, 6]); "
+                        "flags given here win")  # fmt: skip
+    add_flags(r, only=[s.key for s in SETTINGS if s.group not in ("task", "run")])
+    r.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    r.add_argument("--json", action="store_true",
+                   help="print one JSON object (the `show --json` summary, the run directory, the audit verdict) on stdout")
+
+
 def run_parser() -> argparse.ArgumentParser:
     """The parser of ``ppprops run``; its namespace holds only the settings given (``settings.given``)."""
     return _build_parsers()[1]
@@ -123,10 +137,18 @@ def run_parser() -> argparse.ArgumentParser:
 def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None) -> RunConfig:
     """The RunConfig of parsed ``ppprops run`` flags, over ``file_values`` (a ``--config`` file's).
 
+    Without ``--seed`` (on the command line or in the file) the run seed is drawn from the OS
+    (``seeding.draw_seed``) and stored with the run; ``--seed N`` reproduces a run.
+
     Raises:
         ConfigError: one line naming the flag (``settings.build_config``).
     """
-    return build_config({**(file_values or {}), **given(a)})
+    values = {**(file_values if file_values is not None else getattr(a, "file_settings", None) or {}), **given(a)}
+    if "seed" not in values:
+        from .seeding import draw_seed
+
+        values["seed"] = draw_seed()
+    return build_config(values)
 
 
 def _say(text: str) -> None:
@@ -151,15 +173,16 @@ def _finished(run_dir: Path, as_json: bool) -> int:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
+    from .naming import default_run_dir
     from .progress import ProgressEvents
-    from .runner import start
+    from .runner import check_startable, start
 
-    config = run_config(a, getattr(a, "file_settings", None))
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    out = a.out or Path("runs") / f"{config.task}__{config.method}__{config.seed}__{stamp}"
+    config = run_config(a)
+    out = a.out or default_run_dir(config)
+    check_startable(config, out)  # every check that needs no episode, before anything is written or printed
     a.run_dir = out  # named by the Ctrl-C line
     if not a.quiet:
-        _say(f"run directory: {out}")
+        _say(f"run directory: {out} (seed {config.seed})")
     with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
         start(config, out, events.hooks())
     return _finished(out, a.json)
@@ -186,10 +209,23 @@ def _cmd_show(a: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_policy_eval(a: argparse.Namespace) -> int:
-    from .api import evaluate_policy
+def _cmd_policy(a: argparse.Namespace) -> int:
+    if a.policy_command == "show":
+        from .study_commands import cmd_policy_show
 
-    ev = evaluate_policy(a.file, episodes=a.episodes, seed=a.seed, progress=not a.quiet)
+        return cmd_policy_show(a)
+    from .api import evaluate_policy
+    from .store import DB_NAME
+
+    path = Path(a.file)
+    if path.is_dir():
+        if not (path / DB_NAME).exists():
+            raise ConfigError(f"{path} is a directory but not a run or study directory (no {DB_NAME})")
+        path = path / "best_policy.json"
+        if not path.exists():
+            raise ConfigError(f"{a.file} has no best_policy.json yet: finish the run ('ppprops resume') or the study "
+                              f"('ppprops study finalize {a.file}')")  # fmt: skip
+    ev = evaluate_policy(path, episodes=a.episodes, seed=a.seed, progress=not a.quiet)
     result: dict[str, Any] = {"task": ev.task, "mean": ev.mean, "std": ev.std, "episodes": len(ev.returns), "seed": ev.seed,
                               "returns": list(ev.returns), "seeds": list(ev.seeds)}  # fmt: skip
     if a.json:
@@ -289,14 +325,17 @@ def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     except PPPropsError as e:  # a plugin that fails to load while --method is checked (ppprops.plugins)
         print(f"ppprops: error: {e}", file=sys.stderr)
         return EXIT_INPUT
-    if getattr(args, "config", None) is not None and args.command == "run":
+    if getattr(args, "config", None) is not None and args.command in ("run", "study"):
         try:
             _read_config_file(args, args.config)
         except PPPropsError as e:
             print(f"ppprops: error: {e}", file=sys.stderr)
             return EXIT_INPUT
+    from .study_commands import cmd_ask, cmd_study, cmd_tell
+
     handlers = {"run": _cmd_run, "resume": _cmd_resume, "show": _cmd_show, "envs": _cmd_envs, "baseline": _cmd_baseline,
-                "policy": _cmd_policy_eval}  # fmt: skip
+                "policy": _cmd_policy, "ask": cmd_ask, "tell": cmd_tell,
+                "study": lambda args: cmd_study(args, run_config)}  # fmt: skip
     from .experiments.cli import cmd_experiment, cmd_report
 
     handlers.update(experiment=cmd_experiment, report=cmd_report)

@@ -14,32 +14,33 @@ involve several fields); a bad value is one ``ConfigError`` line naming the flag
 
 from __future__ import annotations
 
-import functools
-import json
 import math
 import tomllib
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Mapping
 from dataclasses import asdict
-from dataclasses import dataclass as plain_dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from pydantic import BeforeValidator, ConfigDict, Field, Strict, ValidationError, model_validator
+from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
 
+from .client.context import PromptSettings
+from .client.hardening import EncodingSettings
 from .errors import ConfigError, MissingExtraError
-from .methods import SWITCH_HELP, SWITCHES, Mechanisms, search_method_names, switch_flag
+from .llm.settings import LLMConfig
+from .methods import SWITCH_HELP, SWITCHES, Mechanisms, search_method_names
+from .schema import SCHEMA, Box, Flag, Int, JsonObject, Names, OnOff, one_line_errors
 
 if TYPE_CHECKING:
     from .tasks import Task
+
+__all__ = ["LLMConfig", "OnOff", "PromptSettings", "RunConfig", "TaskOptions", "read_table", "read_text", "read_toml"]
 
 # Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
 MAX_WARMUP = 10_000
 MAX_ITERATIONS = 100_000
 MAX_EPISODES = 10_000
 MAX_PARSE_RETRIES = 10
-MAX_TRANSPORT_RETRIES = 20
-MAX_DELAY_S = 3600.0
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
@@ -48,281 +49,10 @@ PROMPT_FORMS = ("auto", "chat", "document")  # see RunConfig.form
 # the room (Ant-Ultra's K=10 prompt stays under 8,000 characters) and the small model gains nothing
 # from a third digit; the chat form keeps the list form's 3.
 PARAM_DIGITS = {"chat": 3, "document": 2}
-REASONING_EFFORTS = ("none", "minimal", "low", "medium", "high")
-STRUCTURED = ("auto", "json_schema", "grammar", "none")
-
-
-@plain_dataclass(frozen=True)
-class Flag:
-    """How a schema field appears to a user: as ``--<name>`` on the command line and as a key
-    (``name`` or ``name`` with underscores) in config and spec files.
-
-    Attributes:
-        help: the help text; ``(default X)`` is appended from the field's default.
-        name: the flag without ``--`` when it is not the field name with dashes (``timeout`` for
-            ``timeout_s``).
-        metavar: argparse's placeholder for the value.
-        range_text: bound errors say ``must be in <range_text>`` (``[0, 2]``) instead of naming
-            the one bound that failed.
-        hint: added to a bound error in parentheses (``the history starts from it``).
-        default_text: the default as help shows it, when the field's own default does not say it.
-        repeatable: a list given by repeating the flag (``--component a --component b``).
-        choices: the allowed values, for a string field whose choices are known only at run time;
-            a collection other than a list is lazy (``methods.MethodChoices``: the plugins' methods
-            are listed when a name is not found), and the flag then shows ``metavar`` (default the
-            key in capitals) instead of the choices, which only ``--help`` lists.
-    """
-
-    help: str
-    name: str | None = None
-    metavar: str | None = None
-    range_text: str | None = None
-    hint: str = ""
-    default_text: str | None = None
-    repeatable: bool = False
-    choices: Callable[[], Collection[str]] | None = None
-
-
-# -- values as users write them -------------------------------------------------------------------
-def parse_box(value: Any) -> tuple[float, float]:
-    """``"LOW,HIGH"`` (the flag's form), ``[LOW, HIGH]`` (a file's) or a pair, as two floats.
-
-    Raises:
-        ValueError: anything else.
-    """
-    if isinstance(value, str):
-        try:
-            lo, hi = (float(v) for v in value.split(","))
-        except ValueError:
-            raise ValueError(f"expected LOW,HIGH, got {value!r}") from None
-        return lo, hi
-    if isinstance(value, (list, tuple)) and len(value) == 2 and all(_is_number(v) for v in value):
-        return float(value[0]), float(value[1])
-    raise ValueError(f"expected LOW,HIGH or [LOW, HIGH], got {value!r}")
-
-
-def parse_on_off(value: Any) -> bool | None:
-    """A switch: a bool, or ``on``/``off`` (also true/false, yes/no, 1/0); None stays None.
-
-    Raises:
-        ValueError: any other value.
-    """
-    if value is None or isinstance(value, bool):
-        return value
-    if isinstance(value, str):
-        if value.lower() in ("on", "true", "yes", "1"):
-            return True
-        if value.lower() in ("off", "false", "no", "0"):
-            return False
-    raise ValueError(f"expected on or off, got {value!r}")
-
-
-def parse_json_object(value: Any) -> dict[str, Any] | None:
-    """A JSON object given as text (the flag's form) or as a table (a file's); None stays None.
-
-    Raises:
-        ValueError: text that is not a JSON object, or any other value.
-    """
-    if value is None or isinstance(value, dict):
-        return value
-    if isinstance(value, str):
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {value!r} ({e.msg})") from None
-        if isinstance(parsed, dict):
-            return parsed
-    raise ValueError(f"expected a JSON object such as '{{\"g\": 9.81}}', got {value!r}")
-
-
-def parse_names(value: Any) -> tuple[str, ...] | None:
-    """``"K1,K2"`` (the flag's form) or a list of names (a file's); None stays None.
-
-    Raises:
-        ValueError: an empty list, or a value that is neither.
-    """
-    if value is None:
-        return None
-    if isinstance(value, str):
-        names = tuple(n.strip() for n in value.split(",") if n.strip())
-    elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
-        names = tuple(value)
-    else:
-        raise ValueError(f"expected K1,K2,..., got {value!r}")
-    if not names:
-        raise ValueError(f"expected K1,K2,..., got {value!r}")
-    return names
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-Int = Annotated[int, Strict()]
-Float = Annotated[float, Strict()]
-Box = Annotated[tuple[float, float], BeforeValidator(parse_box)]
-Names = Annotated[tuple[str, ...] | None, BeforeValidator(parse_names)]
-JsonObject = Annotated[dict[str, Any] | None, BeforeValidator(parse_json_object)]
-OnOff = Annotated[bool | None, BeforeValidator(parse_on_off)]
-
-_SCHEMA = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
-_C = TypeVar("_C")
-
-
-# -- one-line errors -------------------------------------------------------------------------------
-def _flag_of(cls: type, name: str) -> str:
-    info = flag_info(cls, name)
-    return "--" + ((info.name if info is not None and info.name else name).replace("_", "-"))
-
-
-def flag_info(cls: type, name: str) -> Flag | None:
-    """The ``Flag`` of field ``name`` of a schema class, or None when it is not a user setting."""
-    fields = getattr(cls, "__pydantic_fields__", {})
-    if name not in fields:
-        return None
-    return next((m for m in fields[name].metadata if isinstance(m, Flag)), None)
-
-
-def _shown(value: Any) -> str:
-    return repr(value) if isinstance(value, str) else str(value)
-
-
-def describe_error(err: Mapping[str, Any], name: str, info: Flag | None) -> str:
-    """One pydantic error as the line a user reads; ``name`` is the flag or key the user gave."""
-    kind, value, ctx = err["type"], err.get("input"), err.get("ctx") or {}
-    if kind == "value_error" and isinstance(ctx.get("error"), ConfigError):
-        return str(ctx["error"])  # a check of several fields, worded where it is made
-    bounds = {"greater_than_equal": ">=", "greater_than": ">", "less_than_equal": "<=", "less_than": "<"}
-    if kind in bounds:
-        if info is not None and info.range_text:
-            return f"{name} must be in {info.range_text}, got {_shown(value)}"
-        limit = next(iter(ctx.values()))
-        limit = int(limit) if isinstance(limit, float) and limit.is_integer() else limit
-        hint = f" ({info.hint})" if info is not None and info.hint else ""
-        return f"{name} must be {bounds[kind]} {limit}{hint}, got {_shown(value)}"
-    if kind == "literal_error":
-        allowed = ", ".join(v.strip("'") for v in str(ctx.get("expected", "")).replace(" or ", ", ").split(", "))
-        return f"{name} must be one of {allowed}, got {_shown(value)}"
-    if kind in ("int_type", "int_parsing", "int_from_float"):
-        return f"{name} must be an integer, got {value!r}"
-    if kind in ("float_type", "float_parsing"):
-        return f"{name} must be a number, got {value!r}"
-    if kind in ("bool_type", "bool_parsing"):
-        return f"{name} must be true or false, got {value!r}"
-    if kind == "string_type":
-        return f"{name} must be a string, got {value!r}"
-    if kind in ("tuple_type", "list_type"):
-        return f"{name} must be a list of strings, got {value!r}"
-    if kind == "missing":
-        return f"{name} is required"
-    if kind == "unexpected_keyword_argument":
-        return f"unknown setting {name.lstrip('-').replace('-', '_')!r}"
-    if kind == "value_error":
-        return f"{name}: {ctx.get('error', err.get('msg'))}"
-    return f"{name}: {err.get('msg')}, got {value!r}"
-
-
-def config_error(cls: type, e: ValidationError) -> ConfigError:
-    """The first error of a schema class's validation as one ConfigError line naming the flag."""
-    err = e.errors()[0]
-    owner: type = cls
-    name = ""
-    for part in err["loc"]:  # walk into nested schema classes (RunConfig.llm.timeout_s -> --timeout)
-        if not isinstance(part, str):
-            continue
-        name = part
-        nested = getattr(owner, "__pydantic_fields__", {}).get(part)
-        annotation = getattr(nested, "annotation", None)
-        if isinstance(annotation, type) and hasattr(annotation, "__dataclass_fields__"):
-            owner = annotation
-    if owner is Mechanisms and name in SWITCHES:
-        return ConfigError(describe_error(err, switch_flag(name), None))
-    return ConfigError(describe_error(err, _flag_of(owner, name) if name else owner.__name__, flag_info(owner, name)))
-
-
-def one_line_errors(cls: type[_C]) -> type[_C]:
-    """Make constructing ``cls`` (a pydantic dataclass) raise ``config_error`` instead of pydantic's
-    multi-line ValidationError, so ``RunConfig(...)`` and ``dataclasses.replace`` fail in one line."""
-    init = cls.__init__
-
-    @functools.wraps(init)
-    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
-        try:
-            init(self, *args, **kwargs)
-        except ValidationError as e:
-            raise config_error(cls, e) from None
-
-    cls.__init__ = __init__  # type: ignore[method-assign]
-    return cls
-
-
-# -- the schema -----------------------------------------------------------------------------------
-@one_line_errors
-@dataclass(frozen=True, config=_SCHEMA)
-class LLMConfig:
-    """How to reach the model. No ``base_url`` means: start the embedded llama.cpp server.
-
-    Raises:
-        ConfigError: on construction, for a value out of range, a URL without http(s)://, a
-            ``base_url`` without ``model``, or ``retry_max_s < retry_base_s``.
-    """
-
-    base_url: Annotated[str | None, Flag(
-        "OpenAI-compatible API root that /chat/completions (/completions: document form) is appended to, "
-        "e.g. http://localhost:11434/v1")] = None
-    model: Annotated[str | None, Flag("model name at that endpoint (required with --base-url)")] = None
-    # the name of the env var holding the key; the key itself is never stored
-    api_key_env: Annotated[str | None, Flag("environment variable that holds the API key (never stored)", metavar="VAR")] = None
-    # None: the prompt form's default (1.0 in the chat form; the document form: wire.document.TEMPERATURES)
-    temperature: Annotated[Float | None, Field(ge=0.0, le=2.0), Flag(
-        "sampling temperature, 0 to 2", range_text="[0, 2]",
-        default_text="1.0 for the chat form; the document form alternates 0.6 and 1.0")] = None
-    # None: enough for D numbers, plus room for reasoning (ppprops.llm.client.default_max_tokens)
-    max_tokens: Annotated[Int | None, Field(ge=1), Flag(
-        "answer token budget; reasoning counts against it (default: room for D numbers, plus room for reasoning "
-        "when --reasoning-effort is set or the endpoint reasons)", default_text="")] = None
-    timeout_s: Annotated[Float, Field(gt=0.0), Flag("seconds per request", name="timeout")] = 300.0
-    # gpt-oss and OpenAI's take minimal|low|medium|high; "none" turns thinking off on Ollama's /v1
-    reasoning_effort: Annotated[Literal["none", "minimal", "low", "medium", "high"] | None, Flag(
-        "for reasoning models (gpt-oss, OpenAI o-series); none turns thinking off on Ollama's /v1")] = None
-    structured: Annotated[Literal["auto", "json_schema", "grammar", "none"], Flag(
-        "constrained output: auto = grammar for the embedded model, JSON schema otherwise")] = "auto"
-    # extra tries of one request after a timeout, dropped connection, 429 or 5xx
-    transport_retries: Annotated[Int, Field(ge=0, le=MAX_TRANSPORT_RETRIES), Flag(
-        "retries of one request after a timeout, refused or dropped connection, 429 or 5xx", name="retries",
-        range_text=f"[0, {MAX_TRANSPORT_RETRIES}]")] = 4
-    context_size: Annotated[Int, Field(ge=512), Flag("embedded model context")] = 16384
-    retry_base_s: Annotated[Float, Field(ge=0.0, le=MAX_DELAY_S), Flag(
-        "first backoff in seconds, doubled per retry, with jitter", name="retry-base-delay", metavar="S",
-        range_text=f"[0, {MAX_DELAY_S:g}] seconds")] = 1.0
-    retry_max_s: Annotated[Float, Field(ge=0.0, le=MAX_DELAY_S), Flag(
-        "longest backoff in seconds", name="retry-max-delay", metavar="S", range_text=f"[0, {MAX_DELAY_S:g}] seconds")] = 30.0
-    retry_after_cap_s: Annotated[Float, Field(ge=0.0, le=MAX_DELAY_S), Flag(
-        "longest Retry-After of a 429 that is honoured, seconds", name="retry-after-cap", metavar="S",
-        range_text=f"[0, {MAX_DELAY_S:g}] seconds")] = 60.0
-
-    @model_validator(mode="after")
-    def _consistent(self) -> LLMConfig:
-        if self.retry_max_s < self.retry_base_s:
-            raise ConfigError(f"--retry-max-delay ({self.retry_max_s}) must be >= --retry-base-delay ({self.retry_base_s})")
-        if self.base_url is not None and not self.base_url.startswith(("http://", "https://")):
-            raise ConfigError(f"--base-url must start with http:// or https://, got {self.base_url!r}")
-        if self.base_url is not None and not self.model:
-            raise ConfigError("--model is required with --base-url")
-        return self
-
-    def validate(self) -> None:
-        """Check again (construction already did): raises ConfigError naming the flag."""
-        LLMConfig(**asdict(self))
-
-    @property
-    def embedded(self) -> bool:
-        """True when the run starts the embedded llama.cpp server (no ``base_url``)."""
-        return self.base_url is None
 
 
 @one_line_errors
-@dataclass(frozen=True, config=_SCHEMA)
+@dataclass(frozen=True, config=SCHEMA)
 class RunConfig:
     """Everything that defines a run (paper Algorithm 1 and the settings of Sec. III), stored with it as JSON.
 
@@ -373,6 +103,10 @@ class RunConfig:
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
     task_spec: dict[str, Any] | None = None
+    # The method's own options (ppprops.methods.Method.options checks them): e.g. CMA-ES's population size.
+    method_options: Annotated[JsonObject, Flag(
+        "the method's own options as a JSON object, e.g. '{\"popsize\": 8}' for cmaes (docs/baselines.md)",
+        metavar="JSON")] = None
 
     @model_validator(mode="after")
     def _consistent(self) -> RunConfig:
@@ -381,10 +115,26 @@ class RunConfig:
         lo, hi = self.box
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
-        get_method(self.method).check(self)  # what this method refuses (e.g. prompt switches for a black box)
+        get_method(self.method).check_settings(self.mechanisms, prompt_form=self.prompt_form, options=self.method_options)
         if self.method == "r2po" and self.prompt_form == "document":
             raise ConfigError("--prompt-form document does not apply to r2po (its critic is a chat prompt); use auto or chat")
         return self
+
+    @property
+    def prompt(self) -> PromptSettings:
+        """The settings the prompts depend on, in this run's form (``prompt_settings``)."""
+        return self.prompt_settings(self.form)
+
+    def prompt_settings(self, form: str) -> PromptSettings:
+        """The settings the prompts of ``form`` (``chat`` or ``document``) depend on: what
+        ``client.context.prompt_context`` and the proposers take instead of the whole config."""
+        return PromptSettings(mechanisms=self.mechanisms, box=self.box, decimals=self.decimals, params_style=self.prompt_params,
+                              param_digits=self.digits(form), layout=self.prompt_layout, top_k=self.top_k, form=form)
+
+    @property
+    def encoding(self) -> EncodingSettings:
+        """The settings the secrets and the codec depend on (``client.hardening``)."""
+        return EncodingSettings(mechanisms=self.mechanisms, box=self.box, episodes=self.episodes)
 
     def digits(self, form: str | None = None) -> int:
         """Significant digits of a parameter in the prompt of ``form`` (default: this run's form)."""
@@ -407,6 +157,8 @@ class RunConfig:
         d["box"] = list(self.box)
         if self.task_spec is None:
             del d["task_spec"]  # a config naming its task matches the stored one that holds the declaration
+        if not self.method_options:
+            del d["method_options"]  # as stored before methods had options
         return d
 
     @classmethod
@@ -440,7 +192,7 @@ class RunConfig:
 
 
 @one_line_errors
-@dataclass(frozen=True, config=_SCHEMA)
+@dataclass(frozen=True, config=SCHEMA)
 class TaskOptions:
     """How a user names the task of a run: ``--env`` or ``--task-file``, and the options of a task
     that is not a paper task. ``load()`` turns them into the ``Task`` whose name and declaration

@@ -19,128 +19,23 @@ time a name is not found here (``ppprops.plugins``). docs/architecture.md has th
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Iterator
-from dataclasses import MISSING, asdict, dataclass, fields, replace
+from collections.abc import Callable, Collection, Iterator, Mapping
+from dataclasses import dataclass, replace
 from enum import StrEnum
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError
+
+from .client.mechanisms import HARDENING, PRESETS, PRIVACY_SWITCHES, SWITCH_HELP, SWITCHES, Mechanisms, switch_flag
 from .errors import ConfigError
 from .plugins import load_plugins
+from .schema import describe_error
 
 if TYPE_CHECKING:
     from .baselines.algorithms import Algorithm
-    from .config import RunConfig
-    from .loop import Phase
-    from .strategies import SearchSetup
+    from .proposers.base import Phase, SearchSetup
 
-
-@dataclass(frozen=True)
-class Mechanisms:
-    """Each switch is one mechanism of Section II; presets are named combinations of them."""
-
-    encode_params: bool  # theta~ = A theta in the prompt (Sec. II-B)
-    scale_rewards: bool  # r~ = c r for the return and every reward component (Sec. II-C)
-    detailed_feedback: bool  # reward components and diagnostics in the history (Sec. II-C)
-    disclose_optimum: bool  # the optimal return stated as a target (Vanilla ProPS)
-    disclose_reward_structure: bool  # the numeric reward definition (per-step values, limits)
-    # Hardening (docs/threat-model.md); all off in the paper's presets.
-    secret_offsets: bool = False  # theta~ = A (theta - m), r~ = c (r - s): secret raw origins m, s
-    warp_params: bool = False  # theta~ = A T(theta): the public box mapped onto the whole real line
-    warp_rewards: bool = False  # r~ = c w_p(r): a secret increasing power warp instead of a pure scale
-    hide_return_diagnostics: bool = False  # drop diagnostics that pin the return or a reward component
-    encoded_warmup: bool = False  # warm-up drawn uniformly in the encoded space, then decoded
-    # ProPS+ (on) or ProPS (off): the task description (environment, state and action meanings,
-    # reward text, hints) in the prompt. Off leaves the policy structure, feedback, interaction, history.
-    describe_task: bool = True
-
-    def to_json(self) -> dict[str, bool]:
-        """Each switch by name, as stored in a run's config."""
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Mechanisms:
-        """Reads stored configs, including those written before a switch with a default existed
-        (the hardening switches: off; ``describe_task``: on, as every earlier run described its task)."""
-        values: dict[str, bool] = {}
-        for f in fields(cls):
-            if f.name in d:
-                values[f.name] = bool(d[f.name])
-            elif f.default is not MISSING:
-                values[f.name] = bool(f.default)
-            else:
-                raise KeyError(f.name)
-        return cls(**values)
-
-    @property
-    def hardened(self) -> bool:
-        """True when any hardening switch is on (the secrets then carry offsets and a warp exponent)."""
-        return any(getattr(self, k) for k in HARDENING)
-
-    def check(self) -> None:
-        """Combinations that would reveal the secrets they are meant to hide are refused."""
-        if (self.warp_params or self.encoded_warmup) and not self.encode_params:
-            raise ConfigError("--warp-params and --encoded-warmup need --encode-params on")
-        if self.encoded_warmup and not self.warp_params:
-            # decoding a public encoded box through theta/a_j leaves the raw box for a_j < 1, and the
-            # clipped values re-encode to +-6 a_j: the warm-up would state A instead of hiding it
-            raise ConfigError("--encoded-warmup needs --warp-params on (an affine map would clip the warm-up to the box edges)")
-        if self.warp_rewards and not self.scale_rewards:
-            raise ConfigError("--warp-rewards needs --scale-rewards on")
-        if self.secret_offsets and not (self.encode_params or self.scale_rewards):
-            raise ConfigError("--secret-offsets needs --encode-params or --scale-rewards on")
-
-
-HARDENING = ("secret_offsets", "warp_params", "warp_rewards", "hide_return_diagnostics", "encoded_warmup")
-
-PRESETS: dict[str, Mechanisms] = {
-    # Vanilla ProPS: raw parameters, scalar return, reward structure and optimum disclosed.
-    "vanilla": Mechanisms(False, False, False, True, True),
-    # PE-ProPS: as vanilla, with encoded parameters.
-    "pe": Mechanisms(True, False, False, True, True),
-    # DF-ProPS: as vanilla, plus component rewards and diagnostics on raw values.
-    "df": Mechanisms(False, False, True, True, True),
-    # PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum. The numeric
-    # reward definition is withheld too, because it states the optimum (e.g. 500 steps x +1).
-    "pp": Mechanisms(True, True, True, False, False),
-    # PP-ProPS with the side channels of docs/threat-model.md closed (not a configuration of the paper).
-    "pp-hardened": Mechanisms(True, True, True, False, False, True, True, True, True, True),
-}
-
-
-# Every switch, in declaration order; each is a `--<name with dashes> on|off` flag of `ppprops run`.
-SWITCHES: tuple[str, ...] = tuple(f.name for f in fields(Mechanisms))
-
-
-# The help text of each switch's `--<name> on|off` flag.
-SWITCH_HELP: dict[str, str] = {
-    "encode_params": "parameters shown as A theta (Sec. II-B)",
-    "scale_rewards": "returns and reward components shown as c r (Sec. II-C)",
-    "detailed_feedback": "reward components and diagnostics in the history",
-    "disclose_optimum": "state the optimal return as a target (Vanilla ProPS)",
-    "disclose_reward_structure": "state the numeric reward definition",
-    "describe_task": "task description in the prompt: on = ProPS+, off = ProPS (policy structure only)",
-    "secret_offsets": "hardening: secret raw origins, A (theta - m) and c (r - s)",
-    "warp_params": "hardening: the box mapped onto the real line before A",
-    "warp_rewards": "hardening: a secret increasing power warp of the rewards",
-    "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
-    "encoded_warmup": "hardening: warm-up drawn in the encoded space",
-}
-
-
-def switch_flag(name: str) -> str:
-    """The command-line flag of a mechanism switch: ``encode_params`` -> ``--encode-params``."""
-    return "--" + name.replace("_", "-")
-
-
-# Switches that hide something from the provider. A method whose prompts show raw trajectory
-# evidence (R2PO's critic reads raw states and the actions the policy took in them) refuses them:
-# for a linear policy u = W^T s + b a least-squares fit of those actions on those states gives the
-# raw W and b (so every a_j, coordinate by coordinate, against the encoded parameters beside them),
-# and the public dynamics and reward definition give the raw return from the rollout (CartPole: its
-# number of steps). Encoding states and actions with secrets of their own would not hold either:
-# public dynamics pin a diagonal state scale (initial-state range, termination thresholds,
-# x' = x + tau x_dot). See docs/threat-model.md.
-PRIVACY_SWITCHES = ("encode_params", "scale_rewards", *HARDENING)
+__all__ = ["HARDENING", "PRESETS", "PRIVACY_SWITCHES", "SWITCH_HELP", "SWITCHES", "Mechanisms", "switch_flag"]
 
 
 def check_method(method: str, mech: Mechanisms) -> None:
@@ -183,7 +78,10 @@ class Method:
     ``rl-<algo>``). ``preset`` is the mechanisms a prompted method starts from. A search runs
     ``warmup`` uniform samples, then ``iterations`` asks of the phase its builder returns:
     ``phase`` is the name of a builder in ``ppprops.strategies`` or a callable
-    ``(strategies.SearchSetup) -> loop.Phase``; ``iterations`` counts what ``iteration_unit`` says.
+    ``(proposers.base.SearchSetup) -> proposers.base.Phase``; ``iterations`` counts what
+    ``iteration_unit`` says. ``options`` is the pydantic model of the method's own options (the
+    run's ``method_options``, e.g. CMA-ES's population size; None: the method takes none); its
+    builder reads them as ``setup.options``. ``forms`` are the ``--prompt-form`` values it takes.
     """
 
     name: str
@@ -196,6 +94,8 @@ class Method:
     top_k_prompt: bool = False  # one LLM call per iteration over a top-K history (history-cost figures)
     raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
+    options: type[BaseModel] | None = None  # the method's own options (a pydantic model), None: none
+    forms: tuple[str, ...] = ("auto", "chat", "document")  # the --prompt-form values it takes
 
     @property
     def algorithm(self) -> Algorithm:
@@ -239,11 +139,37 @@ class Method:
         mech.check()
         return mech
 
-    def check(self, config: RunConfig) -> None:
-        """Settings this method refuses, each as one ConfigError line (``RunConfig.validate`` calls it)."""
+    def check_settings(self, mechanisms: Mechanisms, *, prompt_form: str = "auto", options: Mapping[str, Any] | None = None) -> None:
+        """Settings this method refuses, each as one ConfigError line (``RunConfig`` calls it on
+        construction): an RL baseline as a search, mechanisms it cannot run with, a prompt form it
+        does not use, options it does not know or of the wrong type."""
         if self.kind is MethodKind.RL:
             raise ConfigError(f"{self.name} is an RL baseline: train it with 'ppprops baseline rl --algo {self.algo}'")
-        self.check_mechanisms(config.mechanisms)
+        self.check_mechanisms(mechanisms)
+        if prompt_form not in self.forms:
+            raise ConfigError(f"--prompt-form {prompt_form} does not apply to {self.name}; use {' or '.join(self.forms)}")
+        self.parse_options(options)
+
+    def parse_options(self, options: Mapping[str, Any] | None) -> BaseModel | None:
+        """The method's own options, validated (``options``: the run's ``method_options``).
+
+        Returns the options model (defaults filled in), or None for a method that takes none.
+        Raises ConfigError naming the option for an unknown option or a bad value.
+        """
+        given = dict(options or {})
+        if self.options is None:
+            if given:
+                raise ConfigError(f"--method-options: {self.name} takes no options, got {', '.join(sorted(given))}")
+            return None
+        try:
+            return self.options(**given)
+        except ValidationError as e:
+            err = e.errors()[0]
+            name = ".".join(str(p) for p in err["loc"]) or "method_options"
+            if err["type"] == "extra_forbidden":
+                known = ", ".join(self.options.model_fields)
+                raise ConfigError(f"--method-options: {self.name} has no option {name!r} (known: {known})") from None
+            raise ConfigError(f"--method-options: {describe_error(err, name, None)}") from None
 
     def check_mechanisms(self, m: Mechanisms) -> None:
         """Mechanisms this method cannot run with, each as one ConfigError line: a combination that
@@ -265,6 +191,17 @@ class Method:
 
 
 
+class CMAESOptions(BaseModel):
+    """``--method-options`` of ``cmaes`` (pycma's own names): ``popsize`` (None: pycma's default,
+    4 + 3 ln D) and ``sigma0``, the initial step as a share of the box width in the raw space (in
+    the encoded space the step is 1 per coordinate scaled by the warm-up's spread, times
+    ``sigma0 / 0.3``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    popsize: Annotated[int | None, Strict(), Field(ge=2)] = None
+    sigma0: Annotated[float, Field(gt=0.0)] = 0.3
+
+
 def _prompted(name: str, title: str, preset: str) -> Method:
     return Method(name, MethodKind.PROMPTED, title, PRESETS[preset], phase="props_phase", top_k_prompt=True)
 
@@ -283,7 +220,7 @@ METHODS: dict[str, Method] = {
         _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
         Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
                default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
-               raw_evidence=True),
+               raw_evidence=True, forms=("auto", "chat")),
         _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
         _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
         _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),
@@ -291,7 +228,7 @@ METHODS: dict[str, Method] = {
         Method("random", MethodKind.BLACK_BOX, "random search: uniform samples in the box", iteration_unit="samples",
                phase="random_phase"),
         Method("cmaes", MethodKind.BLACK_BOX, "CMA-ES (pycma), raw or encoded space", iteration_unit="samples",
-               phase="cmaes_phase"),
+               phase="cmaes_phase", options=CMAESOptions),
         _rl("ppo"),
         _rl("a2c"),
         _rl("sac"),

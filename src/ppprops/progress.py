@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from .runner import RunEvents
+from .events import RunEvents
 from .values import Candidate, FinalEval
 
 

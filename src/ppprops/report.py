@@ -10,7 +10,7 @@ from typing import Any
 from .baselines.record import format_rl_summary, rl_summary
 from .config import RunConfig
 from .loop import best_candidate
-from .status import RunKind
+from .status import RunKind, RunStatus, effective
 from .store import open_store
 
 
@@ -62,10 +62,13 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         calls = store.llm_calls()
         adaptations = store.llm_adaptations()
         fe = store.final_eval()
+        pending = store.pending_trial()
         best = best_candidate(cands) if cands else None
+        status, reason = effective(store.status(), run_dir)
         return _finite({
             "run_id": store.run_id(),
-            "status": store.status(),
+            "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
+            "pending_trial": None if pending is None else pending.number,
             "env": config.task,
             "method": config.method,
             "mechanisms": config.mechanisms.to_json(),

@@ -29,9 +29,10 @@ from typing import Any, Literal
 
 from pydantic import BeforeValidator, TypeAdapter, ValidationError
 
-from .config import SWITCH_FLAGS, Flag, LLMConfig, OnOff, RunConfig, TaskOptions, describe_error, flag_info
+from .config import SWITCH_FLAGS, LLMConfig, RunConfig, TaskOptions
 from .errors import ConfigError
 from .methods import SWITCHES, Mechanisms, get_method
+from .schema import Flag, OnOff, describe_error, flag_info
 
 if typing.TYPE_CHECKING:
     from .tasks import Task

@@ -8,7 +8,10 @@ an I/O error, a lock held too long) surfaces as a one-line ``StoreError``.
 
 Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``answer_source``
 (transport faults and answers taken from the reasoning text); 3 adds ``candidates.ask_s`` and
-``eval_s`` (where an iteration's time goes). Older stores are migrated in place. Changes the LLM
+``eval_s`` (where an iteration's time goes); 4 adds the ``pending`` table (the trial a study has
+asked for and not yet been told: stored before ``ask`` returns, so a restart asks nothing twice)
+and ``llm_calls.form`` and ``decisions`` (the prompt form of each call and the public choices it
+made, which the audit reads). Older stores are migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
 in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
 (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
@@ -19,7 +22,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -28,9 +31,9 @@ import numpy as np
 
 from .errors import ConfigError, StoreError
 from .status import RunStatus
-from .values import Candidate, Feedback, FinalEval
+from .values import Candidate, Feedback, FinalEval, Trial
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"
 KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
@@ -70,6 +73,20 @@ CREATE TABLE IF NOT EXISTS llm_calls (
     retry INTEGER NOT NULL DEFAULT 0,
     answer_source TEXT
 );
+CREATE TABLE IF NOT EXISTS pending (
+    idx INTEGER PRIMARY KEY,
+    phase TEXT NOT NULL,
+    iteration INTEGER NOT NULL,
+    source TEXT NOT NULL,
+    params TEXT NOT NULL,
+    seeds TEXT NOT NULL,
+    clipped INTEGER NOT NULL,
+    note TEXT NOT NULL DEFAULT '',
+    ask_s REAL,
+    n_s INTEGER NOT NULL,
+    n_a INTEGER NOT NULL,
+    created REAL NOT NULL
+);
 CREATE TABLE IF NOT EXISTS final_eval (
     id INTEGER PRIMARY KEY CHECK (id = 1),
     candidate_idx INTEGER NOT NULL,
@@ -86,6 +103,8 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("llm_calls", "answer_source", "TEXT"),
     ("candidates", "ask_s", "REAL"),
     ("candidates", "eval_s", "REAL"),
+    ("llm_calls", "form", "TEXT"),
+    ("llm_calls", "decisions", "TEXT"),
 )
 
 
@@ -267,6 +286,15 @@ class RunStore:
         raw = self._meta("endpoint_changes")
         return list(json.loads(raw)) if raw else []
 
+    def streams_keyed(self) -> bool:
+        """True when the run's random streams are keyed by its secrets (``seeding.Streams``); runs
+        recorded before streams were keyed derive them from the run seed alone."""
+        return self._meta("streams") == "keyed"
+
+    def set_streams_keyed(self) -> None:
+        """Record that the run's random streams are keyed by its secrets (done once, at creation)."""
+        self._set_meta("streams", "keyed")
+
     def key_fingerprint(self) -> str:
         """The fingerprint of the run's secrets (``Secrets.fingerprint``); "" when none is stored."""
         return self._meta("key_fingerprint") or ""
@@ -289,24 +317,74 @@ class RunStore:
         """Record one evaluated candidate in its own transaction; StoreError if its index is taken."""
         try:
             with self._tx() as db:
-                db.execute(
-                    "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
-                    " created, ask_s, eval_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        c.index, c.iteration, c.source,
-                        json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
-                        json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
-                        c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s,
-                    ),
-                )
+                self._insert_candidate(db, c)
         except sqlite3.IntegrityError:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
-    def candidates(self) -> list[Candidate]:
-        """Every recorded candidate, by index (``params`` and ``params_enc``: float64 arrays of shape (D,))."""
+    def record_trial(self, c: Candidate) -> None:
+        """Record the told candidate of the pending trial ``c.index`` and clear that trial, in one
+        transaction. StoreError if no such trial is pending or its candidate is already recorded."""
+        try:
+            with self._tx() as db:
+                gone = db.execute("DELETE FROM pending WHERE idx = ?", (c.index,)).rowcount
+                if not gone:
+                    raise StoreError(f"trial {c.index} is not pending in {self.path}")
+                self._insert_candidate(db, c)
+        except sqlite3.IntegrityError:
+            raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
+
+    @staticmethod
+    def _insert_candidate(db: sqlite3.Connection, c: Candidate) -> None:
+        db.execute(
+            "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
+            " created, ask_s, eval_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                c.index, c.iteration, c.source,
+                json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
+                json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
+                c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s,
+            ),
+        )
+
+    # -- the pending trial ----------------------------------------------------------------
+    def add_pending(self, t: Trial) -> None:
+        """Store the trial a study has asked for (before ``ask`` returns it). StoreError when a
+        trial is already pending or its number is already a recorded candidate."""
+        try:
+            with self._tx() as db:
+                if db.execute("SELECT 1 FROM candidates WHERE idx = ?", (t.number,)).fetchone():
+                    raise StoreError(f"candidate {t.number} is already recorded in {self.path}")
+                other = db.execute("SELECT idx FROM pending").fetchone()
+                if other is not None:
+                    raise StoreError(f"trial {other[0]} is already pending in {self.path}")
+                db.execute(
+                    "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
+                     t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time()),
+                )
+        except sqlite3.IntegrityError:
+            raise StoreError(f"trial {t.number} is already pending in {self.path}") from None
+
+    def pending_trial(self) -> Trial | None:
+        """The trial asked for and not yet told, or None."""
+        row = self._read("SELECT idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a FROM pending"
+                         " ORDER BY idx LIMIT 1").fetchone()
+        if row is None:
+            return None
+        return Trial(number=row[0], phase=row[1], iteration=row[2], source=row[3], theta=np.asarray(json.loads(row[4])),
+                     seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10])
+
+    def candidate_count(self) -> int:
+        """How many candidates are recorded."""
+        return int(self._read("SELECT COUNT(*) FROM candidates").fetchone()[0])
+
+    def candidates(self, since: int = 0) -> list[Candidate]:
+        """Every recorded candidate from index ``since`` on, by index (``params`` and ``params_enc``:
+        float64 arrays of shape (D,))."""
         rows = self._read(
             "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s"
-            " FROM candidates ORDER BY idx"
+            " FROM candidates WHERE idx >= ? ORDER BY idx", (int(since),)
         ).fetchall()
         return [
             Candidate(
@@ -325,10 +403,13 @@ class RunStore:
             "SELECT idx, source, iteration, created, ask_s, eval_s FROM candidates ORDER BY idx").fetchall()]
 
     # -- LLM exchanges --------------------------------------------------------------------
-    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None) -> None:
+    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str | None = None,
+                     decisions: Mapping[str, Any] | None = None) -> int:
         """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry,
-        answer_source and adaptation are optional, so older exchange-like objects still record).
-        An adaptation is appended to ``llm_adaptations`` in the same transaction."""
+        answer_source and adaptation are optional, so older exchange-like objects still record),
+        ``form`` the prompt form that built it and ``decisions`` the public choices the form made
+        (``wire.forms``). An adaptation is appended to ``llm_adaptations`` in the same
+        transaction. Returns the call's row id (``annotate_llm_call``)."""
         adaptation = getattr(ex, "adaptation", None)
         with self._tx() as db:
             if adaptation:
@@ -336,16 +417,24 @@ class RunStore:
                 log = json.loads(row[0]) if row else []
                 log.append({"iteration": iteration, "attempt": attempt, "change": adaptation, "created": time.time()})
                 db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
-            db.execute(
+            cur = db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, response, content, reasoning, prompt_chars,"
                 " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created, error_kind, retry,"
-                " answer_source) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                " answer_source, form, decisions) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     iteration, attempt, ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars,
                     ex.prompt_tokens, ex.completion_tokens, ex.latency_s, int(ex.ok), ex.error, parse_error, time.time(),
                     getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)), getattr(ex, "answer_source", None),
+                    form, None if decisions is None else json.dumps(dict(decisions)),
                 ),
             )
+            return int(cur.lastrowid or 0)
+
+    def annotate_llm_call(self, call_id: int, *, parse_error: str | None, answer_source: str | None) -> None:
+        """Add the proposer's verdict on the recorded answer ``call_id``: why it could not be used
+        (``parse_error``, None when it was) and where the proposal was read (``content`` or ``reasoning``)."""
+        with self._tx() as db:
+            db.execute("UPDATE llm_calls SET parse_error = ?, answer_source = ? WHERE id = ?", (parse_error, answer_source, int(call_id)))
 
     def llm_adaptations(self) -> list[dict[str, Any]]:
         """Changes the LLM client made to its requests, in order: {iteration, attempt, change, created}."""
@@ -375,7 +464,7 @@ class RunStore:
         (request and response bodies as sent and received, tokens, latency in seconds, ok, errors)."""
         cur = self._read(
             "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
-            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source"
+            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions"
             " FROM llm_calls ORDER BY id"
         )
         cols = [d[0] for d in cur.description]
@@ -383,6 +472,7 @@ class RunStore:
         for row in cur.fetchall():
             d = dict(zip(cols, row))
             d["ok"] = bool(d["ok"])
+            d["decisions"] = json.loads(d["decisions"]) if d["decisions"] else None
             out.append(d)
         return out
 

@@ -109,3 +109,80 @@ class FinalEval:
         """Standard deviation of the returns (population); NaN with no episodes."""
         with np.errstate(invalid="ignore", over="ignore"):
             return float(np.std(self.returns)) if self.returns else float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class Trial:
+    """A candidate the study asks to be evaluated (``Study.ask``), before its feedback is told.
+
+    Attributes:
+        number: its index in the run, from 0 (warm-up first); the candidate it becomes has it.
+        phase: the phase that asked it: ``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``, ...
+        iteration: the proposer's own ask number within the phase.
+        source: who proposed it: ``warmup``, ``llm``, ``fallback``, ``random``, ``cmaes``, ...
+        theta: the raw parameters to run, shape (D,) with D = (n_s + 1) n_a, inside the box.
+        n_s, n_a: the policy's state and action sizes (``W`` and ``b`` come from ``theta``).
+        seeds: the episode seeds to reset a simulator with, one per episode asked for; a robot
+            that cannot be seeded ignores them (its episodes' initial states are its own).
+        clipped: coordinates that had to be clipped into the box.
+        note: why a fallback was used, or other remarks.
+        ask_s: seconds the proposer took to ask it (LLM calls included).
+    """
+
+    number: int
+    phase: str
+    iteration: int
+    source: str
+    theta: np.ndarray
+    n_s: int
+    n_a: int
+    seeds: tuple[int, ...]
+    clipped: int = 0
+    note: str = ""
+    ask_s: float | None = None
+
+    @property
+    def W(self) -> np.ndarray:
+        """The weights of u = W^T s + b (paper Eq. 10), shape (n_s, n_a) (layout: ``ppprops.policy``)."""
+        return np.asarray(self.theta[: self.n_s * self.n_a], dtype=np.float64).reshape(self.n_s, self.n_a)
+
+    @property
+    def b(self) -> np.ndarray:
+        """The bias of u = W^T s + b, shape (n_a,)."""
+        return np.asarray(self.theta[self.n_s * self.n_a:], dtype=np.float64)
+
+    @property
+    def episodes(self) -> int:
+        """Episodes asked for (their mean is the candidate's return)."""
+        return len(self.seeds)
+
+    def to_json(self) -> dict[str, Any]:
+        """What ``ppprops ask`` prints: every field, ``theta`` flat and as ``W`` (rows of n_a) and ``b``."""
+        return {
+            "trial": self.number,
+            "phase": self.phase,
+            "iteration": self.iteration,
+            "source": self.source,
+            "theta": [float(v) for v in self.theta],
+            "W": [[float(v) for v in row] for row in self.W],
+            "b": [float(v) for v in self.b],
+            "n_s": self.n_s,
+            "n_a": self.n_a,
+            "episodes": self.episodes,
+            "seeds": list(self.seeds),
+            "clipped": self.clipped,
+            "note": self.note,
+        }
+
+    def __eq__(self, other: object) -> bool:
+        """Equal when every field is (``theta`` value by value)."""
+        if not isinstance(other, Trial):
+            return NotImplemented
+        mine, theirs = dict(self.__dict__), dict(other.__dict__)
+        return np.array_equal(mine.pop("theta"), theirs.pop("theta")) and mine == theirs
+
+    __hash__ = None  # type: ignore[assignment]  # holds an array: not hashable
+
+    def __repr__(self) -> str:
+        """One line: the number, where it came from, its size; not the raw parameters."""
+        return f"Trial(number={self.number}, phase={self.phase!r}, source={self.source!r}, D={len(self.theta)}, episodes={self.episodes})"

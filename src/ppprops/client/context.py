@@ -7,10 +7,32 @@ diagnostics and describe their encodings without claiming what they do not keep 
 
 from __future__ import annotations
 
-from ..config import RunConfig
+from dataclasses import dataclass
+
 from ..tasks.base import Task
 from ..wire.encoded import PromptContext
 from .codec import Codec
+from .mechanisms import Mechanisms
+
+
+@dataclass(frozen=True)
+class PromptSettings:
+    """The run settings a prompt depends on (``RunConfig.prompt`` makes them): the mechanisms, the
+    public box, and how numbers and sections are written. Public; holds no secret.
+
+    ``form`` is the resolved prompt form (``chat`` or ``document``); ``param_digits`` the
+    significant digits of a parameter in it (0: fixed decimals); ``top_k`` the history limit K
+    (0: unbounded), which only shapes the wording.
+    """
+
+    mechanisms: Mechanisms
+    box: tuple[float, float]
+    decimals: int = 2
+    params_style: str = "list"
+    param_digits: int = 3
+    layout: str = "static-first"
+    top_k: int = 10
+    form: str = "chat"
 
 
 def encoding_words(codec: Codec) -> tuple[str, str]:
@@ -20,17 +42,17 @@ def encoding_words(codec: Codec) -> tuple[str, str]:
     return params, rewards
 
 
-def warmup_box(config: RunConfig) -> tuple[float, float]:
-    """The public encoded box an encoded warm-up draws from: the public box's width, centred on 0."""
-    half = (config.box[1] - config.box[0]) / 2.0
+def warmup_box(box: tuple[float, float]) -> tuple[float, float]:
+    """The public encoded box an encoded warm-up draws from: the public ``box``'s width, centred on 0."""
+    half = (box[1] - box[0]) / 2.0
     return (-half, half)
 
 
-def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext:
+def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> PromptContext:
     """The public context of every prompt (wire side): task text as the mechanisms allow, D, the box
     (encoded when the warm-up is drawn in the encoded space), digits, and the switches. Holds no secret.
     """
-    m = config.mechanisms
+    m = settings.mechanisms
     text = task.text
     reward_text = text.reward_structure if m.disclose_reward_structure else text.reward_hint
     optimum = None
@@ -48,18 +70,18 @@ def prompt_context(task: Task, config: RunConfig, codec: Codec) -> PromptContext
         encoded_params=m.encode_params,
         scaled_rewards=m.scale_rewards,
         detailed_feedback=m.detailed_feedback,
-        param_range=None if m.encode_params else config.box,
+        param_range=None if m.encode_params else settings.box,
         optimum=optimum,
         component_notes=tuple((k, text.components.get(k, k)) for k in task.components if k not in codec.hidden_components),
         diagnostic_notes=tuple((k, text.diagnostics.get(k, k)) for k in diagnostics),
-        decimals=config.decimals,
-        params_style=config.prompt_params,
-        param_digits=config.digits(),
-        layout=config.prompt_layout,
+        decimals=settings.decimals,
+        params_style=settings.params_style,
+        param_digits=settings.param_digits,
+        layout=settings.layout,
         title=task.name,
-        history_limit=config.top_k,
+        history_limit=settings.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,
-        warmup_range=warmup_box(config) if (m.encoded_warmup and m.encode_params) else None,
+        warmup_range=warmup_box(settings.box) if (m.encoded_warmup and m.encode_params) else None,
         describe_task=m.describe_task,
     )

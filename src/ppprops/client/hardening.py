@@ -6,17 +6,29 @@ return or a reward component, the rough size of returns) is kept here, next to t
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..privacy.knowledge import facts_for
 from .codec import Codec
+from .mechanisms import Mechanisms
 from .secrets import Secrets, os_rng
 
 if TYPE_CHECKING:
-    from ..config import RunConfig
     from ..tasks.base import Task
+
+
+@dataclass(frozen=True)
+class EncodingSettings:
+    """The run settings the secrets and the codec depend on (``RunConfig.encoding`` makes them):
+    the mechanisms, the public box of every raw parameter, and the episodes per candidate (a
+    mean over them has a finer public resolution, which the hardened dither follows)."""
+
+    mechanisms: Mechanisms
+    box: tuple[float, float]
+    episodes: int = 1
 
 # Diagnostics that, with public knowledge of the task, determine the raw return or a raw reward
 # component (docs/threat-model.md): the episode length is the CartPole return, the Acrobot return
@@ -62,7 +74,7 @@ def reward_scale(task: Task) -> float:
     return REWARD_SCALE.get(task.name, DEFAULT_REWARD_SCALE)
 
 
-def generate_secrets(run_id: str, task: Task, config: RunConfig, rng: np.random.Generator | None = None) -> Secrets:
+def generate_secrets(run_id: str, task: Task, config: EncodingSettings, rng: np.random.Generator | None = None) -> Secrets:
     """The one routine that draws a run's secrets: the paper's, plus what each hardening switch on needs.
 
     ``rng`` None draws from the OS entropy source (``ppprops run``); a grid passes a generator
@@ -87,7 +99,7 @@ def generate_secrets(run_id: str, task: Task, config: RunConfig, rng: np.random.
     )
 
 
-def codec_for(secrets: Secrets, task: Task, config: RunConfig) -> Codec:
+def codec_for(secrets: Secrets, task: Task, config: EncodingSettings) -> Codec:
     """The run's codec, with every mechanism of its configuration."""
     m = config.mechanisms
     return Codec(

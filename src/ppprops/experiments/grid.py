@@ -113,7 +113,7 @@ def derive_secrets(master_key: bytes, name: str, config: RunConfig) -> Secrets:
     """
     from ..client.hardening import generate_secrets
 
-    return generate_secrets(name, config.make_task(), config, rng=derived_rng(master_key, name))
+    return generate_secrets(name, config.make_task(), config.encoding, rng=derived_rng(master_key, name))
 
 
 # -- run state and locks ---------------------------------------------------------------------

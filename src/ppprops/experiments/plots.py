@@ -14,7 +14,7 @@ from ..status import RunKind
 from .order import PROMPT_METHODS, column_key, task_key
 
 if TYPE_CHECKING:
-    from .report import Group, RunRecord
+    from .records import Group, RunRecord
 
 
 def _plt() -> Any:

@@ -38,10 +38,10 @@ from dataclasses import dataclass, replace
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from ..config import LLMConfig
 from ..errors import LLMError
 from ..wire.document import document_temperature
 from ..wire.parse import read_answer, split_reasoning
+from .settings import LLMConfig
 
 
 @dataclass(frozen=True)

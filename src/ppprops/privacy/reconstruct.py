@@ -46,12 +46,12 @@ def client_codec(task: Task, config: RunConfig, secrets: Secrets | None) -> Code
     disclosed encoded optimum, which then cannot be verified)."""
     if secrets is None:
         secrets = Secrets(run_id="audit", a=np.ones(task.D), c=1.0)
-    return codec_for(secrets, task, config)
+    return codec_for(secrets, task, config.encoding)
 
 
 def context(task: Task, config: RunConfig, codec: Codec) -> PromptContext:
     """The public prompt context of the run (``client.context.prompt_context``), as the proposer built it."""
-    return prompt_context(task, config, codec)
+    return prompt_context(task, config.prompt, codec)
 
 
 def _finite_components(components: Mapping[str, float]) -> dict[str, float]:

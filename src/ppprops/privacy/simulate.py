@@ -86,7 +86,7 @@ class EchoOptimizer:
 @contextmanager
 def offline_llm(spread: float = 0.5) -> Iterator[None]:
     """Within the block, every run started by ``ppprops.runner`` talks to an ``EchoOptimizer``."""
-    from ..runner import use_chat
+    from ..study import use_chat
 
     with use_chat(lambda config: EchoOptimizer(config, spread=spread)):
         yield

@@ -1,13 +1,21 @@
-"""The ask/tell protocol every proposer implements, and how a proposer stops a search."""
+"""The ask/tell protocol every proposer implements, how a proposer stops a search, and what a
+method's phase builder is given to build its proposer (``SearchSetup``) and returns (``Phase``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 if TYPE_CHECKING:
+    from ..client.codec import Codec
+    from ..client.context import PromptSettings
+    from ..evaluation import Evaluator
+    from ..llm.settings import LLMConfig
+    from ..seeding import Streams
+    from ..tasks.base import Task
     from ..values import Candidate
 
 
@@ -53,3 +61,47 @@ def clip_to_box(theta: np.ndarray, box: tuple[float, float]) -> tuple[np.ndarray
     lo, hi = box
     clipped = int(np.count_nonzero((theta < lo) | (theta > hi)))
     return np.clip(theta, lo, hi), clipped
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A stretch of a search: ``budget`` candidates, each asked of ``proposer`` (warm-up, then the search).
+
+    ``name`` labels it (``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``); ``budget`` >= 0.
+    """
+
+    name: str
+    proposer: Proposer
+    budget: int
+
+
+@dataclass(frozen=True)
+class SearchSetup:
+    """What a method's phase builder is given: the narrow pieces of a run it may use, never the
+    whole run config.
+
+    ``task`` (D, the public task facts), ``codec`` (the only producer of encoded values),
+    ``streams`` (the run's keyed random streams), ``box`` (the public raw range of every
+    parameter), ``warmup`` and ``iterations`` (the budget before and of the search phase),
+    ``prompt`` (how prompts are written, the resolved form included), ``llm`` (the endpoint's
+    settings: context window, token budget, temperature), ``options`` (the method's own options,
+    ``Method.parse_options``: a pydantic model or None), ``on_llm_failure`` and
+    ``parse_retries``. ``chat()`` returns the run's recording LLM client (started on first use,
+    closed by the study; None for methods that send no prompt); ``evaluator`` runs episodes of the
+    task's env (R2PO's rollouts; None for a task without an env).
+    """
+
+    task: Task
+    codec: Codec
+    streams: Streams
+    box: tuple[float, float]
+    warmup: int
+    iterations: int
+    prompt: PromptSettings
+    llm: LLMConfig
+    options: Any = None
+    on_llm_failure: str = "stop"
+    parse_retries: int = 2
+    chat: Callable[[], Any] | None = None
+    evaluator: Evaluator | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)

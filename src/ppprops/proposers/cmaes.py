@@ -35,13 +35,17 @@ class CMAESProposer:
     """
 
     def __init__(self, *, D: int, box: tuple[float, float], seed: int, codec: Codec, space: Space = "raw",
-                 popsize: int | None = None, source: str = "cmaes") -> None:
+                 popsize: int | None = None, sigma0: float = 0.3, source: str = "cmaes") -> None:
+        """``seed`` seeds pycma's sampling; ``popsize`` (None: pycma's 4 + 3 ln D) and ``sigma0``
+        (initial step, share of the box width; the encoded space scales its unit step by
+        ``sigma0 / 0.3``) are the method's options (``methods.CMAESOptions``)."""
         try:
             import cma  # noqa: F401
         except ImportError as e:
             raise MissingExtraError("baselines", "--method cmaes") from e
         self.D, self.box, self.seed, self.codec, self.space = D, box, seed, codec, space
         self.popsize = popsize
+        self.sigma0 = sigma0
         self.source = source
         self._warmup: list[Candidate] = []
         self._es: Any = None  # cma.CMAEvolutionStrategy once started (pycma has no type information)
@@ -60,12 +64,12 @@ class CMAESProposer:
             opts["popsize"] = self.popsize
         if self.space == "raw":
             opts["bounds"] = [lo, hi]
-            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), 0.3 * (hi - lo), opts)
+            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), self.sigma0 * (hi - lo), opts)
         else:
             spread = np.std([c.params_enc for c in self._warmup], axis=0)
             spread = np.where(spread > 0, spread, 1.0)
             opts["CMA_stds"] = spread.tolist()
-            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params_enc), 1.0, opts)
+            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params_enc), self.sigma0 / 0.3, opts)
 
     def _population(self) -> list[np.ndarray]:
         if self._es is None:

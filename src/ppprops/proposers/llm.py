@@ -21,8 +21,8 @@ A correction repeats the model's final text (never its reasoning or markup) and 
 wrong (``wire.turns.correction_messages``, which the audit rebuilds too); an HTTP error never reaches the model (the client adapts, retries or raises). An
 endpoint that stays down past the client's retry bound either stops the run (``stop``,
 resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``; a request
-the endpoint rejects for good always stops the run. Every HTTP try, failed ones included, goes
-to ``on_exchange``.
+the endpoint rejects for good always stops the run. Every HTTP try, failed ones included, is
+recorded by the recording client it goes through (``llm.recording.RecordingChat``).
 
 Numerical faults never reach the prompt: a candidate with a non-finite return is left out of
 the history (and never becomes the best), non-finite components are dropped and non-finite
@@ -34,20 +34,19 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
-from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
 from .. import seeding
 from ..client.codec import Codec
-from ..llm.client import Chat, Exchange, LLMRejected, LLMUnavailable
+from ..llm.client import Exchange, LLMRejected, LLMUnavailable
 from ..values import Candidate
-from ..wire import EncodedEntry, ParseResult, PromptContext, build_prompt, top_k
-from ..wire.document import build_document, continuation_grammar, document_temperature
-from ..wire.turns import correction_messages, judge_answer, judge_continuation, prompt_messages, repeats_history
+from ..wire import EncodedEntry, PromptContext, top_k
+from ..wire.forms import FORMS, PromptForm
+from ..wire.turns import repeats_history
 from .base import Proposal, clip_to_box
 
-ExchangeHook = Callable[[int, int, Exchange, str | None], None]
 FALLBACK_SIGMA = 0.05  # of the box width
 # What the user can do about an answer failure, in the fallback note ("after KIND (HINT)").
 HINTS = {
@@ -60,50 +59,56 @@ HINTS = {
 class LLMProposer:
     """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
 
-    The prompt is built on the wire side from ``context`` and the encoded entries only; an answer is
-    parsed into D encoded numbers and decoded (theta = A^-1 theta~) into the box. An unusable answer
-    is corrected (chat form; the document form asks the same document again with the next seed) up to
-    ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian noise of
-    ``FALLBACK_SIGMA`` x box width (source ``fallback``, with the reason as note).
+    The prompt is built on the wire side by the run's prompt ``form`` (``wire.forms``) from
+    ``context`` and the encoded entries only; an answer is read by the same form into D encoded
+    numbers and decoded (theta = A^-1 theta~) into the box. Every request goes through ``chat``,
+    the run's recording client (``llm.recording.RecordingChat``), which records each try as it is
+    sent. An unusable answer is corrected (chat form; the document form asks the same document
+    again) up to ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian
+    noise of ``FALLBACK_SIGMA`` x box width in the encoded space (source ``fallback``, with the
+    reason as note), drawn from ``streams``.
     """
 
     def __init__(
         self,
         *,
-        chat: Chat,
+        chat: Any,
         codec: Codec,
         context: PromptContext,
         top_k: int,
         box: tuple[float, float],
-        seed: int,
+        streams: seeding.Streams,
         parse_retries: int = 2,
-        on_exchange: ExchangeHook | None = None,
         on_llm_failure: str = "stop",
-        form: str = "chat",
+        form: str | PromptForm = "chat",
         temperature: float | None = None,
+        on_answer: Callable[[Exchange], None] | None = None,
     ) -> None:
-        """``form`` ``chat`` sends the paper's instruction prompt as a chat message; ``document``
-        sends the history as a document to continue (``wire.document``) to the completions
-        endpoint, constrained by ``continuation_grammar``, at ``document_temperature`` (``temperature``
-        is ``--temperature``; None alternates the form's defaults)."""
+        """``chat``: a ``RecordingChat`` (``send(request, D, seed, iteration, attempt)``, ``judged``).
+        ``form``: a ``wire.forms`` form or its name (``chat``, ``document``). ``temperature`` is
+        ``--temperature`` (None: the form's own schedule). ``on_answer`` sees every answer
+        received (R2PO measures its prompts' tokens per character from them)."""
+        self.on_answer = on_answer
         self.temperature = temperature
-        if form not in ("chat", "document"):
-            raise ValueError(f"unknown prompt form {form!r} (known: chat, document)")
-        self.form = form
+        if isinstance(form, str):
+            if form not in FORMS:
+                raise ValueError(f"unknown prompt form {form!r} (known: {', '.join(FORMS)})")
+            form = FORMS[form]
+        self.form: PromptForm = form
         self.chat = chat
         self.codec = codec
         self.ctx = context
         self.k = top_k
         self.box = box
-        self.seed = seed
+        self.streams = streams
         self.parse_retries = parse_retries
-        self.on_exchange = on_exchange
         self.on_llm_failure = on_llm_failure
         self.nonfinite_skipped = 0
         self.entries: list[EncodedEntry] = []
         self.best: Candidate | None = None
         self.failures: Counter[str] = Counter()
         self.last_latency: float | None = None
+        self.last_exchange: Exchange | None = None
 
     @property
     def D(self) -> int:
@@ -131,13 +136,7 @@ class LLMProposer:
 
     def prompt(self) -> str:
         """The prompt of the next ask: the public context and the top-K history (best last), in the run's form."""
-        if self.form == "document":
-            return build_document(self.ctx, self.shown())
-        return build_prompt(self.ctx, self.shown())
-
-    def grammar(self) -> str:
-        """The continuation grammar of the document form, shaped by the shown history."""
-        return continuation_grammar(self.D, self.shown(), self.ctx)
+        return self.form.prompt(self.ctx, self.shown())
 
     def shown(self) -> list[EncodedEntry]:
         """The history entries the prompt shows (top-K, best last)."""
@@ -153,33 +152,30 @@ class LLMProposer:
         Raises LLMRejected when the endpoint refuses for good, and LLMUnavailable past the retries
         when ``on_llm_failure`` is ``stop`` (with ``skip`` a fallback is recorded instead).
         """
+        shown = self.shown()
         prompt = self.prompt()
-        messages = prompt_messages(prompt)
-        grammar = self.grammar() if self.form == "document" else None
         last_error = "no attempt"
+        previous: str | None = None
+        detail = ""
         for attempt in range(1 + self.parse_retries):
-            seed = self.codec.sampling_seed(self.seed, iteration, attempt)  # keyed: not derivable from the run seed
+            req = self.form.request(prompt, ctx=self.ctx, shown=shown, iteration=iteration, attempt=attempt, previous=previous,
+                                    detail=detail, temperature=self.temperature)
+            seed = self.codec.sampling_seed(self.streams.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
-                if self.form == "document":  # a retry asks the same document again, with the next seed
-                    ex = self.chat.complete_document(prompt, D=self.D, seed=seed, grammar=grammar,
-                                                     temperature=document_temperature(iteration, attempt, self.temperature))
-                else:
-                    ex = self.chat.complete(messages, D=self.D, seed=seed)
+                ex = self.chat.send(req, D=self.D, seed=seed, iteration=iteration, attempt=attempt)
             except LLMUnavailable as e:
-                self._record(iteration, attempt, e.failures)
                 if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
                     raise
                 self.failures["llm_unavailable"] += 1
                 return self._fallback(iteration, f"llm_unavailable ({e.kind})")
-            self._record(iteration, attempt, ex.failures)
             if not ex.ok:  # a Chat must raise instead; an HTTP error is never an answer to correct
-                self._record(iteration, attempt, (ex,))
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", (ex,))
             self.last_latency = ex.latency_s
-            result = self._read(ex)
-            ex = replace(ex, answer_source=result.source if result.ok else "content")
-            if self.on_exchange is not None:
-                self.on_exchange(iteration, attempt, ex, result.error)
+            self.last_exchange = ex
+            if self.on_answer is not None:
+                self.on_answer(ex)
+            result = self.form.judge(ex.content, ex.reasoning, self.ctx, shown, finish_reason=ex.finish_reason)
+            self.chat.judged(ex, parse_error=result.error, answer_source=result.source if result.ok else "content")
             if result.values is not None:
                 with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box
                     theta = self.codec.decode(np.asarray(result.values))
@@ -189,21 +185,8 @@ class LLMProposer:
             kind = result.error or "unknown"
             self.failures[kind] += 1
             last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
-            if self.form == "chat":
-                messages = correction_messages(prompt, ex.content, result.detail, self.D)
+            previous, detail = ex.content, result.detail
         return self._fallback(iteration, last_error)
-
-    def _read(self, ex: Exchange) -> ParseResult:
-        """The proposal in an answer (``wire.turns.judge_answer``; a document continuation:
-        ``judge_continuation``), refused if it repeats the history shown."""
-        if self.form == "document":
-            return judge_continuation(ex.content, self.ctx, self.shown(), finish_reason=ex.finish_reason)
-        return judge_answer(ex.content, ex.reasoning, self.ctx, self.shown(), finish_reason=ex.finish_reason)
-
-    def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:
-        if self.on_exchange is not None:
-            for t in tries:
-                self.on_exchange(iteration, attempt, t, None)
 
     def _fallback(self, iteration: int, reason: str) -> Proposal:
         """The best policy so far plus Gaussian noise drawn in the encoded space the provider sees,
@@ -211,7 +194,7 @@ class LLMProposer:
         fallbacks is the same whatever the secrets (drawn in raw space, it would state each a_j).
         With no best yet, a warm-up-like draw (the encoded warm-up box when the warm-up is encoded)."""
         lo, hi = self.box
-        rng = seeding.rng(self.seed, seeding.FALLBACK, iteration)
+        rng = self.streams.rng(seeding.FALLBACK, iteration)
         if self.best is None:  # every candidate so far had a numerical fault: sample like the warm-up
             if self.ctx.warmup_range is not None:
                 wlo, whi = self.ctx.warmup_range

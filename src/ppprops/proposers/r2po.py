@@ -21,16 +21,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
+from .. import seeding
 from ..client.codec import Codec
-from ..llm.client import Chat, Exchange
+from ..llm.client import Exchange
 from ..values import Candidate
 from ..wire import PromptContext
+from ..wire.forms import FORMS
 from ..wire.r2po import Evidence, build_critic_prompt
 from .base import Proposal, StopSearch
-from .llm import ExchangeHook, LLMProposer
+from .llm import LLMProposer
 
 Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
 CountTokens = Callable[[str], int]
@@ -40,7 +43,7 @@ TEMPLATE_MARGIN = 32  # tokens a chat template adds around the messages
 
 
 class _Critic(LLMProposer):
-    """The LLM proposer machinery (retries, parsing, decoding, fallback) with the critic's prompt."""
+    """The LLM proposer machinery (retries, parsing, decoding, fallback) with the critic's prompt form."""
 
     evidence: Evidence | None = None
 
@@ -58,25 +61,26 @@ class R2POProposer:
     def __init__(
         self,
         *,
-        chat: Chat,
+        chat: Any,
         codec: Codec,
         context: PromptContext,
         top_k: int,
         box: tuple[float, float],
-        seed: int,
+        streams: seeding.Streams,
         rollout: Rollout,
         count_tokens: CountTokens,
         context_window: int,
         max_tokens: int,
         parse_retries: int = 2,
-        on_exchange: ExchangeHook | None = None,
     ) -> None:
+        """``chat`` is the run's recording client (``llm.recording.RecordingChat``); ``rollout(theta,
+        seed)`` re-runs one episode for the critic's evidence; ``count_tokens`` estimates a prompt
+        before the first answer; ``context_window`` and ``max_tokens`` bound a request."""
         self._ratio: float | None = None  # prompt tokens per character, from the usage counts so far
-        self._on_exchange = on_exchange
-        common = dict(chat=chat, codec=codec, context=context, box=box, seed=seed, parse_retries=parse_retries,
-                      on_exchange=self._observe)
-        self.search = LLMProposer(top_k=top_k, **common)  # type: ignore[arg-type]
-        self.critic = _Critic(top_k=top_k, **common)  # type: ignore[arg-type]
+        common: dict[str, Any] = dict(chat=chat, codec=codec, context=context, box=box, streams=streams, parse_retries=parse_retries,
+                                      on_answer=self._observe)
+        self.search = LLMProposer(top_k=top_k, form="chat", **common)
+        self.critic = _Critic(top_k=top_k, form=FORMS["r2po-critic"], **common)
         self.rollout = rollout
         self.count_tokens = count_tokens
         self.context_window = context_window
@@ -88,11 +92,9 @@ class R2POProposer:
         """Seconds of the latest LLM call of either stage (None before the first)."""
         return self.critic.last_latency or self.search.last_latency
 
-    def _observe(self, iteration: int, attempt: int, ex: Exchange, error: str | None) -> None:
+    def _observe(self, ex: Exchange) -> None:
         if ex.prompt_tokens and ex.prompt_chars:
             self._ratio = max(self._ratio or 0.0, ex.prompt_tokens / ex.prompt_chars)
-        if self._on_exchange is not None:
-            self._on_exchange(iteration, attempt, ex, error)
 
     def prompt_tokens(self, prompt: str) -> int:
         """Tokens the prompt will take: measured ratio x characters (+5%), else the conservative estimate."""

@@ -19,7 +19,7 @@ from .base import Proposal
 
 if TYPE_CHECKING:
     from ..client.codec import Codec
-    from ..config import RunConfig
+    from ..client.mechanisms import Mechanisms
 
 Decode = Callable[[np.ndarray], np.ndarray]
 
@@ -30,12 +30,13 @@ class UniformSampler:
     """
 
     def __init__(
-        self, D: int, box: tuple[float, float], seed: int, *, source: str = "warmup", decode: Decode | None = None
+        self, D: int, box: tuple[float, float], streams: seeding.Streams, *, source: str = "warmup", decode: Decode | None = None
     ) -> None:
-        """``decode`` given: ``box`` is a box of the encoded space and samples are decoded to raw ones."""
+        """``streams``: the run's random streams (sample m is draw m of ``seeding.WARMUP``).
+        ``decode`` given: ``box`` is a box of the encoded space and samples are decoded to raw ones."""
         self.D = D
         self.box = box
-        self.seed = seed
+        self.streams = streams
         self.source = source
         self.decode = decode
 
@@ -43,7 +44,7 @@ class UniformSampler:
         # One stream per sample, so sample m is the same whether or not the run was interrupted.
         """Sample ``iteration`` of the stream (decoded to raw theta when ``decode`` is given)."""
         lo, hi = self.box
-        theta = seeding.rng(self.seed, seeding.WARMUP, iteration).uniform(lo, hi, size=self.D)
+        theta = self.streams.rng(seeding.WARMUP, iteration).uniform(lo, hi, size=self.D)
         if self.decode is not None:
             theta = np.asarray(self.decode(theta), dtype=np.float64)
         return Proposal(theta=theta, source=self.source)
@@ -53,10 +54,10 @@ class UniformSampler:
         pass
 
 
-def warmup_sampler(D: int, config: RunConfig, codec: Codec) -> UniformSampler:
-    """The run's warm-up: the paper's raw uniform box, or the hardened encoded one."""
-    if config.mechanisms.encoded_warmup and codec.warp_params:
+def warmup_sampler(D: int, box: tuple[float, float], streams: seeding.Streams, mechanisms: Mechanisms, codec: Codec) -> UniformSampler:
+    """The run's warm-up: the paper's raw uniform ``box``, or the hardened encoded one (``encoded_warmup``)."""
+    if mechanisms.encoded_warmup and codec.warp_params:
         from ..client.context import warmup_box
 
-        return UniformSampler(D, warmup_box(config), config.seed, decode=codec.decode)
-    return UniformSampler(D, config.box, config.seed)
+        return UniformSampler(D, warmup_box(box), streams, decode=codec.decode)
+    return UniformSampler(D, box, streams)

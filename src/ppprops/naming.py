@@ -1,0 +1,31 @@
+"""Names of runs: ids and default directories, one pattern for both (CleanRL's ``env__exp__seed__time``).
+
+A run started without ``--out`` lives in ``runs/<run id>``, so the id the summary prints is the
+directory's name. Ids are ``<task>__<method>__<seed>__<YYYYmmdd-HHMMSS>-<4 hex digits>``: the
+task's name with anything but letters, digits and ``_.+-`` replaced by ``_`` (a ``module:Env``
+task has no ``:`` in its directory), and a random suffix so two runs started in the same second
+never share one.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+
+def safe_name(text: str) -> str:
+    """``text`` with every character but letters, digits and ``_.+-`` replaced by ``_`` (a file name)."""
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", text)
+
+
+def new_run_id(task: str, method: str, seed: int) -> str:
+    """A fresh run id (module docstring)."""
+    return f"{safe_name(task)}__{method}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}-{uuid.uuid4().hex[:4]}"
+
+
+def default_run_dir(config: Any, root: Path = Path("runs")) -> Path:
+    """``root / new_run_id(...)`` for a run config (anything with ``task``, ``method`` and ``seed``)."""
+    return Path(root) / new_run_id(str(config.task), str(config.method), int(config.seed))

@@ -1,0 +1,539 @@
+"""The study: one search's composition root, with a public ask/tell (pycma's ``OOOptimizer``,
+Optuna's ``Study``).
+
+A ``Study`` owns the run directory's store, the secrets and the codec, the random streams, the
+proposers of the method's phases, the LLM client's lifecycle (started on the first LLM ask,
+closed with the study) and the recording client every request goes through, and the policy file.
+Everything else is a short loop over it:
+
+    study = Study.create(config, run_dir)          # or Study.load(run_dir)
+    while not study.done:
+        trial = study.ask()                        # raw theta, W, b, the episode seeds to use
+        feedback = evaluate(trial)                 # on a simulator, a real robot, anything
+        study.tell(trial, returns, components=..., diagnostics=...)
+    study.finalize()                               # final evaluation, policy file
+
+``optimize`` is that loop with the task's env (``ppprops run``, ``resume``, ``search()``, grid
+runs, the black-box baselines); a robot outside Python drives the same loop through
+``ppprops ask`` / ``ppprops tell``.
+
+Crash safety: ``ask`` stores the trial before it returns it (the ``pending`` table), so after a
+crash or a restart ``ask`` returns the same trial again without asking the LLM twice; ``tell``
+records the candidate and clears the trial in one transaction. ``ask`` and ``tell`` hold a file
+lock (``locks.STUDY_LOCK``): a second process asking while the first waits for the LLM blocks,
+then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7-8) happens here.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import ExitStack, closing, contextmanager
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import seeding
+from .client.codec import Codec, encode_feedback
+from .client.hardening import codec_for
+from .client.secrets import Secrets
+from .config import RunConfig
+from .errors import ConfigError, LLMError, StoreError
+from .evaluation import Episode, EpisodeLimitError, Evaluator, WorkerError, aggregate
+from .events import NO_EVENTS, RunEvents
+from .fileio import write_json_atomic
+from .llm.recording import RecordingChat
+from .llm.session import LazyChat
+from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
+from .loop import best_candidate, locate
+from .methods import Method, get_method
+from .policy_file import Policy, policy_document
+from .proposers.base import Phase, SearchSetup, StopSearch
+from .proposers.uniform import warmup_sampler
+from .rundir import create_run, final_returns, load_run
+from .status import RunStatus
+from .store import RunStore
+from .strategies import search_phase
+from .tasks import FeedbackKeyError, Task
+from .values import Candidate, Feedback, FinalEval, Trial
+
+POLICY_NAME = "best_policy.json"
+# Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
+BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
+
+Callback = Callable[[Candidate, "Study"], "bool | None"]
+
+# A chat model for every study opened in this context (``use_chat``); None: the configured LLM.
+_CHAT_FACTORY: ContextVar[Callable[[RunConfig], Any] | None] = ContextVar("ppprops_chat_factory", default=None)
+
+
+@contextmanager
+def use_chat(factory: Callable[[RunConfig], Any]) -> Iterator[None]:
+    """Within the block, studies talk to ``factory(config)`` instead of their configured endpoint.
+
+    For offline stand-ins (``ppprops.privacy.simulate.offline_llm``) and tests; a single study
+    takes its chat model as the ``chat`` argument instead.
+    """
+    token = _CHAT_FACTORY.set(factory)
+    try:
+        yield
+    finally:
+        _CHAT_FACTORY.reset(token)
+
+
+def chat_factory_active() -> bool:
+    """True inside a ``use_chat`` block (studies then talk to the factory's chat model)."""
+    return _CHAT_FACTORY.get() is not None
+
+
+class StudyComplete(ConfigError):
+    """``ask`` after the budget is spent (or after the search stopped on purpose): finalize instead."""
+
+
+class Study:
+    """One search in one run directory, with a public ask/tell (module docstring).
+
+    Made by ``Study.create`` (a new run directory) or ``Study.load`` (an existing one); use it in a
+    ``with`` block, which closes the store, the LLM client and the env.
+
+    Args:
+        run_dir: the run directory.
+        store: its open store (the study closes it).
+        config: the run's stored configuration.
+        secrets: the run's secrets (its key file).
+        chat: a chat model instead of the configured endpoint (``complete`` and, for the document
+            form, ``complete_document``; ``count_tokens`` for R2PO); the caller keeps and closes it.
+        llm_gate: held around every LLM request (a grid's cap on concurrent requests).
+        events: progress hooks (the embedded model's start, the final evaluation).
+    """
+
+    def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, chat: Any = None,
+                 llm_gate: Any = None, events: RunEvents = NO_EVENTS) -> None:  # fmt: skip
+        self.run_dir = Path(run_dir)
+        self.store = store
+        self.config = config
+        self.secrets = secrets
+        self.task: Task = config.make_task()
+        self.method: Method = get_method(config.method)
+        self.codec: Codec = codec_for(secrets, self.task, config.encoding)
+        self.streams = seeding.Streams(config.seed, secrets.subkey("streams") if store.streams_keyed() else None)
+        self.events = events
+        self._chat_given = chat
+        self._gate = llm_gate
+        self._stack = ExitStack()
+        self._recording: RecordingChat | None = None
+        self._phases: list[Phase] | None = None
+        self._told = 0  # candidates the proposers have been told
+        self._evaluator: Evaluator | None = None
+
+    # -- making and opening -------------------------------------------------------------------
+    @classmethod
+    def create(cls, config: RunConfig, run_dir: Path, *, secrets: Secrets | None = None, **kwargs: Any) -> Study:
+        """A new study in ``run_dir`` (``runner.create_run``: the directory appears atomically,
+        with its key file and store). ``secrets`` replaces freshly drawn ones (tests, grids);
+        ``kwargs`` as for the constructor. Raises ConfigError for bad settings or an occupied ``run_dir``."""
+        store, secrets = create_run(config, run_dir, secrets)
+        try:
+            stored = RunConfig.from_json(store.config())  # with the task's declaration
+            return cls(run_dir, store, stored, secrets, **kwargs)
+        except BaseException:
+            store.close()
+            raise
+
+    @classmethod
+    def load(cls, run_dir: Path, **kwargs: Any) -> Study:
+        """The study of an existing run directory, as it was left (``kwargs`` as for the constructor).
+
+        Raises:
+            StoreError: not a run directory, or a damaged store.
+            KeyFileError: the key file is missing, damaged or foreign.
+            ConfigError: the stored config names a task or method unknown here, or an RL baseline run.
+        """
+        store, config, secrets = load_run(Path(run_dir))
+        try:
+            return cls(Path(run_dir), store, config, secrets, **kwargs)
+        except BaseException:
+            store.close()
+            raise
+
+    def close(self) -> None:
+        """Close the LLM client (stopping an embedded server), the env and the store."""
+        try:
+            self._stack.close()
+            if self._evaluator is not None:
+                self._evaluator.close()
+                self._evaluator = None
+        finally:
+            self.store.close()
+
+    def __enter__(self) -> Study:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (f"Study(run_dir={str(self.run_dir)!r}, task={self.task.name!r}, method={self.method.name!r}, "
+                f"trials={self.store.candidate_count()}/{self.total})")
+
+    # -- where it stands ----------------------------------------------------------------------
+    @property
+    def total(self) -> int:
+        """The search's budget: warm-up plus search-phase candidates."""
+        return self.config.warmup + self.config.iterations
+
+    @property
+    def trials(self) -> list[Candidate]:
+        """Every told trial, in order: raw and encoded parameters and feedback (``values.Candidate``)."""
+        return self.store.candidates()
+
+    @property
+    def pending(self) -> Trial | None:
+        """The trial asked for and not yet told, or None."""
+        return self.store.pending_trial()
+
+    @property
+    def status(self) -> tuple[RunStatus, str]:
+        """``(status, reason)`` as stored (``status.RunStatus``)."""
+        return self.store.run_status()
+
+    @property
+    def done(self) -> bool:
+        """True when nothing is left to ask: the budget is spent, or the search stopped on purpose
+        (a pending trial still has to be told)."""
+        if self.store.pending_trial() is not None:
+            return False
+        if self.status[0] in (RunStatus.STOPPED, RunStatus.FINISHED):
+            return True
+        return self.store.candidate_count() >= self.total
+
+    @property
+    def best(self) -> Candidate | None:
+        """The best told trial (highest finite raw return; ``loop.best_candidate``), None before any."""
+        cands = self.store.candidates()
+        return best_candidate(cands) if cands else None
+
+    # -- ask / tell ---------------------------------------------------------------------------
+    def ask(self) -> Trial:
+        """The next trial to evaluate: raw ``theta`` (shape (D,)), ``W``, ``b``, its episode seeds and source.
+
+        Returns the pending trial again until it is told (after a restart too: no LLM call is made
+        twice). Raises StudyComplete when the budget is spent or the search stopped; LLMError when
+        the endpoint stays down (the study stays as it was, resumable); StopSearch when the method
+        cannot go on (the study is then stopped, with the reason, and can be finalized).
+        """
+        with file_lock(self.run_dir, STUDY_LOCK):
+            pending = self.store.pending_trial()
+            if pending is not None:
+                return pending
+            status, reason = self.store.run_status()
+            n = self.store.candidate_count()
+            if status in (RunStatus.STOPPED, RunStatus.FINISHED) or n >= self.total:
+                why = f"it stopped: {reason}" if status is RunStatus.STOPPED and reason else f"all {n} of {self.total} trials are told"
+                raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it")
+            self._sync()
+            phase, iteration = locate(self._get_phases(), n)
+            t0 = time.perf_counter()
+            try:
+                proposal = phase.proposer.ask(iteration)
+            except StopSearch as stop:
+                self.store.set_status(RunStatus.STOPPED, stop.reason)
+                raise
+            trial = Trial(number=n, phase=phase.name, iteration=iteration, source=proposal.source,
+                          theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
+                          seeds=tuple(self.streams.episode_seeds(n, self.config.episodes)), clipped=proposal.clipped,
+                          note=proposal.note, ask_s=time.perf_counter() - t0)  # fmt: skip
+            self.store.add_pending(trial)
+            return trial
+
+    def tell(self, trial: Trial | int, returns: float | Sequence[float] | None = None, *,
+             components: Mapping[str, float] | Sequence[Mapping[str, float]] | None = None,
+             diagnostics: Mapping[str, float | str] | Sequence[Mapping[str, float | str]] | None = None,
+             feedback: Feedback | None = None, eval_s: float | None = None) -> Candidate:
+        """Tell the pending ``trial`` (or its number) its raw feedback; returns the recorded candidate.
+
+        ``returns`` is one episode's return or one per episode (raw reward units); ``components``
+        (each declared reward component's sum over the episode, by name) and ``diagnostics`` (each
+        declared diagnostic's value) one mapping, or one per episode. Their mean is the candidate's
+        feedback (paper Sec. II-C); encoding happens here. ``feedback`` instead passes an evaluated
+        ``Feedback`` (``optimize``). Nothing is stored when this raises ConfigError: a trial that is
+        not the pending one or was already told, a non-finite value, a missing or unknown
+        component, an unknown diagnostic, or a mismatch between the episodes given.
+        """
+        number = trial if isinstance(trial, int) else trial.number
+        with file_lock(self.run_dir, STUDY_LOCK):
+            pending = self.store.pending_trial()
+            if pending is None or pending.number != number:
+                recorded = self.store.candidate_count()
+                if number < recorded:
+                    raise ConfigError(f"trial {number} was already told; each trial is told once")
+                waiting = "no trial is pending: ask first" if pending is None else f"the study waits for trial {pending.number}"
+                raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
+            if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
+                raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
+            fb = feedback if feedback is not None else self._feedback(returns, components, diagnostics)
+            cand = Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
+                             params_enc=self.codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(self.codec, fb),
+                             clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s)  # fmt: skip
+            self.store.record_trial(cand)
+            if self._phases is not None:
+                self._sync()
+            return cand
+
+    def _feedback(self, returns: float | Sequence[float] | None, components: Any, diagnostics: Any) -> Feedback:
+        """Told values as one Feedback (the mean over the episodes given), checked against the task."""
+        if returns is None:
+            raise ConfigError("tell needs the episode return(s) (or a Feedback)")
+        rets = [returns] if isinstance(returns, (int, float, np.floating, np.integer)) else list(returns)
+        if not rets:
+            raise ConfigError("tell needs at least one episode return")
+        n = len(rets)
+        comps = _per_episode(components, n, "components")
+        diags = _per_episode(diagnostics, n, "diagnostics")
+        declared_c, declared_d = set(self.task.components), set(self.task.diagnostics)
+        episodes = []
+        for i, r in enumerate(rets):
+            if isinstance(r, bool) or not isinstance(r, (int, float, np.floating, np.integer)) or not math.isfinite(float(r)):
+                raise ConfigError(f"episode return {r!r} is not a finite number")
+            c = dict(comps[i])
+            missing, unknown = sorted(declared_c - set(c)), sorted(set(c) - declared_c)
+            if unknown:
+                raise ConfigError(f"unknown component {unknown[0]!r}; task {self.task.name} declares: {', '.join(sorted(declared_c)) or 'none'}")
+            if missing:
+                raise ConfigError(f"component {missing[0]!r} is missing; task {self.task.name} declares: {', '.join(sorted(declared_c))}")
+            for k, v in c.items():
+                if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
+                    raise ConfigError(f"component {k!r} = {v!r} is not a finite number")
+            d = dict(diags[i])
+            unknown = sorted(set(d) - declared_d)
+            if unknown:
+                raise ConfigError(f"unknown diagnostic {unknown[0]!r}; task {self.task.name} declares: {', '.join(sorted(declared_d))}")
+            for k, v in d.items():
+                if isinstance(v, str):
+                    continue
+                if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
+                    raise ConfigError(f"diagnostic {k!r} = {v!r} is neither a finite number nor a text")
+            episodes.append(Episode(ret=float(r), components={k: float(v) for k, v in c.items()},
+                                    diagnostics={k: (v if isinstance(v, str) else float(v)) for k, v in d.items()}))
+        return aggregate(episodes)
+
+    # -- the env-driven loop ------------------------------------------------------------------
+    @property
+    def evaluator(self) -> Evaluator:
+        """The episode runner of the task's env (``config.workers`` processes), made on first use.
+        Raises ConfigError for a task without an env."""
+        if self._evaluator is None:
+            if not getattr(self.task, "has_env", True):
+                raise ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
+            self._evaluator = Evaluator(self.task, workers=self.config.workers)
+        return self._evaluator
+
+    def optimize(self, callbacks: Sequence[Callback] = (), events: RunEvents | None = None) -> FinalEval | None:
+        """Ask, evaluate on the task's env, tell, until nothing is left to ask; then ``finalize``.
+
+        ``callbacks`` are called after each tell with the told trial (a ``Candidate``) and the
+        study; one returning ``False`` stops the search cleanly (status ``stopped: stopped by a
+        callback``, then the final evaluation), as Stable-Baselines3's callbacks do. Returns the
+        final evaluation (None when ``final_episodes`` is 0).
+
+        Raises:
+            LLMError: the endpoint stayed down past the retries (status ``failed``, resumable).
+            KeyboardInterrupt: Ctrl-C (status ``interrupted``, resumable).
+            FeedbackKeyError, EpisodeLimitError, WorkerError: the env broke its task's
+                declaration (status ``stopped: ...``).
+            ConfigError: another process runs this study, or the task has no env.
+        """
+        events = events if events is not None else self.events
+        try:
+            with file_lock(self.run_dir, RUNNING_LOCK, wait=False):
+                return self._optimize(callbacks, events)
+        except BlockingIOError:
+            raise ConfigError(f"another process is running {self.run_dir}; wait for it, or stop it first") from None
+
+    def _optimize(self, callbacks: Sequence[Callback], events: RunEvents) -> FinalEval | None:
+        store = self.store
+        evaluator = self.evaluator
+        status, _ = store.run_status()
+        if status is not RunStatus.STOPPED:
+            store.set_status(RunStatus.RUNNING)
+        done = store.candidates()
+        events.on_start(len(done), self.total if status is not RunStatus.STOPPED else len(done))
+        best = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
+        try:
+            while not self.done:
+                try:
+                    trial = self.ask()
+                except StopSearch:
+                    break
+                t0 = time.perf_counter()
+                fb = evaluator.evaluate(trial.theta, trial.seeds)
+                cand = self.tell(trial, feedback=fb, eval_s=time.perf_counter() - t0)
+                if math.isfinite(cand.ret):  # a numerical fault is never the best so far
+                    best[0] = max(best[0], cand.ret)
+                latency = self._last_latency() if cand.source != "warmup" else None
+                events.on_candidate(cand, latency, best[0])
+                if any(cb(cand, self) is False for cb in callbacks):
+                    store.set_status(RunStatus.STOPPED, "stopped by a callback")
+                    break
+            fe = self.finalize(events=events)
+        except KeyboardInterrupt:
+            self._mark(RunStatus.INTERRUPTED)
+            raise
+        except LLMError as e:  # the endpoint stayed down past the retry bound: resumable
+            self._mark(RunStatus.FAILED, str(e))
+            raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from e
+        except BROKEN_TASK as e:  # the env broke its declaration
+            store.set_status(RunStatus.STOPPED, str(e))
+            raise
+        if fe is not None:
+            events.on_final(fe)
+        return fe
+
+    def _last_latency(self) -> float | None:
+        phases = self._phases or []
+        return getattr(phases[-1].proposer, "last_latency", None) if len(phases) > 1 else None
+
+    def _mark(self, status: RunStatus, reason: str = "") -> None:
+        """Best effort: the stored status says how the run ended (a store that fails is left as it is)."""
+        try:
+            self.store.set_status(status, reason)
+        except (StoreError, KeyboardInterrupt):
+            pass
+
+    # -- the result ---------------------------------------------------------------------------
+    def finalize(self, returns: Sequence[float] | None = None, *, events: RunEvents | None = None) -> FinalEval | None:
+        """Final evaluation of the best trial, then the policy file; the study is then finished
+        (or stays ``stopped: <reason>`` when it stopped on purpose).
+
+        With ``returns`` (the user's own final episodes of ``policy()``, raw returns), those are
+        stored; otherwise, for a task with an env, the best policy runs on ``final_episodes``
+        fresh seeds (``seeding.final_eval_seeds``, never used during the search). A final
+        evaluation already stored for the same candidate is kept. Returns it (None when there is
+        none). Raises ConfigError before any trial is told or while one is pending, StoreError when
+        the policy file cannot be written (the study stays resumable).
+        """
+        events = events if events is not None else self.events
+        store = self.store
+        if store.pending_trial() is not None and store.run_status()[0] is not RunStatus.STOPPED:
+            raise ConfigError(f"trial {store.pending_trial().number} is pending: tell it before finalizing")  # type: ignore[union-attr]
+        done = store.candidates()
+        if not done:
+            raise ConfigError("no trial has been told: nothing to finalize")
+        best = best_candidate(done)
+        fe = store.final_eval()
+        if returns is not None:
+            values = tuple(float(r) for r in returns)
+            if not values or not all(math.isfinite(r) for r in values):
+                raise ConfigError("final returns must be one or more finite numbers")
+            fe = FinalEval(candidate_index=best.index, returns=values, seeds=())
+            store.set_final_eval(fe)
+        elif getattr(self.task, "has_env", True) and (fe is None or fe.candidate_index != best.index):
+            seeds = seeding.final_eval_seeds(self.config.seed, self.config.final_episodes)
+            fe = FinalEval(candidate_index=best.index, returns=final_returns(self.evaluator, best.params, seeds, events),
+                           seeds=tuple(seeds))
+            store.set_final_eval(fe)
+        self._write_policy(best, fe)
+        status, reason = store.run_status()
+        if status is RunStatus.STOPPED:
+            store.set_status(RunStatus.STOPPED, reason)
+        else:
+            store.set_status(RunStatus.FINISHED)
+        return fe
+
+    def policy_document(self, best: Candidate | None = None, fe: FinalEval | None = None) -> dict[str, Any]:
+        """The policy file's content for ``best`` (default: the best told trial)."""
+        best = best if best is not None else self.best
+        if best is None:
+            raise ConfigError("no trial has been told: there is no policy yet")
+        final = {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "seed": self.config.seed} if fe is not None and fe.returns else None
+        search = {"run_id": self.store.run_id(), "method": self.config.method, "seed": self.config.seed, "return": best.ret,
+                  "candidate": best.index}
+        env = None if self.task.discrete or not getattr(self.task, "has_env", True) else self.evaluator.env
+        return policy_document(self.task, best.params, env=env, search=search, final_eval=final)
+
+    def policy(self) -> Policy:
+        """The deployable policy of the best told trial (raw observation -> action), as the policy file holds it."""
+        return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
+
+    def _write_policy(self, best: Candidate, fe: FinalEval | None) -> None:
+        path = self.run_dir / POLICY_NAME
+        for stale in self.run_dir.glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
+            stale.unlink(missing_ok=True)
+        try:
+            write_json_atomic(path, self.policy_document(best, fe))
+        except OSError as e:
+            raise StoreError(f"cannot write {path}: {e.strerror or e}; then continue with 'ppprops resume {self.run_dir}'") from None
+
+    # -- the proposers ------------------------------------------------------------------------
+    def _sync(self) -> None:
+        """Tell every proposer the candidates recorded since it was last told (another process's too)."""
+        if self._phases is None:
+            return
+        new = self.store.candidates(since=self._told)
+        proposers = list(dict.fromkeys(ph.proposer for ph in self._phases))
+        for c in new:
+            for p in proposers:
+                p.tell(c)
+        self._told += len(new)
+
+    def _get_phases(self) -> list[Phase]:
+        if self._phases is None:
+            config = self.config
+            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec)
+            phases = [Phase("warmup", warmup, config.warmup)]
+            if config.iterations > 0:
+                chat = self._chat if self.method.uses_llm else None
+                form = self._form() if self.method.uses_llm else config.form
+                setup = SearchSetup(task=self.task, codec=self.codec, streams=self.streams, box=config.box, warmup=config.warmup,
+                                    iterations=config.iterations, prompt=config.prompt_settings(form), llm=config.llm,
+                                    options=self.method.parse_options(config.method_options), on_llm_failure=config.on_llm_failure,
+                                    parse_retries=config.parse_retries, chat=chat,
+                                    evaluator=self.evaluator if getattr(self.task, "has_env", True) else None)  # fmt: skip
+                phases.append(search_phase(self.method, setup))
+            self._phases = phases
+            self._told = 0
+            self._sync()
+        return self._phases
+
+    def _chat(self) -> RecordingChat:
+        """The run's recording LLM client (the model made, not started, on first use)."""
+        if self._recording is None:
+            model = self._chat_given
+            if model is None:
+                factory = _CHAT_FACTORY.get()
+                made = factory(self.config) if factory is not None else LazyChat(
+                    self.config.llm, self._gate, on_loading=self.events.on_llm_loading, on_ready=self.events.on_llm_ready)
+                model = self._stack.enter_context(closing(made))
+            self._recording = RecordingChat(model, self.store, on_first_use=self.store.begin_llm_session)
+        return self._recording
+
+    def _form(self) -> str:
+        """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
+        for a chat model that cannot continue documents (``--prompt-form document`` with one: ConfigError)."""
+        form = self.config.form
+        if form == "document" and not self._chat().completes_documents:
+            if self.config.prompt_form == "document":
+                raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
+                                  "grammar); this one has only complete(): use --prompt-form chat or auto")
+            return "chat"
+        return form
+
+
+def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
+    """``values`` (None, one mapping, or one mapping per episode) as ``n`` mappings."""
+    if values is None:
+        return [{}] * n
+    if isinstance(values, Mapping):
+        if n != 1:
+            raise ConfigError(f"{n} episode returns but one set of {what}: give one mapping per episode")
+        return [values]
+    out = list(values)
+    if len(out) != n or not all(isinstance(v, Mapping) for v in out):
+        raise ConfigError(f"{what}: give one mapping per episode ({n} episode returns)")
+    return out
+
+
+__all__ = ["Study", "StudyComplete", "Trial", "use_chat"]

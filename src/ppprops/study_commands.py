@@ -1,0 +1,197 @@
+"""The ask/tell commands, for a robot or simulator outside Python: ``ppprops study create``,
+``ppprops ask``, ``ppprops tell``, ``ppprops study finalize`` and ``ppprops policy show``.
+
+A process that never imports ppprops drives a search with them::
+
+    ppprops study create --task-file robot.toml --method pp --out study/
+    ppprops ask study/                 # one JSON object: trial, theta, W, b, seeds, ...
+    ppprops tell study/ 0 --return 12.5 --component reward_dist=-3.2 --diagnostic reached=1
+    ...                                # until `ppprops ask` exits with 3: nothing more to ask
+    ppprops study finalize study/      # best_policy.json (and the final evaluation, with an env)
+
+Every error is one line on stderr and exit 2 (the main CLI turns ``PPPropsError`` into that), and
+nothing is stored by a command that fails. ``ask`` exits 3 when the study has nothing more to ask.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+EXIT_DONE = 3  # `ppprops ask` on a study with nothing more to ask
+
+
+def add_study_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser],  # type: ignore[type-arg]
+                       add_run_flags: Any) -> None:  # fmt: skip
+    """Add ``study`` (create, finalize), ``ask`` and ``tell`` to the main CLI's subparsers ``sub``.
+
+    ``add_run_flags(parser)`` adds the flags of ``ppprops run`` (``study create`` takes the same).
+    """
+    st = sub.add_parser("study", help="a search driven from outside: create a study, finalize it (see ask, tell)")
+    stsub = st.add_subparsers(dest="study_command", required=True, parser_class=parser_class)
+    cr = stsub.add_parser("create", help="create a study (the same flags as `run`); evaluate its trials with ask/tell")
+    add_run_flags(cr)
+    fi = stsub.add_parser("finalize", help="the final evaluation (with an env, or your own episodes) and best_policy.json")
+    fi.add_argument("dir", type=Path, help="the study directory")
+    fi.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
+                    help="the return of one final episode of the best policy on your robot (repeatable); "
+                         "without it a task with an env runs its own final evaluation")  # fmt: skip
+    fi.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+
+    ask = sub.add_parser("ask", help="the next trial of a study as one JSON object (exit 3: nothing more to ask)")
+    ask.add_argument("dir", type=Path, help="the study directory")
+
+    tell = sub.add_parser("tell", help="tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)")
+    tell.add_argument("dir", type=Path, help="the study directory")
+    tell.add_argument("trial", type=int, help="the trial number `ppprops ask` printed")
+    tell.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
+                      help="the episode's return (raw reward units); repeat for several episodes")
+    tell.add_argument("--component", action="append", default=[], metavar="NAME=VALUE",
+                      help="a reward component's sum over the episode (repeatable; every declared component)")
+    tell.add_argument("--diagnostic", action="append", default=[], metavar="NAME=VALUE",
+                      help="a diagnostic's value (a number or a word; repeatable)")
+    tell.add_argument("--stdin", action="store_true",
+                      help='read the feedback as one JSON object from stdin: {"returns": [...], "components": [{...}], '
+                           '"diagnostics": [{...}]} (one entry per episode) or {"return": R, "components": {...}, ...}')  # fmt: skip
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _pairs(items: list[str], what: str, *, numeric: bool) -> dict[str, float | str]:
+    out: dict[str, float | str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise ConfigError(f"--{what} must be NAME=VALUE, got {item!r}")
+        name = name.strip()
+        if name in out:
+            raise ConfigError(f"--{what} {name} is given twice")
+        try:
+            number = float(value)
+        except ValueError:
+            if numeric:
+                raise ConfigError(f"--{what} {name}={value!r}: expected a number") from None
+            out[name] = value.strip()
+            continue
+        if not math.isfinite(number):
+            raise ConfigError(f"--{what} {name}={value}: expected a finite number")
+        out[name] = number
+    return out
+
+
+def _stdin_feedback() -> tuple[Any, Any, Any]:
+    text = sys.stdin.read()
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"stdin is not a JSON object ({e.msg} at line {e.lineno})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"stdin must hold one JSON object, got {type(doc).__name__}")
+    unknown = sorted(set(doc) - {"return", "returns", "components", "diagnostics"})
+    if unknown:
+        raise ConfigError(f"stdin: unknown key {unknown[0]!r} (known: return, returns, components, diagnostics)")
+    if ("return" in doc) == ("returns" in doc):
+        raise ConfigError('stdin: give "return" (one episode) or "returns" (a list, one per episode)')
+    returns = doc.get("return", doc.get("returns"))
+    return returns, doc.get("components"), doc.get("diagnostics")
+
+
+def cmd_ask(a: argparse.Namespace) -> int:
+    """``ppprops ask DIR``: print the next trial (or the pending one again) as one JSON object.
+
+    Returns 0, or ``EXIT_DONE`` (3) with one line on stderr when the study has nothing more to ask.
+    """
+    from .study import Study, StudyComplete
+
+    with Study.load(a.dir) as study:
+        try:
+            trial = study.ask()
+        except StudyComplete as e:
+            print(f"ppprops: {e}: 'ppprops study finalize {a.dir}'", file=sys.stderr)
+            return EXIT_DONE
+        print(json.dumps(trial.to_json()))
+    return 0
+
+
+def cmd_tell(a: argparse.Namespace) -> int:
+    """``ppprops tell DIR TRIAL ...``: record a trial's raw feedback; prints one line (the
+    candidate's return and the best so far). Errors store nothing."""
+    from .study import Study
+
+    if a.stdin:
+        if a.returns or a.component or a.diagnostic:
+            raise ConfigError("--stdin reads everything from stdin: give no --return, --component or --diagnostic with it")
+        returns, components, diagnostics = _stdin_feedback()
+    else:
+        if not a.returns:
+            raise ConfigError("tell needs --return R (or --stdin with a JSON object)")
+        if len(a.returns) > 1 and (a.component or a.diagnostic):
+            raise ConfigError("several --return values with --component/--diagnostic: give one episode's values per call, "
+                              "or the whole feedback as JSON with --stdin")  # fmt: skip
+        returns = a.returns if len(a.returns) > 1 else a.returns[0]
+        components = _pairs(a.component, "component", numeric=True)
+        diagnostics = _pairs(a.diagnostic, "diagnostic", numeric=False)
+    with Study.load(a.dir) as study:
+        cand = study.tell(a.trial, returns, components=components, diagnostics=diagnostics)
+        best = study.best
+        told, total = study.store.candidate_count(), study.total
+    best_text = f"; best {best.ret:.4g} (trial {best.index})" if best is not None else ""
+    print(f"trial {cand.index}: return {cand.ret:.4g}{best_text}; {told} of {total} told")
+    return 0
+
+
+def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
+    """``ppprops study create`` / ``finalize``."""
+    from .status import RunStatus
+    from .study import Study
+
+    if a.study_command == "create":
+        from .naming import default_run_dir
+
+        config = run_config(a)
+        out = a.out or default_run_dir(config)
+        a.run_dir = out
+        with Study.create(config, out) as study:
+            study.store.set_status(RunStatus.OPEN)
+            print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
+                              "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
+        return 0
+    from .report import format_summary, run_summary
+
+    with Study.load(a.dir) as study:
+        study.finalize(returns=a.returns)
+    s = run_summary(a.dir)
+    print(json.dumps(s) if a.json else format_summary(s))
+    return 0
+
+
+def cmd_policy_show(a: argparse.Namespace) -> int:
+    """``ppprops policy show DIR|FILE``: the best policy so far of a run or study directory (or a
+    policy file) as one JSON object: W, b, theta, the observation and action rules."""
+    from .policy_file import load_policy
+    from .store import DB_NAME
+
+    path = Path(a.path)
+    if path.is_dir() and (path / DB_NAME).exists():
+        from .study import Study
+
+        with Study.load(path) as study:
+            doc = study.policy_document()
+    else:
+        doc = load_policy(path).document
+    print(json.dumps(doc))
+    return 0
