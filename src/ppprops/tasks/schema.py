@@ -290,17 +290,17 @@ def describe_error(errors: Sequence[Mapping[str, Any]], table: Mapping[str, Any]
     if kind == "value_error" and ctx.get("error") is not None:
         return str(ctx["error"])  # a check of several keys, worded where it is made
     if kind == "extra_forbidden":
-        key = ".".join(map(str, [*_field_at(loc[:-1])[0], loc[-1]]))
+        key = ".".join(map(str, [*_field_at(loc[:-1])[0], loc[-1]]))  # fmt: skip
         known = sorted(_fields_of(loc[:-1]))
         close = difflib.get_close_matches(str(loc[-1]), known, n=1)
         hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(known)}"
         return f"unknown key {key!r} ({hint})"
-    path, field = _field_at(loc)
-    key = ".".join(map(str, path))
+    shown, real, field = _field_at(loc)
+    key = ".".join(map(str, shown))
     if kind == "missing":
         return f"{key} is required"
     expect = (field.description if field is not None else None) or "a valid value"
-    return f"{key} must be {expect}, got {_value_at(table, path)!r}"
+    return f"{key} must be {expect}, got {_value_at(table, real)!r}"
 
 
 def _walk(annotation: Any) -> list[Any]:
@@ -327,27 +327,32 @@ def _model_of(annotation: Any) -> tuple[type[BaseModel] | None, bool]:
     return None, False
 
 
-def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], Any]:
-    """The user's key path in ``loc`` (union branch tags and list positions dropped) and the schema field it ends at."""
+def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], list[Any], Any]:
+    """(the user's key path in ``loc`` without list positions, the same with them, the schema field it ends at).
+
+    Union branch tags (``constrained-str``) and whatever lies below a field that is not a table end the path.
+    """
     model: type[BaseModel] | None = TaskFile
-    path: list[Any] = []
+    shown: list[Any] = []
+    real: list[Any] = []
     field = None
     skip_name = False
     for part in loc:
-        if skip_name:
-            path.append(part)  # a component's name, a list position
+        if skip_name:  # a component's name, a list position
+            real.append(part)
+            if not isinstance(part, int):
+                shown.append(part)
             skip_name = False
-            if isinstance(part, int):
-                path.pop()
             continue
         if model is None or not isinstance(part, str) or part not in model.model_fields:
             break
         field = model.model_fields[part]
-        path.append(part)
+        shown.append(part)
+        real.append(part)
         model, skip_name = _model_of(field.annotation)
         if model is None:
             break
-    return path, field
+    return shown, real, field
 
 
 def _fields_of(loc: tuple[Any, ...]) -> list[str]:
@@ -368,6 +373,8 @@ def _value_at(table: Any, path: Sequence[Any]) -> Any:
     node = table
     for part in path:
         if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        elif isinstance(node, list) and isinstance(part, int) and 0 <= part < len(node):
             node = node[part]
         else:
             return None
