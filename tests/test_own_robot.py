@@ -599,6 +599,22 @@ def test_guide_task_file_is_the_example_file() -> None:
             assert line in real, line
 
 
+def test_guide_robot_outside_and_privacy_blocks_are_the_real_files() -> None:
+    robot = (ROOT / "examples" / "robot_outside" / "robot.toml").read_text(encoding="utf-8")
+    for line in _guide_block("toml", "### A robot outside Python").splitlines():
+        assert line in robot, line
+    cartpole = (ROOT / "src" / "ppprops" / "tasks" / "paper" / "cartpole.toml").read_text(encoding="utf-8")
+    for line in _guide_block("toml", "### What the attacker may know").splitlines():
+        assert line in cartpole, line
+
+
+def test_guide_task_check_output_is_the_real_one(capsys) -> None:  # type: ignore[no-untyped-def]
+    shown = _guide_block("text", "### Checking a task").splitlines()
+    assert shown[0] == "$ ppprops task check point_robot.toml"
+    code, out, _ = _run(capsys, ["task", "check", str(EXAMPLE / "point_robot.toml")])
+    assert code == 0 and out.strip().splitlines() == [shown[1]]
+
+
 @pytest.mark.llm
 def test_guide_commands_run(tmp_path: Path) -> None:
     """The commands of docs/own-robot.md section 3, as written, in a copy of examples/own_robot."""
