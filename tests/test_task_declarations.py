@@ -297,6 +297,9 @@ def test_the_policy_file_of_a_task_without_env(tmp_path: Path, capsys: pytest.Ca
          "privacy.survive_component names component 'reward_x', which this task does not declare (it has: none declared)"),
         ('name = "R"\nenv = "CartPole-v1"\n[privacy]\ncaps = [{ side = "up", value = 1.0, diagnostic = "episode_length", marker = "x" }]\n',
          "privacy.caps.side must be max or min, got 'up'"),
+        ('name = "R"\nenv = "CartPole-v1"\n[privacy]\ncaps = [{ sid = "max" }]\n', "unknown key 'privacy.caps.sid' (did you mean side?)"),
+        ('name = "R"\nenv = "CartPole-v1"\ncomponents = 5\n', "components must be a table, got 5"),
+        ('env = "CartPole-v1"\n', "name is required"),
         ('name = "R"\nenv = "CartPole-v1"\n[privacy]\nhealthy_reward = 1.0\n', "privacy.healthy_reward needs privacy.survive_component"),
         ('name = "R"\nenv = "CartPole-v1"\n[components]\nc = "c"\n[privacy]\nresidual_component = false\n',
          "privacy.residual_component is false, but the task has components: name the one pp-hardened leaves out (with every "

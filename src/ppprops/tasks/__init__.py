@@ -137,7 +137,7 @@ def get_task(name: str) -> Task:
     key = name.lower()
     if key in _REGISTRY:
         return _REGISTRY[key]
-    by_id = [t for k, t in _REGISTRY.items() if t.env_id.lower() == key and k not in _NAME_ONLY]
+    by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
     if len(by_id) == 1:
         return by_id[0]
     if by_id:
@@ -286,7 +286,7 @@ def _source(
             return get_task(source)
         known = _REGISTRY.get(source.lower())
         if known is None:
-            by_id = [t for k, t in _REGISTRY.items() if t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
+            by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
             known = by_id[0] if len(by_id) == 1 else None
         if known is not None and is_builtin(known):
             if known.name.lower() == source.lower():

@@ -284,8 +284,11 @@ def validate_table(raw: Mapping[str, Any], where: str) -> TaskFile:
 
 
 def describe_error(errors: Sequence[Mapping[str, Any]], table: Mapping[str, Any]) -> str:
-    """The first of pydantic's errors on ``table`` (a ``TaskFile`` input) as the line a user reads, without the file."""
-    err = errors[0]
+    """The first of pydantic's errors on ``table`` (a ``TaskFile`` input) as the line a user reads, without the file.
+
+    An unknown key comes first: a misspelt key also makes the key it meant missing.
+    """
+    err = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
     kind, loc, ctx = err["type"], tuple(err["loc"]), err.get("ctx") or {}
     if kind == "value_error" and ctx.get("error") is not None:
         return str(ctx["error"])  # a check of several keys, worded where it is made
@@ -295,11 +298,11 @@ def describe_error(errors: Sequence[Mapping[str, Any]], table: Mapping[str, Any]
         close = difflib.get_close_matches(str(loc[-1]), known, n=1)
         hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(known)}"
         return f"unknown key {key!r} ({hint})"
-    shown, real, field = _field_at(loc)
+    shown, real, field, whole = _field_at(loc)
     key = ".".join(map(str, shown))
     if kind == "missing":
         return f"{key} is required"
-    expect = (field.description if field is not None else None) or "a valid value"
+    expect = "a table" if whole else (field.description if field is not None else None) or "a valid value"
     return f"{key} must be {expect}, got {_value_at(table, real)!r}"
 
 
@@ -313,22 +316,24 @@ def _walk(annotation: Any) -> list[Any]:
     return [annotation]
 
 
-def _model_of(annotation: Any) -> tuple[type[BaseModel] | None, bool]:
-    """(model class the annotation validates into, whether a name/index comes first: dict or list of it)."""
+def _model_of(annotation: Any) -> tuple[type[BaseModel] | None, str]:
+    """(model class the annotation validates into, what comes first in a loc: "" for a model itself, "dict" for
+    a table of named models (a name), "list" for a list of them (a position))."""
     for t in _walk(annotation):
         origin = typing.get_origin(t)
         if isinstance(t, type) and issubclass(t, BaseModel):
-            return t, False
+            return t, ""
         if origin in (dict, list):
             inner = typing.get_args(t)[-1]
             for u in _walk(inner):
                 if isinstance(u, type) and issubclass(u, BaseModel):
-                    return u, True
-    return None, False
+                    return u, "dict" if origin is dict else "list"
+    return None, ""
 
 
-def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], list[Any], Any]:
-    """(the user's key path in ``loc`` without list positions, the same with them, the schema field it ends at).
+def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], list[Any], Any, bool]:
+    """(the user's key path in ``loc`` without list positions, the same with them, the schema field it ends
+    at, whether it ends at a table of named entries itself rather than at one entry).
 
     Union branch tags (``constrained-str``) and whatever lies below a field that is not a table end the path.
     """
@@ -337,6 +342,7 @@ def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], list[Any], Any]:
     real: list[Any] = []
     field = None
     skip_name = False
+    container = ""
     for part in loc:
         if skip_name:  # a component's name, a list position
             real.append(part)
@@ -349,10 +355,11 @@ def _field_at(loc: tuple[Any, ...]) -> tuple[list[Any], list[Any], Any]:
         field = model.model_fields[part]
         shown.append(part)
         real.append(part)
-        model, skip_name = _model_of(field.annotation)
+        model, container = _model_of(field.annotation)
+        skip_name = bool(container)
         if model is None:
             break
-    return shown, real, field
+    return shown, real, field, skip_name and container == "dict"
 
 
 def _fields_of(loc: tuple[Any, ...]) -> list[str]:
@@ -365,7 +372,8 @@ def _fields_of(loc: tuple[Any, ...]) -> list[str]:
             continue
         if model is None or part not in model.model_fields:
             break
-        model, skip_name = _model_of(model.model_fields[part].annotation)
+        model, container = _model_of(model.model_fields[part].annotation)
+        skip_name = bool(container)
     return list(model.model_fields) if model is not None else []
 
 
