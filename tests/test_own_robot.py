@@ -131,39 +131,61 @@ def _one_line(err: str) -> str:
 QUICK = ["--method", "random", "--warmup", "3", "--iterations", "2", "--final-episodes", "2", "--quiet"]
 
 
-# -- failure 3: feedback keys are checked before anything runs ----------------------------------
-@pytest.mark.parametrize(
-    ("args", "line"),
-    [
-        (["--env", "Swimmer-v5", "--component", "reward_dst"],
-         "Swimmer-v5: component 'reward_dst' is not in the env's info at the first step (its keys: x_position, y_position, "
-         "distance_from_origin, x_velocity, y_velocity, reward_forward, reward_ctrl); did you mean reward_ctrl?"),
-        (["--env", "Swimmer-v5", "--diagnostic", "distt"],
-         "Swimmer-v5: diagnostic 'distt' is not in the env's info at any step of an episode (its keys: x_position, y_position, "
-         "distance_from_origin, x_velocity, y_velocity, reward_forward, reward_ctrl)"),
-        (["--env", "merge-v0", "--component", "rewards"],
-         "merge-v0: component 'rewards' is a dict in the env's info (collision_reward, right_lane_reward, high_speed_reward, "
-         "lane_change_reward, merging_speed_reward), not a number; name an entry (--component rewards.collision_reward) or "
-         "all of them (--component 'rewards.*')"),
-    ],
-)  # fmt: skip
-def test_bad_feedback_keys_are_one_line_and_leave_no_run(capsys, tmp_path: Path, args: list[str], line: str) -> None:  # type: ignore[no-untyped-def]
+# -- failure 3: feedback keys are checked by the first episode, or by `ppprops task check` ------
+# Loading a task never steps its env (issue 22): a declared key the env lacks stops the run at its
+# first episode, with the same one line, and the run is marked stopped with it.
+BAD_KEYS = [
+    (["--env", "Swimmer-v5", "--component", "reward_dst"],
+     "Swimmer-v5: component 'reward_dst' is not in the env's info at the first step (its keys: x_position, y_position, "
+     "distance_from_origin, x_velocity, y_velocity, reward_forward, reward_ctrl); did you mean reward_ctrl?"),
+    (["--env", "Swimmer-v5", "--diagnostic", "distt"],
+     "Swimmer-v5: diagnostic 'distt' is not in the env's info at any step of an episode (its keys: x_position, y_position, "
+     "distance_from_origin, x_velocity, y_velocity, reward_forward, reward_ctrl)"),
+    (["--env", "merge-v0", "--component", "rewards"],
+     "merge-v0: component 'rewards' is a dict in the env's info (collision_reward, right_lane_reward, high_speed_reward, "
+     "lane_change_reward, merging_speed_reward), not a number; name an entry (--component rewards.collision_reward), or "
+     "list them all with `ppprops task check` and --component 'rewards.*'"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("args", "line"), BAD_KEYS)
+def test_bad_feedback_keys_stop_the_first_episode_in_one_line(capsys, tmp_path: Path, args: list[str], line: str) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     code, _, err = _run(capsys, ["run", *args, *QUICK, "--out", str(out)])
     assert code == 2 and _one_line(err) == line
-    assert not out.exists() and list(tmp_path.iterdir()) == []  # nothing left, nothing "running"
+    with open_store(out) as store:
+        assert store.status() == f"stopped: {line}" and store.candidates() == []  # never "running", nothing recorded
 
 
-def test_a_dict_info_key_expands_into_named_components(capsys, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize(("args", "line"), BAD_KEYS)
+def test_task_check_reports_bad_feedback_keys_before_a_run(capsys, args: list[str], line: str) -> None:  # type: ignore[no-untyped-def]
+    code, out, err = _run(capsys, ["task", "check", *args])
+    assert code == 1 and err == ""
+    lines = out.strip().splitlines()
+    assert lines[0].startswith(f"task {args[1]}: one zero-policy episode (seed 0): ") and lines[0].endswith("; 1 problem:")
+    assert lines[1:] == [f"  {line}"]
+
+
+def test_a_dict_info_key_is_expanded_by_task_check_then_named(capsys, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
-    code, _, err = _run(capsys, ["run", "--env", "merge-v0", "--component", "rewards.*", "--diagnostic", "speed", *QUICK,
-                                 "--out", str(out)])  # fmt: skip
-    assert code == 0, err
-    store = open_store(out)
-    cands = store.candidates()
-    store.close()
+    code, _, err = _run(capsys, ["run", "--env", "merge-v0", "--component", "rewards.*", *QUICK, "--out", str(out)])
+    assert code == 2 and _one_line(err) == (
+        "task merge-v0: component 'rewards.*' asks for every entry of a dict in the env's info, which only a step of the env "
+        "shows, and loading a task takes none: run `ppprops task check` with the same task and options (one zero-policy "
+        "episode) to list them, then name each (--component rewards.KEY)"
+    )
+    assert not out.exists()
     names = ["rewards.collision_reward", "rewards.right_lane_reward", "rewards.high_speed_reward", "rewards.lane_change_reward",
              "rewards.merging_speed_reward"]  # fmt: skip
+    code, text, _ = _run(capsys, ["task", "check", "--env", "merge-v0", "--component", "rewards.*", "--diagnostic", "speed"])
+    assert code == 0
+    flags = [f"--component {n}" for n in names]
+    assert text.strip().splitlines()[1] == f"  rewards.* is {', '.join(names)} ({' '.join(flags)})"
+    code, _, err = _run(capsys, ["run", "--env", "merge-v0", *" ".join(flags).split(), "--diagnostic", "speed", *QUICK,
+                                 "--out", str(out)])  # fmt: skip
+    assert code == 0, err
+    with open_store(out) as store:
+        cands = store.candidates()
     assert all(list(c.feedback.components) == names for c in cands)
     assert all(isinstance(c.feedback.diagnostics["speed"], float) for c in cands)
     # a candidate that reached the right lane at speed has those components above zero
@@ -190,7 +212,7 @@ def test_a_worker_that_cannot_make_the_env_is_one_line_and_a_stopped_run(capsys,
     code, _, err = _run(capsys, ["run", "--env", "byor_parent_only:Robot", "--env-kwargs", '{"mass": 1.0}', "--workers", "2",
                                  *QUICK, "--out", str(out)])  # fmt: skip
     line = ("a worker process cannot make the env of task byor_parent_only:Robot: making byor_parent_only:Robot failed: "
-            "RuntimeError: the robot driver is held by the parent process")  # fmt: skip
+            f"RuntimeError: the robot driver is held by the parent process (at {user_dir}/byor_parent_only.py:4, in <module>)")  # fmt: skip
     assert code == 2 and _one_line(err) == line
     store = open_store(out)
     try:
@@ -220,12 +242,18 @@ def test_env_kwargs_and_a_missing_constructor_argument(capsys, tmp_path: Path, u
 
 
 def test_an_env_without_time_limit_needs_max_episode_steps(capsys, tmp_path: Path, user_dir: Path) -> None:  # type: ignore[no-untyped-def]
+    code, out, _ = _run(capsys, ["task", "check", "--env", "byor_robots:Endless", "--max-steps", "500"])
+    assert code == 1 and out.strip().splitlines() == [
+        "task byor_robots:Endless: one zero-policy episode (seed 0): 500 steps, did not end; 1 problem:",
+        "  task byor_robots:Endless: an episode of byor_robots:Endless did not end within 500 steps and the env has no time "
+        "limit: give one with --max-episode-steps N (max_episode_steps in a task file)",
+    ]
     code, _, err = _run(capsys, ["run", "--env", "byor_robots:Endless", *QUICK, "--out", str(tmp_path / "a")])
-    assert code == 2 and _one_line(err) == (
-        "task byor_robots:Endless: an episode of byor_robots:Endless did not end within 10000 steps and the env has no time "
-        "limit: give one with --max-episode-steps N (max_episode_steps in a task file)"
-    )
-    assert not (tmp_path / "a").exists()
+    line = ("an episode of byor_robots:Endless ran 100000 steps without ending and the env has no time limit: give one with "
+            "--max-episode-steps N (max_episode_steps in a task file)")  # fmt: skip
+    assert code == 2 and _one_line(err) == line
+    with open_store(tmp_path / "a") as store:
+        assert store.status() == f"stopped: {line}" and store.candidates() == []
     code, _, err = _run(capsys, ["run", "--env", "byor_robots:Endless", "--max-episode-steps", "25", *QUICK, "--out", str(tmp_path / "b")])
     assert code == 0, err
     store = open_store(tmp_path / "b")
@@ -326,7 +354,8 @@ def test_discrete_observation_runs_from_the_cli(capsys, tmp_path: Path) -> None:
     ("text", "line"),
     [
         ('name = "X"\nenv = "CartPole-v1"\nobservaton = {}\n', "task file {f}: unknown key 'observaton' (did you mean observation?)"),
-        ('name = "X"\n', "task file {f}: env is required (a Gymnasium id, module:EnvId, or module:attr)"),
+        ('name = "X"\n', "task file {f}: no env is given, so this is a task for a robot outside Python, and it must declare "
+         "observation.values, action_type, actions (or give env: a Gymnasium id, module:EnvId, or module:attr)"),
         ('name = "X"\nenv = "CartPole-v1"\n[observation]\nindices = [0, 9]\n',
          "task X: observation index 9 is out of range: the observation has 4 values (0-3)"),
         ('name = "X"\nenv = "CartPole-v1"\n[observation.values]\na = "a"\nb = "b"\n',
@@ -570,6 +599,22 @@ def test_guide_task_file_is_the_example_file() -> None:
     for line in shown.splitlines():
         if line.strip() and "..." not in line and not line.startswith(("summary", "reward_", "hints")):
             assert line in real, line
+
+
+def test_guide_robot_outside_and_privacy_blocks_are_the_real_files() -> None:
+    robot = (ROOT / "examples" / "robot_outside" / "robot.toml").read_text(encoding="utf-8")
+    for line in _guide_block("toml", "### A robot outside Python").splitlines():
+        assert line in robot, line
+    cartpole = (ROOT / "src" / "ppprops" / "tasks" / "paper" / "cartpole.toml").read_text(encoding="utf-8")
+    for line in _guide_block("toml", "### What the attacker may know").splitlines():
+        assert line in cartpole, line
+
+
+def test_guide_task_check_output_is_the_real_one(capsys) -> None:  # type: ignore[no-untyped-def]
+    shown = _guide_block("text", "### Checking a task").splitlines()
+    assert shown[0] == "$ ppprops task check point_robot.toml"
+    code, out, _ = _run(capsys, ["task", "check", str(EXAMPLE / "point_robot.toml")])
+    assert code == 0 and out.strip().splitlines() == [shown[1]]
 
 
 @pytest.mark.llm

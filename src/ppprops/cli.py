@@ -102,6 +102,10 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
 
     add_privacy_commands(sub, _Parser)
 
+    from .tasks.commands import add_task_commands  # task check
+
+    add_task_commands(sub, _Parser)
+
     from .experiments.cli import add_subcommands as add_experiment_subcommands  # argparse only; grids load on use
 
     add_experiment_subcommands(sub)
@@ -342,6 +346,9 @@ def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
     from .privacy.commands import PRIVACY_HANDLERS
 
     handlers.update(PRIVACY_HANDLERS)
+    from .tasks.commands import TASK_HANDLERS
+
+    handlers.update(TASK_HANDLERS)
     try:
         code = handlers[args.command](args)
         sys.stdout.flush()  # a closed pipe shows here, inside the handlers below, not at interpreter exit

@@ -25,7 +25,10 @@ gymnasium alone (the README's recipe)::
     }
 
 An action bound that is infinite is written as the largest float, so the file stays strict JSON
-and clipping to it changes no finite value. ``load_policy`` reads either format version
+and clipping to it changes no finite value. A task without env (a robot outside Python, driven
+with ask/tell) writes ``"env": null`` and ``"env_id": null``, and its declared bounds
+(``action_low`` / ``action_high`` of its task file) as the clip rule's bounds: the file holds the
+policy alone, which the user's own code applies to the robot's observations. ``load_policy`` reads either format version
 (``/1`` files, which name only the task, are completed from ppprops' task registry).
 """
 
@@ -76,10 +79,15 @@ def _versions(entry_point: str | None) -> dict[str, str]:
     return out
 
 
-def env_document(task: Task) -> dict[str, Any]:
-    """How to make the task's env: Gymnasium's EnvSpec (JSON), plus modules to import and folders for sys.path."""
+def env_document(task: Task) -> dict[str, Any] | None:
+    """How to make the task's env: Gymnasium's EnvSpec (JSON), plus modules to import and folders for sys.path.
+
+    None for a task without env (``Task.has_env`` False).
+    """
     from .tasks.envs import EnvRecipe
 
+    if not task.has_env:
+        return None
     recipe = task.spec.env if task.spec is not None else EnvRecipe(id=task.env_id, kwargs=dict(task.env_kwargs))
     spec = recipe.env_spec()
     try:
@@ -92,20 +100,30 @@ def env_document(task: Task) -> dict[str, Any]:
 def policy_document(
     task: Task, theta: np.ndarray, *, env: Any, search: dict[str, Any], final_eval: dict[str, Any] | None
 ) -> dict[str, Any]:
-    """The policy file's content for ``theta`` (shape (D,)) on ``task``; ``env`` gives the action bounds."""
+    """The policy file's content for ``theta`` (shape (D,)) on ``task``.
+
+    Continuous actions are clipped to the bounds of ``env``'s action space; ``env`` None takes the
+    task's declared bounds (a task without env) or, failing those, makes the env to read them
+    (``Task.action_bounds``). Discrete actions need no env.
+    """
     pol = LinearPolicy.from_flat(theta, task.n_s, task.n_a, discrete=task.discrete)
     if task.discrete:
         action: dict[str, Any] = {"type": "discrete", "rule": "argmax", "n": task.n_a}
     else:
-        space = env.action_space
-        action = {"type": "continuous", "rule": "clip", "low": _bound(space.low, task.n_a), "high": _bound(space.high, task.n_a)}
+        if env is not None:
+            low, high = env.action_space.low, env.action_space.high
+        else:
+            bounds = task.action_bounds()
+            assert bounds is not None
+            low, high = bounds
+        action = {"type": "continuous", "rule": "clip", "low": _bound(low, task.n_a), "high": _bound(high, task.n_a)}
     adapter = task.observation
     observation = adapter.to_json() if isinstance(adapter, Selection) else {"names": list(adapter.names)}
     env_doc = env_document(task)
     return {
         "format": FORMAT,
         "task": task.name,
-        "env_id": task.env_id,
+        "env_id": task.env_id if task.has_env else None,
         "env": env_doc,
         "observation": observation,
         "action": action,
@@ -115,7 +133,7 @@ def policy_document(
         "W": pol.W.tolist(),
         "b": pol.b.tolist(),
         "theta": [float(v) for v in theta],
-        "versions": _versions((env_doc["spec"] or {}).get("entry_point")),
+        "versions": _versions(((env_doc or {}).get("spec") or {}).get("entry_point")),
         "task_spec": task.spec.to_json() if task.spec is not None else None,
         "search": search,
         "final_eval": final_eval,
@@ -128,7 +146,9 @@ def _format2_problem(doc: dict[str, Any], n_a: int) -> str:
         Selection.from_json(doc["observation"])
     except (KeyError, TypeError, ValueError, AttributeError):
         return "the observation block is missing or not valid"
-    if not isinstance(doc.get("env"), dict):
+    spec = doc.get("task_spec")
+    without_env = "env" in doc and doc["env"] is None and isinstance(spec, dict) and "env" in spec and spec["env"] is None
+    if not without_env and not isinstance(doc.get("env"), dict):  # null only for a task without env
         return "the env block is missing or not an object"
     action = doc.get("action")
     rule = "argmax" if doc["action_type"] == "discrete" else "clip"
@@ -241,7 +261,8 @@ class Policy:
         """The env this policy was searched on (``kwargs`` go to ``gym.make``, e.g. ``render_mode``).
 
         Raises:
-            ConfigError: the file records no portable env (its factory had no importable name).
+            ConfigError: the file records no portable env (its factory had no importable name), or
+                its task has no env (a robot outside Python: apply the policy to its observations).
         """
         if self.document["format"] != FORMAT:
             from .tasks import get_task
@@ -251,6 +272,9 @@ class Policy:
         from gymnasium.envs.registration import EnvSpec
 
         env_doc = self.document["env"]
+        if env_doc is None:
+            raise ConfigError(f"policy file {self.path}: task {self.task} has no env (a robot outside Python): there is "
+                              "no env to make; call the policy on the robot's observations")  # fmt: skip
         if env_doc.get("spec") is None:
             raise ConfigError(f"policy file {self.path}: its env was made by a factory with no importable name; make it yourself")
         for folder in env_doc.get("paths", ()):

@@ -1,7 +1,8 @@
 """Client-side facts the hardened preset needs about a task, and the run's codec and secrets.
 
-Tasks are plain data owned elsewhere; what matters for privacy (which diagnostics pin the
-return or a reward component, the rough size of returns) is kept here, next to the codec.
+The facts live with each task (its task file's ``[privacy]`` table, read through
+``privacy.knowledge.facts_for``; issue 20): which diagnostics pin the return, which reward
+component is left out, the public step of each reward quantity and the rough size of returns.
 """
 
 from __future__ import annotations
@@ -30,48 +31,36 @@ class EncodingSettings:
     box: tuple[float, float]
     episodes: int = 1
 
-# Diagnostics that, with public knowledge of the task, determine the raw return or a raw reward
-# component (docs/threat-model.md): the episode length is the CartPole return, the Acrobot return
-# together with `success`, and the healthy/alive reward of the locomotion tasks (a constant per
-# step); it also states the time limit. Every task reports it, so it is hidden for every task.
-RETURN_DETERMINING: dict[str, frozenset[str]] = {"*": frozenset({"episode_length"})}
 
-# Rough magnitude of a task's returns, for the secret reward origin s ~ U(-S, S). The optimal
-# return is used when the task knows it; these cover the rest.
-REWARD_SCALE: dict[str, float] = {"Acrobot": 500.0, "FetchReachDense": 50.0}
-DEFAULT_REWARD_SCALE = 1000.0
-
-
-# The reward component left out of the history when return-determining feedback is hidden: with it
-# shown, the printed return equals the sum of the printed components once decoded, an equation per
-# entry in the reward secrets (the additivity attack). The locomotion tasks leave out the survive
-# term, which is also the one whose value is public (healthy reward x episode length, and exactly
-# healthy reward x time limit at the time limit); other tasks their first component.
-RESIDUAL_COMPONENT: dict[str, str] = {"Ant": "reward_survive", "Humanoid": "reward_survive"}
-
-
-def return_determining(task_name: str) -> frozenset[str]:
-    """Diagnostics that pin the raw return of ``task_name`` (hidden by ``hide_return_diagnostics``)."""
-    return RETURN_DETERMINING["*"] | RETURN_DETERMINING.get(task_name, frozenset())
+def return_determining(task: Task) -> frozenset[str]:
+    """Diagnostics that, with public knowledge of ``task``, pin its raw return or a raw component (hidden by
+    ``hide_return_diagnostics``; docs/threat-model.md): the task's ``privacy.return_determining``, and
+    ``episode_length`` for every task (the CartPole return, the Acrobot return with ``success``, the
+    healthy reward of the locomotion tasks; it also states the time limit)."""
+    return facts_for(task).return_determining
 
 
 def residual_component(task: Task) -> frozenset[str]:
-    """The component hidden with ``hide_return_diagnostics`` (none for tasks without components)."""
-    if not task.components:
+    """The component hidden with ``hide_return_diagnostics`` (none for tasks without components).
+
+    With every component shown, the printed return equals the sum of the printed components once
+    decoded, an equation per entry in the reward secrets (the additivity attack): one is left out.
+    The task's ``privacy.residual_component`` (the locomotion tasks: the survive term, whose value
+    is public anyway), else its first component.
+    """
+    name = facts_for(task).residual_component
+    if not task.components or name is None:
         return frozenset()
-    family = task.name.split("-")[0]
-    name = RESIDUAL_COMPONENT.get(family)
     return frozenset({name if name in task.components else task.components[0]})
 
 
 def reward_scale(task: Task) -> float:
-    """The public magnitude of the task's returns (reward units): |optimal return|, else a per-task constant.
+    """The public magnitude of the task's returns (reward units): its ``privacy.reward_scale``, else
+    |optimal return|, else 1000 (``privacy.knowledge.DEFAULT_REWARD_SCALE``).
 
     Bounds the secret reward offsets s and s_k of ``secret_offsets``.
     """
-    if task.optimal_return is not None and task.optimal_return != 0:
-        return abs(float(task.optimal_return))
-    return REWARD_SCALE.get(task.name, DEFAULT_REWARD_SCALE)
+    return facts_for(task).reward_scale
 
 
 def generate_secrets(run_id: str, task: Task, config: EncodingSettings, rng: np.random.Generator | None = None) -> Secrets:
@@ -110,9 +99,9 @@ def codec_for(secrets: Secrets, task: Task, config: EncodingSettings) -> Codec:
         warp_params=m.warp_params,
         warp_rewards=m.warp_rewards,
         box=config.box,
-        hidden_diagnostics=return_determining(task.name) if m.hide_return_diagnostics else frozenset(),
+        hidden_diagnostics=return_determining(task) if m.hide_return_diagnostics else frozenset(),
         hidden_components=residual_component(task) if m.hide_return_diagnostics else frozenset(),
-        resolution=facts_for(task.name).resolution,
+        resolution=facts_for(task).resolution,
         episodes=config.episodes,
         reward_scale=reward_scale(task),
     )

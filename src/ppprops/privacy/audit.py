@@ -380,11 +380,11 @@ class _Auditor:
                          "run seed replays it (use a large random --seed)", f"run seed of {self.config.seed.bit_length()} bits")
         rets = [c.ret for c in shown]
         if mech.scale_rewards and not mech.warp_rewards and len(set(rets)) >= 3:
-            if facts_for(self.task.name).integer_returns or all(float(r).is_integer() for r in rets):
+            if facts_for(self.task).integer_returns or all(float(r).is_integer() for r in rets):
                 self.finding("channel", "reward_lattice", "integer returns scaled by c keep a lattice: the gcd of differences of "
                              "printed returns gives c", f"{len(set(rets))} distinct returns shown")
         if mech.scale_rewards and not mech.warp_rewards and not mech.secret_offsets:
-            caps = {v for _, v, _, _ in facts_for(self.task.name).caps}
+            caps = {v for _, v, _, _ in facts_for(self.task).caps}
             if self.task.optimal_return is not None:
                 caps.add(float(self.task.optimal_return))
             for c in shown:

@@ -6,7 +6,9 @@ Gymnasium id. ``load_task(source, ...)`` is the general form behind ``ppprops ru
 (env kwargs, a step limit, packages to import, Dict keys, info keys) applied.
 
 Loading the registry reads the paper's task files only; simulators are imported when a task's env
-is made, so the list of tasks is available without any extra installed.
+is made, so the list of tasks is available without any extra installed. Loading a task makes its
+env at most once, to read its spaces, and never steps it; ``check_task`` runs the one zero-policy
+episode that checks a declaration, when the user asks for it (``ppprops task check``).
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError, UnknownTaskError
-from .base import EpisodeFeedback, EpisodeRecorder, Selection, Task, TaskText
-from .envs import EnvRecipe, TaskImportError, import_module, known_ids, registered_id
+from .base import EpisodeFeedback, EpisodeRecorder, NoEnvError, Selection, Task, TaskText
+from .check import PROBE_STEPS, TaskCheck, check_spec
+from .envs import EnvError, EnvRecipe, TaskImportError, describe_user_error, import_module, known_ids, registered_id
+from .facts import PrivacyFacts
 from .feedback import FeedbackKeyError
 from .paper import PRESET_FILES, TASK_FILES
 from .spec import (
@@ -89,6 +93,32 @@ def is_builtin(task: Task) -> bool:
     return task.name.lower() in _BUILTIN and _REGISTRY.get(task.name.lower()) is task
 
 
+def registered(name: str) -> Task | None:
+    """The task registered in this process under ``name`` (case-insensitive), or None; builds and loads nothing."""
+    return _REGISTRY.get(name.lower())
+
+
+def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
+    """The privacy facts a task declares (``tasks.facts``; issue 20), read from its declaration.
+
+    A declaration stored before privacy facts existed (no ``privacy`` key) is given the facts of the
+    paper task of the same name when it is that task's declaration in every other respect (a run of
+    a paper task from an earlier ppprops), and none otherwise. A Task made by hand has none.
+    """
+    spec = task.spec if isinstance(task, Task) else task
+    if spec is None:
+        return PrivacyFacts()
+    if spec.privacy is not None:
+        return spec.privacy
+    paper = _REGISTRY.get(spec.name.lower())
+    if paper is not None and is_builtin(paper) and paper.spec is not None:
+        mine = {k: v for k, v in spec.to_json().items() if k != "privacy"}
+        theirs = {k: v for k, v in paper.spec.to_json().items() if k != "privacy"}
+        if mine == theirs and paper.spec.privacy is not None:
+            return paper.spec.privacy
+    return PrivacyFacts()
+
+
 def _is_task_file(name: str) -> bool:
     return name.lower().endswith(".toml")
 
@@ -107,7 +137,7 @@ def get_task(name: str) -> Task:
     key = name.lower()
     if key in _REGISTRY:
         return _REGISTRY[key]
-    by_id = [t for k, t in _REGISTRY.items() if t.env_id.lower() == key and k not in _NAME_ONLY]
+    by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
     if len(by_id) == 1:
         return by_id[0]
     if by_id:
@@ -131,8 +161,9 @@ def generic_task(
 
     ``components`` are info keys summed over an episode and reported as reward components (they are
     scaled with the return under PP-ProPS, so declare only reward-valued keys); ``diagnostics`` are
-    info keys reported as their last value, never scaled. One probe episode checks them (see
-    ``ppprops.tasks.spec.resolve``).
+    info keys reported as their last value, never scaled. Making the task makes the env once to
+    read its spaces, never steps it: the keys are checked by the episodes that use them, or by
+    ``check_task``.
     """
     return _generic(env_id, tuple(components), tuple(diagnostics))
 
@@ -169,13 +200,67 @@ def load_task(
     ``task_file`` names a task file instead. The options are those of ``ppprops run``
     (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``, ``--obs-keys``, ``--component``,
     ``--diagnostic``) and win over the declaration. A task that is not a paper task is checked
-    against its env (one probe episode) before this returns.
+    against its env's observation and action spaces (the env is made, never stepped); its feedback
+    keys are checked by the episodes that use them, or by ``check_task`` when asked. A task file
+    without ``env`` gives a task without env (``Task.has_env`` False), driven with ask/tell.
 
     Raises:
-        UnknownTaskError, TaskFileError, TaskImportError, FeedbackKeyError (all ConfigError): one
-        line naming what is wrong (an unknown id, a bad task file, a module that fails to import
-        and why, an info key missing or not a scalar).
+        UnknownTaskError, TaskFileError, TaskImportError, EnvError (all ConfigError): one line naming
+        what is wrong (an unknown id, a bad task file, a module that fails to import and why, an env
+        whose constructor raises, a ``KEY.*`` that only ``check_task`` can expand).
     """
+    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
+                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    return found if isinstance(found, Task) else build_task(resolve(found))
+
+
+def check_task(
+    source: TaskSource | None = None,
+    *,
+    task_file: str | os.PathLike[str] | None = None,
+    env_kwargs: Mapping[str, Any] | None = None,
+    max_episode_steps: int | None = None,
+    gym_packages: Sequence[str] = (),
+    obs_keys: Sequence[str] | None = None,
+    components: Sequence[str] = (),
+    diagnostics: Sequence[str] = (),
+    seed: int = 0,
+    max_steps: int = PROBE_STEPS,
+) -> TaskCheck:
+    """Check a task in one zero-policy episode on its env and report every problem (``ppprops task check``).
+
+    The task is named as for ``load_task`` (same ``source`` forms and options). The episode is reset
+    with ``seed`` and runs at most ``max_steps`` steps. ``KEY.*`` components and diagnostics are
+    expanded here, and only here: ``result.expanded`` lists their entries, and ``result.checked``
+    is the task with them named (None when the check found problems), ready for ``ppprops.search``.
+    A task without env is validated and needs no episode.
+
+    Raises:
+        ConfigError: one line for what stops the check before the episode (an unknown task, a bad
+            task file, an env that cannot be made, spaces that disagree with the declaration); what
+            the episode finds is in ``result.problems`` instead.
+    """
+    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
+                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    if isinstance(found, Task):
+        if found.spec is None:
+            raise ConfigError(f"task {found.name} is a Task made by hand, with no declaration to check")
+        found = found.spec
+    return check_spec(found, seed=seed, max_steps=max_steps)
+
+
+def _source(
+    source: TaskSource | None,
+    *,
+    task_file: str | os.PathLike[str] | None,
+    env_kwargs: Mapping[str, Any] | None,
+    max_episode_steps: int | None,
+    gym_packages: Sequence[str],
+    obs_keys: Sequence[str] | None,
+    components: Sequence[str],
+    diagnostics: Sequence[str],
+) -> Task | TaskSpec:
+    """The registered Task a source names, or the declaration (options applied, not yet resolved) it gives."""
     options = bool(env_kwargs or max_episode_steps is not None or gym_packages or obs_keys is not None or components or diagnostics)
     for module in gym_packages:
         import_module(module, "--gym-packages")
@@ -201,11 +286,13 @@ def load_task(
             return get_task(source)
         known = _REGISTRY.get(source.lower())
         if known is None:
-            by_id = [t for k, t in _REGISTRY.items() if t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
+            by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
             known = by_id[0] if len(by_id) == 1 else None
         if known is not None and is_builtin(known):
-            raise ConfigError(f"{known.name} is a paper task: its env, observation and feedback are fixed; to change them, "
-                              f"write a task file (docs/own-robot.md) or give its env id {known.env_id}")  # fmt: skip
+            if known.name.lower() == source.lower():
+                raise ConfigError(f"{known.name} is a paper task: its env, observation and feedback are fixed; to change them, "
+                                  f"write a task file (docs/own-robot.md) or give its env id {known.env_id}")  # fmt: skip
+            known = None  # the paper task's env id: a generic task of that env, with the options
         if known is not None and known.spec is not None:
             spec = known.spec
         else:
@@ -222,7 +309,7 @@ def load_task(
     if options:
         spec = spec.with_options(env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
                                  obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
-    return build_task(resolve(spec))
+    return spec
 
 
 TaskRef = str | dict[str, Any] | Task
@@ -252,24 +339,32 @@ def resolve_task(ref: TaskRef) -> Task:
 
 __all__ = [
     "Declared",
+    "EnvError",
     "EnvRecipe",
     "EpisodeFeedback",
     "EpisodeRecorder",
     "FeedbackKeyError",
+    "NoEnvError",
+    "PrivacyFacts",
     "Selection",
     "Task",
+    "TaskCheck",
     "TaskFileError",
     "TaskImportError",
     "TaskRef",
     "TaskSpec",
     "TaskText",
+    "check_task",
+    "describe_user_error",
     "generic_task",
     "get_task",
     "is_builtin",
     "list_tasks",
     "load_task",
+    "privacy_facts",
     "read_task_file",
     "register",
+    "registered",
     "resolve_task",
     "task_from_json",
     "task_ref",

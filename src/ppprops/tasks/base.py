@@ -13,6 +13,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from ..errors import ConfigError
 from ..policy import param_count
 from ..values import Diagnostic
 
@@ -116,12 +117,33 @@ class TaskText:
 
 
 
+class NoEnvError(ConfigError):
+    """The task has no env (a robot outside Python): nothing in ppprops can run its episodes."""
+
+
+@dataclass(frozen=True)
+class NoEnv:
+    """``Task.setup`` of a task without env: called before an env is made, it refuses in one line (``NoEnvError``)."""
+
+    task: str
+
+    def __call__(self) -> None:
+        """Raise ``NoEnvError`` naming the task and how it is driven instead."""
+        raise NoEnvError(f"task {self.task} has no env: it describes a robot outside Python, whose episodes only its own "
+                         "driver runs; search it with ask/tell (`ppprops ask` / `ppprops tell`, or Study.ask / Study.tell), "
+                         "and evaluate its policy on the robot")  # fmt: skip
+
+
 @dataclass(frozen=True)
 class Task:
     """Everything the loop needs to know about an environment configuration.
 
     Tasks are built from a ``TaskSpec`` (``spec``: the declaration as data, stored with every run);
     a Task made by hand without one works in this process and is sent whole to worker processes.
+    A task without env (``has_env`` False: a robot outside Python, driven with ask/tell) has
+    ``env_id == ""``, declares its continuous action bounds (``action_low`` / ``action_high``, one
+    value per action), and its ``make_env`` raises ``NoEnvError``. ``prompt_name`` is the name the
+    task file allows a prompt to show the provider (None: not set; issue 20).
     """
 
     name: str
@@ -138,6 +160,14 @@ class Task:
     optimal_return: float | None = None
     setup: Callable[[], None] | None = None  # e.g. registering third-party envs before gym.make
     spec: Any = field(default=None, compare=False, repr=False)  # the TaskSpec it was built from
+    prompt_name: str | None = None
+    action_low: tuple[float, ...] | None = None  # declared bounds (a task without env); else the env's action space
+    action_high: tuple[float, ...] | None = None
+
+    @property
+    def has_env(self) -> bool:
+        """False for a task without env (a robot outside Python, driven with ask/tell): ``make_env`` raises."""
+        return not isinstance(self.setup, NoEnv)
 
     @property
     def D(self) -> int:
@@ -150,14 +180,40 @@ class Task:
         return self.action_type == "discrete"
 
     def make_env(self) -> Any:
-        """A fresh env (the spec's recipe when there is one: the same ``gym.make`` as the policy file's)."""
+        """A fresh env (the spec's recipe when there is one: the same ``gym.make`` as the policy file's).
+
+        Raises:
+            NoEnvError: the task has no env (``has_env`` is False).
+            ConfigError: the env cannot be made (one line naming the cause; ``envs.EnvRecipe.make``).
+        """
         import gymnasium as gym
 
+        if isinstance(self.setup, NoEnv):
+            self.setup()
         if self.spec is not None:
             return self.spec.env.make()
         if self.setup is not None:
             self.setup()
         return gym.make(self.env_id, disable_env_checker=True, **dict(self.env_kwargs))
+
+    def action_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """The continuous actions' (low, high), each of shape (n_a,); None for discrete actions.
+
+        A task without env gives its declared bounds; a task with an env reads them from the env's
+        action space, which makes the env (and closes it, never stepped).
+        """
+        if self.discrete:
+            return None
+        if self.action_low is not None and self.action_high is not None:
+            return np.asarray(self.action_low, dtype=np.float64), np.asarray(self.action_high, dtype=np.float64)
+        env = self.make_env()
+        try:
+            space = env.action_space
+            shape = (self.n_a,)
+            return (np.broadcast_to(np.asarray(space.low, dtype=np.float64), shape).copy(),
+                    np.broadcast_to(np.asarray(space.high, dtype=np.float64), shape).copy())  # fmt: skip
+        finally:
+            env.close()
 
     def summary(self) -> dict[str, Any]:
         """The task's shape as a dict (name, env id, n_s, n_a, D, action type, feedback keys), for ``show`` and JSON output."""

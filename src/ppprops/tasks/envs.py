@@ -7,7 +7,9 @@ registration code having run. ``EnvRecipe.env_spec()`` turns it into Gymnasium's
 deployed env and the searched env are made by one and the same ``gym.make`` call.
 
 Everything that can fail while importing user code (a missing dependency, a SyntaxError, a module
-that raises) is one ``TaskImportError`` line that names the real cause.
+that raises) is one ``TaskImportError`` line that names the real cause; an env whose constructor
+raises is one ``EnvError`` line naming the user's exception and where in their code it was raised
+(``describe_user_error``, which also words failures of ``reset`` / ``step`` for the episode loop).
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import io
 import json
 import os
 import sys
+import sysconfig
+import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -31,6 +35,80 @@ PLUGINS = ("highway_env", "gymnasium_robotics")
 
 class TaskImportError(ConfigError):
     """A module a task needs (its env's module, an ``imports`` entry, a ``--gym-packages`` module) fails to import."""
+
+
+class EnvError(ConfigError):
+    """The env cannot be made: its constructor (or the entry point's import inside ``gym.make``) raised."""
+
+
+def _library_roots() -> tuple[str, ...]:
+    """Folders whose frames are not the user's code: ppprops, gymnasium, the standard library."""
+    import gymnasium
+
+    roots = {str(Path(__file__).resolve().parents[1]), str(Path(gymnasium.__file__).resolve().parent)}
+    roots |= {str(Path(p).resolve()) for k, p in sysconfig.get_paths().items() if k in ("stdlib", "platstdlib")}
+    return tuple(sorted(roots))
+
+
+def _installed_roots() -> tuple[str, ...]:
+    return tuple(sorted({str(Path(p).resolve()) for k, p in sysconfig.get_paths().items() if k in ("purelib", "platlib")}))
+
+
+_GYM_WRAPPED = " was raised from the environment creator"  # gymnasium re-raises a constructor's TypeError with this
+
+
+def _unwrapped(exc: BaseException) -> BaseException:
+    """The exception itself, or the constructor's own TypeError that gymnasium's ``make`` wrapped (``from`` it)."""
+    if _GYM_WRAPPED in str(exc) and exc.__cause__ is not None:
+        return exc.__cause__
+    return exc
+
+
+def user_frame(exc: BaseException) -> traceback.FrameSummary | None:
+    """The innermost frame where ``exc`` was raised in the user's code, else in a library that is not ppprops,
+    gymnasium or the standard library (an installed env package); None when every frame is one of those.
+
+    The frames of the exceptions ``exc`` was raised ``from`` count too, innermost last.
+    """
+    chain: list[BaseException] = []
+    e: BaseException | None = exc
+    while e is not None and len(chain) < 10:
+        chain.append(e)
+        e = e.__cause__
+    # a cause's frames run from where its wrapper caught it inwards: they lie deeper than the wrapper's
+    frames = [f for c in chain for f in traceback.extract_tb(c.__traceback__)]
+
+    def outside(frame: traceback.FrameSummary, roots: tuple[str, ...]) -> bool:
+        name = frame.filename
+        if name.startswith("<"):  # <frozen importlib._bootstrap>, <string>
+            return False
+        path = str(Path(name).resolve())
+        return not any(path == r or path.startswith(r + os.sep) for r in roots)
+
+    library = _library_roots()
+    for roots in (library + _installed_roots(), library):
+        found = [f for f in frames if outside(f, roots)]
+        if found:
+            return found[-1]
+    return None
+
+
+def describe_user_error(exc: BaseException) -> str:
+    """One line for an exception raised by a user's env (in its constructor, ``reset`` or ``step``).
+
+    ``Type: first line of the message (at FILE:LINE, in FUNCTION)``, where the location is the
+    innermost frame in the user's code (``user_frame``), left out when there is none; e.g.
+    ``RuntimeError: motor driver fault (at /home/me/robot.py:42, in step)``. For the episode loop's
+    mid-run failures and ``EnvRecipe.make``; never a traceback.
+    """
+    origin = _unwrapped(exc)
+    text = str(origin).strip()
+    first = text.splitlines()[0] if text else ""
+    line = f"{type(origin).__name__}{': ' + first if first else ''}"
+    frame = user_frame(exc)
+    if frame is not None:
+        line += f" (at {frame.filename}:{frame.lineno}, in {frame.name})"
+    return line
 
 
 def import_module(name: str, why: str = "") -> Any:
@@ -250,7 +328,16 @@ class EnvRecipe:
         return replace(reg, kwargs={**reg.kwargs, **dict(self.kwargs)}, max_episode_steps=steps, disable_env_checker=True)
 
     def make(self) -> Any:
-        """A fresh env; every failure while making it is one ConfigError line."""
+        """A fresh env (made, not reset); every failure while making it is one ConfigError line.
+
+        Raises:
+            MissingExtraError: a simulator extra is missing (the message names the pip extra).
+            TaskImportError: a module the env needs fails to import.
+            EnvError: the constructor raised: ``making ID failed: Type: message (at FILE:LINE, in
+                FUNCTION)`` with the innermost frame of the user's code (``describe_user_error``); a
+                TypeError from the constructor's call itself (a missing or unknown keyword) ends
+                ``(check env_kwargs)`` instead.
+        """
         import gymnasium as gym
 
         spec = self.env_spec()
@@ -259,15 +346,14 @@ class EnvRecipe:
         except gym.error.DependencyNotInstalled as e:
             if "mujoco" in str(e).lower():
                 raise MissingExtraError("mujoco", self.id) from e
-            raise ConfigError(f"{self.id} needs a package that is not installed: {e}") from None
-        except TypeError as e:  # most often a keyword the env's constructor lacks or does not take
-            cause = str(e).split(" was raised from the environment creator")[0]  # gymnasium's wrapping
-            raise ConfigError(f"making {self.id} failed: {cause} (check env_kwargs)") from None
+            raise EnvError(f"{self.id} needs a package that is not installed: {e}") from None
         except (ConfigError, MissingExtraError):
             raise
         except Exception as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-            raise ConfigError(f"making {self.id} failed: {type(e).__name__}{': ' + first if first else ''}") from None
+            if isinstance(e, TypeError) and user_frame(e) is None:  # most often a keyword the constructor lacks or does not take
+                cause = str(e).split(" was raised from the environment creator")[0]  # gymnasium's wrapping
+                raise EnvError(f"making {self.id} failed: {cause} (check env_kwargs)") from None
+            raise EnvError(f"making {self.id} failed: {describe_user_error(e)}") from None
 
     def pinned(self) -> EnvRecipe:
         """The same env with a registered id replaced by its entry point, kwargs and limit.

@@ -2,11 +2,17 @@
 
 A task declares each component or diagnostic by name with the info key it comes from. A key may be
 a path into a dict-valued info entry (``rewards.collision_reward``); ``rewards.*`` asks for every
-entry of that dict (expanded when the task is resolved against its env, see ``ppprops.tasks.spec``).
+entry of that dict, which only a step of the env shows: ``ppprops.tasks.check.check_task`` (``ppprops
+task check``) expands it in an episode the user asks for; loading a task refuses it.
 
 Components are summed over the episode and are reward-valued (scaled with the return under
 PP-ProPS). Diagnostics are reduced over the episode (``last`` value by default, or ``mean``,
 ``sum``, ``min``, ``max``) and never scaled.
+
+Loading a task never steps its env, so the declaration is checked by the episodes that use it:
+in every episode, each component must be in the env's info at the first step and each diagnostic
+at some step of an episode that ends, every one a number (``FeedbackKeyError``, one line naming
+the key, the info keys there are and the closest one).
 """
 
 from __future__ import annotations
@@ -90,7 +96,7 @@ def check_value(task: str, kind: str, key: InfoKey, info: Mapping[str, Any], *, 
         entries = ", ".join(map(str, value)) or "empty"
         raise FeedbackKeyError(
             f"{task}: {kind} {key.info!r} is a dict in the env's info ({entries}), not a number; name an entry "
-            f"({flag} {key.info}.{next(iter(value), 'KEY')}) or all of them ({flag} '{key.info}.*')"
+            f"({flag} {key.info}.{next(iter(value), 'KEY')}), or list them all with `ppprops task check` and {flag} '{key.info}.*'"
         )
     v = scalar(value)
     if v is None or (kind == "component" and isinstance(v, str)):
@@ -125,18 +131,26 @@ class _InfoRecorder:
         self.spec = spec
         self.sums = {k.name: 0.0 for k in spec.components}
         self.values: dict[str, list[float | str]] = {}
+        self.steps = 0
 
     def step(self, obs: NDArray[Any], reward: float, info: Mapping[str, Any]) -> None:
+        self.steps += 1
         for k in self.spec.components:
             v = check_value(self.spec.task, "component", k, info, where="during a run")
-            if v is not None:  # absent on a step (checked present on the first): contributes nothing
+            if v is not None:  # absent on a later step (present on the first): contributes nothing
                 self.sums[k.name] += float(v)
+            elif self.steps == 1:
+                raise missing_key(self.spec.task, "component", k, info, where="at the first step")
         for k in self.spec.diagnostics:
             v = check_value(self.spec.task, "diagnostic", k, info, where="during a run")
             if v is not None:
                 self.values.setdefault(k.name, []).append(v)
 
     def finish(self, *, terminated: bool, truncated: bool, steps: int, info: Mapping[str, Any]) -> EpisodeFeedback:
+        if terminated or truncated:  # an episode cut short (a numerical fault) may end before a diagnostic shows
+            unseen = [k for k in self.spec.diagnostics if k.name not in self.values]
+            if unseen:
+                raise missing_key(self.spec.task, "diagnostic", unseen[0], info, where="at any step of an episode")
         diag: dict[str, Diagnostic] = {"episode_length": float(steps)}
         for k in self.spec.diagnostics:
             seen = self.values.get(k.name)

@@ -1,14 +1,16 @@
 """Tasks as data: the task file (TOML), its ``TaskSpec``, and resolving a spec against its env.
 
-A ``TaskSpec`` is a task's whole declaration: how to make the env (``EnvRecipe``), which parts of
-the observation the policy sees, what the observed values and the actions mean, the reward
-components and diagnostics with the info keys they come from, and the prompt's prose. It is stored
-with every run (``RunConfig.task_spec``) and in every policy file, so any process rebuilds the task
-from it without the code that first declared it.
+A ``TaskSpec`` is a task's whole declaration: how to make the env (``EnvRecipe``; none for a robot
+outside Python), which parts of the observation the policy sees, what the observed values and the
+actions mean, the reward components and diagnostics with the info keys they come from, the
+prompt's prose and display name, and the task's privacy facts. It is stored with every run
+(``RunConfig.task_spec``) and in every policy file, so any process rebuilds the task from it
+without the code that first declared it.
 
 A task file::
 
     name = "Reacher2D"
+    prompt_name = "a planar arm"   # optional: the name a prompt may show the provider
     env = "my_robot:Reacher2D"     # a Gymnasium id, module:EnvId, or module:attr (an Env class or a
                                    # function returning an env); module may be a file next to this one
     max_episode_steps = 200        # required when the env has no time limit of its own
@@ -28,11 +30,20 @@ A task file::
     reward_ctrl = { info = "ctrl_cost", description = "..." }
     [diagnostics]
     distance = { info = "dist", reduce = "last", description = "..." }
+    [privacy]                                # what an attacker may know (tasks.facts); absent = unknown
+    public_env = false
 
-``extends = "base.toml"`` starts from another file (tables merged, other values replaced). A
-Discrete observation becomes a one-hot vector, so the linear policy is a table of action scores.
-The paper's tasks are files of this kind (``ppprops/tasks/paper``); they also name a ``recorder``
-(code that derives feedback from each step) and a ``setup`` (a check for a simulator extra).
+Without ``env`` the file describes a robot outside Python, driven with ask/tell: it declares
+``observation.values``, ``action_type``, ``actions`` and (continuous) ``action_low`` /
+``action_high``, and nothing that needs an env (``tasks.schema``). ``extends = "base.toml"`` starts
+from another file (tables merged, other values replaced). A Discrete observation becomes a one-hot
+vector, so the linear policy is a table of action scores. The paper's tasks are files of this kind
+(``ppprops/tasks/paper``); they also name a ``recorder`` (code that derives feedback from each step)
+and a ``setup`` (a check for a simulator extra).
+
+Loading a task makes its env once to read the observation and action spaces, and never resets or
+steps it: the feedback keys are checked by the episodes of the run itself (``feedback.InfoFeedback``)
+or, when asked, by one zero-policy episode (``ppprops.tasks.check.check_task``, ``ppprops task check``).
 """
 
 from __future__ import annotations
@@ -45,44 +56,29 @@ from dataclasses import dataclass, replace
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, overload
+from typing import Any
 
 import numpy as np
 
 from ..errors import ConfigError, UnknownTaskError
-from .base import Selection, Task, TaskText
-from .envs import (
-    EnvRecipe,
-    Prepare,
-    TaskImportError,
-    check_json_kwargs,
-    entry_point_of,
-    has_time_limit,
-    import_module,
-    import_root,
-    load_attr,
-)
-from .feedback import MISSING, REDUCE, RESERVED, FeedbackKeyError, InfoFeedback, InfoKey, check_value, lookup, missing_key
+from .base import NoEnv, Selection, Task, TaskText
+from .envs import EnvRecipe, Prepare, check_json_kwargs, entry_point_of, import_module, import_root, load_attr
+from .facts import PrivacyFacts
+from .feedback import InfoFeedback, InfoKey
+from .schema import RESERVED, TaskFile, TaskFileError, validate_table
 
 FORMAT = "ppprops.task/1"
-PROBE_STEPS = 10_000  # longest probe episode of an env with no time limit
 _TEXT = "ppprops.tasks.descriptions"
-FILE_KEYS = ("name", "env", "extends", "imports", "max_episode_steps", "env_kwargs", "observation", "actions", "action_type",
-             "components", "diagnostics", "summary", "reward_structure", "reward_hint", "hints", "optimal_return",
-             "recorder", "setup", "format")  # fmt: skip
-OBSERVATION_KEYS = ("keys", "indices", "select", "values")
-
-
-class TaskFileError(ConfigError):
-    """A task file (or the equivalent flags / Python arguments) declares something impossible."""
+LOCAL_PREFIX = "ppprops-local/"  # ids of env factories with no importable name (this process only)
 
 
 @dataclass(frozen=True)
 class Declared:
     """A reward component or diagnostic: its name, meaning, and the info key it is read from.
 
-    ``info`` is None for feedback a task's ``recorder`` computes itself. A name ending in ``.*``
-    asks for every entry of a dict-valued info key; resolving the task expands it.
+    ``info`` is None for feedback a task's ``recorder`` computes itself, and for every component
+    and diagnostic of a task without env (its driver tells them). A name ending in ``.*`` asks for
+    every entry of a dict-valued info key; only ``check_task``'s episode expands it.
     """
 
     name: str
@@ -100,19 +96,29 @@ class Declared:
         return cls(name=str(d["name"]), description=str(d.get("description", "")), info=d.get("info"),
                    reduce=str(d.get("reduce", "last")))  # fmt: skip
 
+    @property
+    def wildcard(self) -> bool:
+        """True for ``KEY.*``: every entry of a dict-valued info key, named only after a step of the env."""
+        return self.info is not None and self.info.endswith(".*")
+
 
 @dataclass(frozen=True)
 class TaskSpec:
     """A task's whole declaration (see the module docstring). ``complete`` specs know every count.
 
+    ``env`` is None for a task without env (a robot outside Python, driven with ask/tell); its
+    continuous actions are bounded by ``action_low`` / ``action_high`` (one value per action). For a
+    task with an env those are None: the env's action space bounds the actions.
     ``observation`` holds ``keys`` / ``one_hot`` / ``indices`` and the ``names`` and ``descriptions``
     of the kept values (empty until resolved against the env when the file gave none). ``actions``
     describes each policy output; ``action_type`` is ``"discrete"`` (argmax) or ``"continuous"``
-    (clipped to the action bounds).
+    (clipped to the action bounds). ``prompt_name`` is the name a prompt may show the provider (None:
+    not set). ``privacy`` holds the declared privacy facts (``tasks.facts``); None for a
+    declaration stored before facts existed.
     """
 
     name: str
-    env: EnvRecipe
+    env: EnvRecipe | None
     keys: tuple[str, ...] | None = None
     indices: tuple[int, ...] | None = None
     one_hot: tuple[int, int] | None = None
@@ -128,14 +134,46 @@ class TaskSpec:
     reward_hint: str = ""
     hints: str = ""
     optimal_return: float | None = None
-    complete: bool = False  # every count known and checked against the env (or a paper task)
+    complete: bool = False  # every count known: checked against the env's spaces, or declared (paper task, no env)
+    action_low: tuple[float, ...] | None = None
+    action_high: tuple[float, ...] | None = None
+    prompt_name: str | None = None
+    privacy: PrivacyFacts | None = PrivacyFacts()
+
+    @property
+    def has_env(self) -> bool:
+        """False for a task without env (a robot outside Python)."""
+        return self.env is not None
+
+    def public_env(self) -> bool:
+        """Whether an attacker can build and simulate the env (privacy fact ``public_env``; issue 20).
+
+        The declared value when there is one. Otherwise True for an env every installation has
+        under its plain id (a Gymnasium id, a paper task, an id of an installed package such as
+        highway-env), and False for a user's env: ``module:attr`` or ``module:EnvId``, an env found
+        through ``imports`` or a folder of the user's, a factory registered in this process, and a
+        task without env.
+        """
+        if self.privacy is not None and self.privacy.public_env is not None:
+            return self.privacy.public_env
+        env = self.env
+        if env is None:
+            return False
+        if ":" in env.id or env.id.startswith(LOCAL_PREFIX) or env.imports or env.paths:
+            return False
+        return env.entry_point is None or not env.entry_point.startswith(tuple(f"{m}." for m in ("__main__", "__mp_main__")))
 
     def to_json(self) -> dict[str, Any]:
-        """The declaration as JSON values (what a run and a policy file store)."""
-        return {
+        """The declaration as JSON values (what a run and a policy file store).
+
+        Keys added after the format's first version (``action_low``, ``action_high``,
+        ``prompt_name``, ``privacy``) are written only when set, so a declaration that sets none of
+        them is stored exactly as before; ``env`` is null for a task without env.
+        """
+        out: dict[str, Any] = {
             "format": FORMAT,
             "name": self.name,
-            "env": self.env.to_json(),
+            "env": None if self.env is None else self.env.to_json(),
             "observation": {"keys": _list(self.keys), "indices": _list(self.indices),
                             "one_hot": None if self.one_hot is None else {"n": self.one_hot[0], "start": self.one_hot[1]},
                             "names": list(self.names), "descriptions": list(self.descriptions)},  # fmt: skip
@@ -150,17 +188,30 @@ class TaskSpec:
             "hints": self.hints,
             "optimal_return": self.optimal_return,
         }
+        if self.action_low is not None and self.action_high is not None:
+            out["action_low"], out["action_high"] = list(self.action_low), list(self.action_high)
+        if self.prompt_name is not None:
+            out["prompt_name"] = self.prompt_name
+        if self.privacy is not None and not self.privacy.is_empty():
+            out["privacy"] = self.privacy.to_json()
+        return out
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> TaskSpec:
-        """A stored declaration (``to_json``); complete by construction."""
+        """A stored declaration (``to_json``, of this or any earlier ppprops); complete by construction.
+
+        A declaration without a ``privacy`` key (stored before privacy facts existed) has
+        ``privacy=None``: every fact unknown (``ppprops.tasks.privacy_facts`` completes the paper's
+        tasks). Raises TaskFileError for another format; KeyError/TypeError/ValueError when damaged.
+        """
         if d.get("format") != FORMAT:
             raise TaskFileError(f"stored task is not a {FORMAT} declaration")
         obs = d["observation"]
         oh = obs.get("one_hot")
+        low, high = d.get("action_low"), d.get("action_high")
         return cls(
             name=str(d["name"]),
-            env=EnvRecipe.from_json(d["env"]),
+            env=None if d["env"] is None else EnvRecipe.from_json(d["env"]),
             keys=_tuple(obs.get("keys")),
             indices=None if obs.get("indices") is None else tuple(int(i) for i in obs["indices"]),
             one_hot=None if oh is None else (int(oh["n"]), int(oh["start"])),
@@ -177,6 +228,10 @@ class TaskSpec:
             hints=d.get("hints", ""),
             optimal_return=d.get("optimal_return"),
             complete=True,
+            action_low=None if low is None else tuple(float(v) for v in low),
+            action_high=None if high is None else tuple(float(v) for v in high),
+            prompt_name=d.get("prompt_name"),
+            privacy=PrivacyFacts.from_json(d["privacy"]) if "privacy" in d else None,
         )
 
     def with_options(
@@ -189,8 +244,16 @@ class TaskSpec:
         components: Sequence[str] = (),
         diagnostics: Sequence[str] = (),
     ) -> TaskSpec:
-        """This declaration with the quick options of ``ppprops run`` applied (they win); not yet resolved."""
+        """This declaration with the quick options of ``ppprops run`` applied (they win); not yet resolved.
+
+        Raises TaskFileError for a task without env (every option but the feedback names concerns
+        an env; a task without env declares its feedback in its file).
+        """
         env = self.env
+        if env is None:
+            raise TaskFileError(f"task {self.name} has no env (a robot outside Python): --env-kwargs, --max-episode-steps, "
+                                "--gym-packages, --obs-keys, --component and --diagnostic apply to an env; declare the "
+                                "feedback in the task file")  # fmt: skip
         if env_kwargs:
             env = replace(env, kwargs={**env.kwargs, **check_json_kwargs(env_kwargs, self.name)})
         if max_episode_steps is not None:
@@ -233,18 +296,12 @@ def _read_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise TaskFileError(f"task file {path} is not valid TOML: {str(e).splitlines()[0]}") from None
-    unknown = [k for k in raw if k not in FILE_KEYS]
-    if unknown:
-        close = difflib.get_close_matches(unknown[0], FILE_KEYS, n=1)
-        hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(FILE_KEYS)}"
-        raise TaskFileError(f"task file {path}: unknown key {unknown[0]!r} ({hint})")
     env = raw.get("env")
     if isinstance(env, str) and ":" in env:
         module, _, attr = env.rpartition(":")
         if module.endswith(".py"):  # a file next to the task file: import it by name from its folder
             file = (path.parent / module).resolve()
             raw["env"] = f"{file.stem}:{attr}"
-            raw.setdefault("paths", [])
             raw["paths"] = [str(file.parent)]
     if "extends" in raw:
         base_name = raw.pop("extends")
@@ -263,7 +320,10 @@ def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def read_task_file(path: str | Path, *, builtin: bool = False) -> TaskSpec:
-    """Parse a task file into a TaskSpec (not yet resolved against its env; see ``resolve``)."""
+    """Parse a task file into a TaskSpec (not yet resolved against its env; see ``resolve``).
+
+    Raises TaskFileError: one line naming the file and the key (``tasks.schema``).
+    """
     path = Path(path)
     raw = _read_file(path if builtin else path.resolve())
     paths = raw.pop("paths", [])
@@ -273,135 +333,81 @@ def read_task_file(path: str | Path, *, builtin: bool = False) -> TaskSpec:
 
 
 def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...] = (), builtin: bool = False) -> TaskSpec:
-    """A TaskSpec from a task file's table (after ``extends``); ``builtin`` marks the paper's own files."""
-    name = _str(raw, "name", where, required=True)
-    env_text = raw.get("env")
+    """A TaskSpec from a task file's table (after ``extends``); ``builtin`` marks the paper's own files.
+
+    A table from Python may hold the env factory itself under ``env``. Raises TaskFileError: one
+    line starting with ``where`` and naming the key (the schema: ``tasks.schema.TaskFile``).
+    """
+    raw = dict(raw)
     factory = None
-    if callable(env_text) and not builtin:  # a dict from Python may hold the env factory itself
-        factory = spec_for_env(env_text, name=name).env
-        env_text = factory.id
-    if not isinstance(env_text, str) or not env_text:
-        raise TaskFileError(f"{where}: env is required (a Gymnasium id, module:EnvId, or module:attr)")
-    imports = _strings(raw, "imports", where)
-    kwargs = raw.get("env_kwargs", {})
-    if not isinstance(kwargs, Mapping):
-        raise TaskFileError(f"{where}: env_kwargs must be a table, got {kwargs!r}")
-    steps = raw.get("max_episode_steps")
-    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
-        raise TaskFileError(f"{where}: max_episode_steps must be a positive integer, got {steps!r}")
-    recipe = EnvRecipe(id=env_text, kwargs=check_json_kwargs(kwargs, where), max_episode_steps=steps, imports=imports, paths=paths,
-                       setup=_str(raw, "setup", where))  # fmt: skip
-    if factory is not None:
-        recipe = replace(recipe, entry_point=factory.entry_point, paths=tuple(dict.fromkeys(paths + factory.paths)))
-    elif not builtin:
-        recipe = _entry_point_recipe(recipe, where)
-    obs = raw.get("observation", {})
-    if not isinstance(obs, Mapping):
-        raise TaskFileError(f"{where}: observation must be a table, got {obs!r}")
-    bad = [k for k in obs if k not in OBSERVATION_KEYS]
-    if bad:
-        raise TaskFileError(f"{where}: unknown key observation.{bad[0]} (known: {', '.join(OBSERVATION_KEYS)})")
-    keys = _strings(obs, "keys", where, none=True)
-    indices = obs.get("indices")
-    if indices is not None:
-        if not (isinstance(indices, list) and indices and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in indices)):
-            raise TaskFileError(f"{where}: observation.indices must be a non-empty list of integers >= 0, got {indices!r}")
-        if len(set(indices)) != len(indices):
-            raise TaskFileError(f"{where}: observation.indices names a value twice: {indices!r}")
-    select = _strings(obs, "select", where, none=True)
-    if select is not None and indices is not None:
-        raise TaskFileError(f"{where}: give observation.indices or observation.select, not both")
-    values = obs.get("values", {})
-    if not isinstance(values, Mapping) or not all(isinstance(v, str) for v in values.values()):
-        raise TaskFileError(f"{where}: observation.values must be a table of name = \"meaning\"")
-    names, descriptions = tuple(values), tuple(v.strip() for v in values.values())
-    if select is not None:
-        missing = [n for n in select if n not in values]
-        if missing:
-            raise TaskFileError(f"{where}: observation.select names {missing[0]!r}, which observation.values does not describe")
-        indices = [names.index(n) for n in select]
-        names, descriptions = tuple(select), tuple(values[n].strip() for n in select)
-    elif indices is not None and names and len(names) != len(indices):
-        if max(indices) >= len(names):
-            raise TaskFileError(f"{where}: observation.values describes {len(names)} values; give one per kept value "
-                                f"({len(indices)}) or one per value of the whole observation")  # fmt: skip
-        names, descriptions = tuple(names[i] for i in indices), tuple(descriptions[i] for i in indices)
-    action_type = raw.get("action_type")
-    if action_type not in (None, "discrete", "continuous"):
-        raise TaskFileError(f"{where}: action_type must be discrete or continuous, got {action_type!r}")
-    actions = _strings(raw, "actions", where)
-    optimal = raw.get("optimal_return")
-    if optimal is not None and (isinstance(optimal, bool) or not isinstance(optimal, (int, float)) or not np.isfinite(optimal)):
-        raise TaskFileError(f"{where}: optimal_return must be a number, got {optimal!r}")
-    recorder = _str(raw, "recorder", where)
-    components = _declared(raw.get("components", {}), "components", where, recorder is not None, default_reduce="sum")
-    diagnostics = _declared(raw.get("diagnostics", {}), "diagnostics", where, recorder is not None, default_reduce="last")
+    if callable(raw.get("env")) and not builtin:  # a dict from Python may hold the env factory itself
+        factory = spec_for_env(raw["env"], name=str(raw.get("name") or "env")).env
+        assert factory is not None
+        raw["env"] = factory.id
+    if "extends" in raw:
+        raise TaskFileError(f"{where}: extends names a file next to a task file; a table given from Python cannot extend one")
+    f = validate_table(raw, where)
+    recipe = None
+    if f.env is not None:
+        recipe = EnvRecipe(id=f.env, kwargs=check_json_kwargs(f.env_kwargs, where), max_episode_steps=f.max_episode_steps,
+                           imports=tuple(f.imports), paths=paths, setup=f.setup)  # fmt: skip
+        if factory is not None:
+            recipe = replace(recipe, entry_point=factory.entry_point, paths=tuple(dict.fromkeys(paths + factory.paths)))
+        elif not builtin:
+            recipe = _entry_point_recipe(recipe, where)
+    names, descriptions, indices = _observed(f)
+    bounds = f.bounds()
     spec = TaskSpec(
-        name=name,
+        name=f.name,
         env=recipe,
-        keys=keys,
-        indices=None if indices is None else tuple(indices),
+        keys=None if f.observation.keys is None else tuple(f.observation.keys),
+        indices=indices,
         names=names,
         descriptions=descriptions,
-        action_type=action_type,
-        actions=actions,
-        components=components,
-        diagnostics=diagnostics,
-        recorder=recorder,
-        summary=_str(raw, "summary", where) or "",
-        reward_structure=_str(raw, "reward_structure", where) or "",
-        reward_hint=_str(raw, "reward_hint", where) or "",
-        hints=_str(raw, "hints", where) or "",
-        optimal_return=None if optimal is None else float(optimal),
+        action_type=f.action_type,
+        actions=tuple(f.actions),
+        components=_declared(f, "components"),
+        diagnostics=_declared(f, "diagnostics"),
+        recorder=f.recorder,
+        summary=f.summary or "",
+        reward_structure=f.reward_structure or "",
+        reward_hint=f.reward_hint or "",
+        hints=f.hints or "",
+        optimal_return=f.optimal_return,
         complete=builtin,
+        action_low=None if bounds is None else bounds[0],
+        action_high=None if bounds is None else bounds[1],
+        prompt_name=f.prompt_name,
+        privacy=f.privacy.facts(),
     )
     if builtin:
         _check_complete(spec, where)
     return spec
 
 
-@overload
-def _str(raw: Mapping[str, Any], key: str, where: str, *, required: Literal[True]) -> str: ...
-@overload
-def _str(raw: Mapping[str, Any], key: str, where: str, *, required: bool = False) -> str | None: ...
-def _str(raw: Mapping[str, Any], key: str, where: str, *, required: bool = False) -> str | None:
-    v = raw.get(key)
-    if v is None and not required:
-        return None
-    if not isinstance(v, str) or not v.strip():
-        raise TaskFileError(f"{where}: {key} must be a non-empty string, got {v!r}")
-    return v.strip()
+def _observed(f: TaskFile) -> tuple[tuple[str, ...], tuple[str, ...], tuple[int, ...] | None]:
+    """(names, descriptions, indices) of the kept values, as far as the file says (the env may say the rest)."""
+    obs = f.observation
+    values = {k: v.strip() for k, v in obs.values.items()}
+    names, descriptions = tuple(values), tuple(values.values())
+    indices = obs.indices
+    if obs.select is not None:
+        indices = [names.index(n) for n in obs.select]
+        names, descriptions = tuple(obs.select), tuple(values[n] for n in obs.select)
+    elif indices is not None and names and len(names) != len(indices):
+        names, descriptions = tuple(names[i] for i in indices), tuple(descriptions[i] for i in indices)
+    return names, descriptions, None if indices is None else tuple(indices)
 
 
-def _strings(raw: Mapping[str, Any], key: str, where: str, *, none: bool = False) -> Any:
-    v = raw.get(key)
-    if v is None:
-        return None if none else ()
-    if not (isinstance(v, list) and all(isinstance(x, str) and x for x in v)):
-        raise TaskFileError(f"{where}: {key} must be a list of strings, got {v!r}")
-    return tuple(x.strip() for x in v)
-
-
-def _declared(table: Any, kind: str, where: str, by_recorder: bool, *, default_reduce: str) -> tuple[Declared, ...]:
-    if not isinstance(table, Mapping):
-        raise TaskFileError(f"{where}: {kind} must be a table of name = \"meaning\" or name = {{ info = KEY, ... }}")
+def _declared(f: TaskFile, kind: str) -> tuple[Declared, ...]:
+    """The file's components or diagnostics; an info key defaults to the name (none without env, or with a recorder)."""
+    table = f.components if kind == "components" else f.diagnostics
     out = []
-    for name, v in table.items():
-        if isinstance(v, str):
-            v = {"description": v}
-        if not isinstance(v, Mapping):
-            raise TaskFileError(f"{where}: {kind}.{name} must be a string or a table, got {v!r}")
-        bad = [k for k in v if k not in ("info", "description", "reduce")]
-        if bad:
-            raise TaskFileError(f"{where}: unknown key {kind}.{name}.{bad[0]} (known: info, description, reduce)")
-        reduce = v.get("reduce", default_reduce)
-        if reduce not in REDUCE or (kind == "components" and reduce != "sum"):
-            allowed = "sum" if kind == "components" else ", ".join(REDUCE)
-            raise TaskFileError(f"{where}: {kind}.{name}.reduce must be {allowed}, got {reduce!r}")
-        info = v.get("info", None if by_recorder or name in RESERVED else name)
-        if info is not None and (not isinstance(info, str) or not info):
-            raise TaskFileError(f"{where}: {kind}.{name}.info must be an info key, got {info!r}")
-        out.append(Declared(name=str(name), description=str(v.get("description", "")).strip(), info=info, reduce=reduce))
+    for name, e in table.items():
+        by_code = f.env is None or f.recorder is not None or name in RESERVED
+        info = e.info if e.info is not None else None if by_code else name
+        reduce = e.reduce or ("sum" if kind == "components" else "last")
+        out.append(Declared(name=str(name), description=e.description.strip(), info=info, reduce=reduce))
     return tuple(out)
 
 
@@ -469,7 +475,7 @@ def _register_local(factory: Callable[..., Any], label: str) -> str:
     raise TaskFileError(f"too many local env factories named {label!r}")
 
 
-# -- resolving against the env -----------------------------------------------------------------
+# -- layout from the env's spaces ---------------------------------------------------------------
 @cache
 def _generic_text() -> dict[str, Any]:
     return tomllib.loads(resources.files(_TEXT).joinpath("generic.toml").read_text(encoding="utf-8"))
@@ -489,16 +495,17 @@ def _observation_layout(spec: TaskSpec, space: Any) -> tuple[tuple[int, int] | N
 
     text = _generic_text()
     where = f"task {spec.name}"
+    env_id = spec.env.id if spec.env is not None else spec.name
     if isinstance(space, spaces.Dict):
         if spec.keys is None:
-            raise TaskFileError(f"{spec.env.id} has a Dict observation ({', '.join(space.spaces)}); choose the entries the "
+            raise TaskFileError(f"{env_id} has a Dict observation ({', '.join(space.spaces)}); choose the entries the "
                                 "policy sees with --obs-keys K1,K2 (or observation.keys in a task file)")  # fmt: skip
         names, descs = [], []
         for key in spec.keys:
             if key not in space.spaces:
                 close = difflib.get_close_matches(key, list(space.spaces), n=1)
                 hint = f"; did you mean {close[0]}?" if close else ""
-                raise TaskFileError(f"{where}: the Dict observation of {spec.env.id} has no entry {key!r} "
+                raise TaskFileError(f"{where}: the Dict observation of {env_id} has no entry {key!r} "
                                     f"(it has {', '.join(space.spaces)}){hint}")  # fmt: skip
             sub = space.spaces[key]
             if not isinstance(sub, (spaces.Box, spaces.MultiBinary)):
@@ -510,7 +517,7 @@ def _observation_layout(spec: TaskSpec, space: Any) -> tuple[tuple[int, int] | N
                 descs.append(text["observation_key"].format(index=i, key=key, bounds=_bounds(lows[i], highs[i])))
         return None, names, descs
     if spec.keys is not None:
-        raise TaskFileError(f"{where}: observation keys {', '.join(spec.keys)} given, but {spec.env.id} observes a "
+        raise TaskFileError(f"{where}: observation keys {', '.join(spec.keys)} given, but {env_id} observes a "
                             f"{type(space).__name__}, not a Dict")  # fmt: skip
     if isinstance(space, spaces.Discrete):
         n, start = int(space.n), int(space.start)
@@ -521,7 +528,7 @@ def _observation_layout(spec: TaskSpec, space: Any) -> tuple[tuple[int, int] | N
         highs = np.broadcast_to(np.asarray(getattr(space, "high", 1.0), dtype=float), space.shape).reshape(-1)
         return None, [f"obs_{i}" for i in range(size)], [text["observation"].format(index=i, bounds=_bounds(lows[i], highs[i]))
                                                           for i in range(size)]  # fmt: skip
-    raise TaskFileError(f"{spec.env.id} has a {type(space).__name__} observation; supported are Box, Discrete (one-hot) "
+    raise TaskFileError(f"{env_id} has a {type(space).__name__} observation; supported are Box, Discrete (one-hot) "
                         "and Dict of Box (choose entries with --obs-keys)")  # fmt: skip
 
 
@@ -529,38 +536,51 @@ def _action_layout(spec: TaskSpec, space: Any) -> tuple[str, list[str]]:
     from gymnasium import spaces
 
     text = _generic_text()
+    env_id = spec.env.id if spec.env is not None else spec.name
     if isinstance(space, spaces.Discrete):
         if int(space.start) != 0:
-            raise TaskFileError(f"{spec.env.id}: Discrete actions starting at {space.start} are not supported")
+            raise TaskFileError(f"{env_id}: Discrete actions starting at {space.start} are not supported")
         return "discrete", [text["action_discrete"].format(index=j) for j in range(int(space.n))]
     if isinstance(space, spaces.Box) and len(space.shape) == 1:
         lo, hi = np.asarray(space.low, dtype=float), np.asarray(space.high, dtype=float)
         return "continuous", [text["action_continuous"].format(index=j, bounds=_bounds(lo[j], hi[j])) for j in range(space.shape[0])]
-    raise TaskFileError(f"{spec.env.id}: only 1-D Box or Discrete action spaces are supported, got {space}")
+    raise TaskFileError(f"{env_id}: only 1-D Box or Discrete action spaces are supported, got {space}")
 
 
+# -- resolving: against the env's spaces, or as declared ---------------------------------------
 def resolve(spec: TaskSpec) -> TaskSpec:
-    """Check a declaration against its env and complete it; one probe episode checks the feedback keys.
+    """Complete a declaration: the counts, one-hot size and every description it left out.
 
-    Makes the env once: the observation and action spaces fill in the counts, one-hot size and any
-    description the declaration left out, and must agree with what it gave. Then one episode with
-    the zero policy (theta = 0): each declared component must be in the env's info from the first
-    step and each diagnostic at some step of the episode, every one a scalar (``KEY.*`` is expanded
-    into the entries of a dict-valued key here); an env with no time limit must end that episode
-    within ``PROBE_STEPS`` steps. Every failure is one ConfigError line; nothing is run or stored.
+    With an env: makes the env once and reads its observation and action spaces, which fill in
+    what the declaration left out and must agree with what it gave; the env is closed unstepped
+    (never reset, never stepped: on a real robot that would be a motion nobody asked for). Without
+    env: the declaration itself gives every count. The feedback keys are checked by the episodes
+    that use them (``feedback.InfoFeedback``) or by ``check.check_task``, never here.
+
+    Raises:
+        TaskFileError: the spaces disagree with the declaration; a ``KEY.*`` that needs a step of the
+            env to be named (the message says how: ``ppprops task check``); a name declared twice.
+        ConfigError (``envs.EnvError``, ``envs.TaskImportError``, ...): the env cannot be made (one line).
     """
     if spec.complete:
         return spec
+    if spec.env is None:
+        return finish_spec(spec)
     recipe = spec.env.pinned()
     spec = replace(spec, env=recipe)
     env = recipe.make()
     try:
-        return _resolve_with(spec, env)
+        spec = resolve_spaces(spec, env)
     finally:
         env.close()
+    refuse_wildcards(spec)
+    return finish_spec(spec)
 
 
-def _resolve_with(spec: TaskSpec, env: Any) -> TaskSpec:
+def resolve_spaces(spec: TaskSpec, env: Any) -> TaskSpec:
+    """``spec`` with its observation and action layout read from ``env``'s spaces (which it does not step)."""
+    assert spec.env is not None
+    env_id = spec.env.id
     one_hot, all_names, all_descs = _observation_layout(spec, env.observation_space)
     size = len(all_names)
     where = f"task {spec.name}"
@@ -580,32 +600,63 @@ def _resolve_with(spec: TaskSpec, env: Any) -> TaskSpec:
                             f"(of {size} in the observation)")  # fmt: skip
     action_type, action_descs = _action_layout(spec, env.action_space)
     if spec.action_type is not None and spec.action_type != action_type:
-        raise TaskFileError(f"{where}: action_type is {spec.action_type}, but {spec.env.id} has {action_type} actions")
+        raise TaskFileError(f"{where}: action_type is {spec.action_type}, but {env_id} has {action_type} actions")
     actions = spec.actions or tuple(action_descs)
     if len(actions) != len(action_descs):
-        raise TaskFileError(f"{where}: actions describes {len(actions)} outputs, but {spec.env.id} has {len(action_descs)}")
-    spec = replace(spec, one_hot=one_hot, names=tuple(names), descriptions=tuple(descs), action_type=action_type, actions=tuple(actions))
-    spec = _probe(spec, env)
+        raise TaskFileError(f"{where}: actions describes {len(actions)} outputs, but {env_id} has {len(action_descs)}")
+    return replace(spec, one_hot=one_hot, names=tuple(names), descriptions=tuple(descs), action_type=action_type, actions=tuple(actions))
+
+
+def refuse_wildcards(spec: TaskSpec) -> None:
+    """Refuse a ``KEY.*`` component or diagnostic: only a step of the env names its entries, and loading takes none."""
+    if spec.recorder is not None:
+        return
+    for kind, declared in (("component", spec.components), ("diagnostic", spec.diagnostics)):
+        for d in declared:
+            if d.wildcard:
+                assert d.info is not None
+                flag = "--component" if kind == "component" else "--diagnostic"
+                raise TaskFileError(
+                    f"task {spec.name}: {kind} {d.info!r} asks for every entry of a dict in the env's info, which only a "
+                    f"step of the env shows, and loading a task takes none: run `ppprops task check` with the same task "
+                    f"and options (one zero-policy episode) to list them, then name each ({flag} {d.info[:-2]}.KEY)"
+                )
+
+
+def finish_spec(spec: TaskSpec) -> TaskSpec:
+    """``spec`` (its counts known: resolved against the env's spaces, or without env) with generic text for
+    whatever it leaves undescribed; complete. Raises TaskFileError for a name declared twice or reserved."""
     text = _generic_text()
+    n_s, n_a = len(spec.names), len(spec.actions)
+    # the id of a public env (CartPole-v1) may be named; a user's module, class or task name may not (issue 20)
+    summary = text["summary"].format(env_id=spec.env.id, n_s=n_s, n_a=n_a) if spec.env is not None and spec.public_env() \
+        else text["summary_unnamed"].format(n_s=n_s, n_a=n_a)  # fmt: skip
+    computed = tuple(d for d in spec.diagnostics if d.info is None)  # episode_length, a recorder's, a driver's
+    declared = tuple(d for d in spec.diagnostics if d.info is not None)
     spec = replace(
         spec,
-        summary=spec.summary or text["summary"].format(env_id=spec.env.id, n_s=len(spec.names), n_a=len(spec.actions)).strip(),
+        summary=spec.summary or summary.strip(),
         reward_structure=spec.reward_structure or text["reward_structure"].strip(),
         reward_hint=spec.reward_hint or text["reward_hint"].strip(),
         hints=spec.hints or text.get("hints", "").strip(),
-        components=tuple(replace(c, description=c.description or text["component"].format(key=c.info)) for c in spec.components),
-        diagnostics=tuple(replace(d, description=d.description or _diag_text(d)) for d in spec.diagnostics if d.info is not None or d.description),
+        components=tuple(replace(c, description=c.description or _component_text(c)) for c in spec.components),
+        diagnostics=tuple(replace(d, description=d.description or _diag_text(d)) for d in (*computed, *declared)
+                          if d.info is not None or d.description or spec.env is None),  # fmt: skip
         complete=True,
     )
     _check_names(spec)
     return spec
 
 
+def _component_text(c: Declared) -> str:
+    return _generic_text()["component"].format(key=c.info or c.name)
+
+
 def _diag_text(d: Declared) -> str:
     text = _generic_text()
     if d.reduce == "last":
-        return text["diagnostic"].format(key=d.info)
-    return text["diagnostic_reduced"].format(key=d.info, reduce=d.reduce)
+        return text["diagnostic"].format(key=d.info or d.name)
+    return text["diagnostic_reduced"].format(key=d.info or d.name, reduce=d.reduce)
 
 
 def _check_names(spec: TaskSpec) -> None:
@@ -618,84 +669,9 @@ def _check_names(spec: TaskSpec) -> None:
         raise TaskFileError(f"task {spec.name}: two observed values share a name")
 
 
-def _probe(spec: TaskSpec, env: Any) -> TaskSpec:
-    """One zero-policy episode: expand ``KEY.*``, check every declared info key (see ``resolve``)."""
-    from ..policy import LinearPolicy
-
-    _check_names(spec)
-    # a recorder reads the info itself: nothing declared to check, but the episode must still end
-    declared = spec.recorder is None
-    adapter = Selection(names=spec.names, indices=spec.indices, keys=spec.keys, one_hot=spec.one_hot)
-    n_s, n_a = len(spec.names), len(spec.actions)
-    space = env.action_space
-    policy = LinearPolicy.from_flat(np.zeros((n_s + 1) * n_a), n_s, n_a, discrete=spec.action_type == "discrete",
-                                    low=getattr(space, "low", None), high=getattr(space, "high", None))  # fmt: skip
-    limited = has_time_limit(env)
-    obs, info = env.reset(seed=0)
-    s = adapter(obs)
-    if s.shape != (n_s,):
-        raise TaskFileError(f"task {spec.name}: the observation adapter gives {s.shape[0]} values, not {n_s}")
-    components = list(spec.components) if declared else []
-    computed = [d for d in spec.diagnostics if d.info is None or not declared]  # episode_length: ppprops counts it
-    diagnostics = [d for d in spec.diagnostics if d.info is not None and declared]
-    seen: set[str] = set()
-    step = 0
-    ended = False
-    while step < PROBE_STEPS:
-        obs, _, terminated, truncated, info = env.step(policy.act(adapter(obs)))
-        step += 1
-        if step == 1:
-            components = _expand(spec.name, "component", components, info)
-            diagnostics = _expand(spec.name, "diagnostic", diagnostics, info)
-            for c in components:
-                assert c.info is not None
-                if check_value(spec.name, "component", InfoKey(c.name, c.info), info, where="at the first step") is None:
-                    raise missing_key(spec.name, "component", InfoKey(c.name, c.info), info, where="at the first step")
-        for d in diagnostics:
-            assert d.info is not None
-            if check_value(spec.name, "diagnostic", InfoKey(d.name, d.info), info, where=f"at step {step}") is not None:
-                seen.add(d.name)
-        if terminated or truncated:
-            ended = True
-            break
-        if limited and len(seen) == len(diagnostics):
-            break  # everything checked, and the time limit ends every episode
-    if not ended and not limited and step >= PROBE_STEPS:
-        raise TaskFileError(f"task {spec.name}: an episode of {spec.env.id} did not end within {PROBE_STEPS} steps and the env "
-                            "has no time limit: give one with --max-episode-steps N (max_episode_steps in a task file)")  # fmt: skip
-    unseen = [d for d in diagnostics if d.name not in seen]
-    if unseen:
-        d = unseen[0]
-        assert d.info is not None
-        raise missing_key(spec.name, "diagnostic", InfoKey(d.name, d.info), info, where="at any step of an episode")
-    if not declared:
-        return spec
-    return replace(spec, components=tuple(components), diagnostics=(*computed, *diagnostics))
-
-
-def _expand(task: str, kind: str, declared: list[Declared], info: Mapping[str, Any]) -> list[Declared]:
-    out: list[Declared] = []
-    for d in declared:
-        assert d.info is not None
-        if not d.info.endswith(".*"):
-            out.append(d)
-            continue
-        parent = d.info[:-2]
-        value = lookup(info, parent)
-        if value is MISSING:
-            raise missing_key(task, kind, InfoKey(d.name, parent), info, where="at the first step")
-        if not isinstance(value, Mapping):
-            raise FeedbackKeyError(f"{task}: {kind} {d.info!r} asks for the entries of {parent!r}, but that is a "
-                                   f"{type(value).__name__} in the env's info, not a dict")  # fmt: skip
-        stem = d.name[:-2] if d.name.endswith(".*") else d.name
-        reduce = d.reduce
-        out.extend(Declared(name=f"{stem}.{k}", info=f"{parent}.{k}", reduce=reduce) for k in value)
-    return out
-
-
 # -- building the Task -------------------------------------------------------------------------
 def build_task(spec: TaskSpec) -> Task:
-    """The Task the loop runs, from a complete declaration."""
+    """The Task the loop runs, from a declaration (resolved first when it is not complete; see ``resolve``)."""
     if not spec.complete:
         spec = resolve(spec)
     factory: Any
@@ -704,11 +680,12 @@ def build_task(spec: TaskSpec) -> Task:
     else:
         factory = InfoFeedback(
             task=spec.name,
-            components=tuple(InfoKey(c.name, c.info or c.name, "sum") for c in spec.components),
+            components=tuple(InfoKey(c.name, c.info or c.name, "sum") for c in spec.components if spec.env is not None),
             diagnostics=tuple(InfoKey(d.name, d.info, d.reduce) for d in spec.diagnostics if d.info is not None),
         )
-    diag_names = tuple(dict.fromkeys(("episode_length", *(d.name for d in spec.diagnostics))))
-    diag_text = {"episode_length": _generic_text()["diagnostics"]["episode_length"]}
+    counted = ("episode_length",) if spec.env is not None else ()  # ppprops counts the steps of the episodes it runs
+    diag_names = tuple(dict.fromkeys((*counted, *(d.name for d in spec.diagnostics))))
+    diag_text = {"episode_length": _generic_text()["diagnostics"]["episode_length"]} if counted else {}
     diag_text.update({d.name: d.description for d in spec.diagnostics if d.description})
     text = TaskText(
         summary=spec.summary,
@@ -723,7 +700,7 @@ def build_task(spec: TaskSpec) -> Task:
     assert spec.action_type in ("discrete", "continuous")
     return Task(
         name=spec.name,
-        env_id=spec.env.id,
+        env_id="" if spec.env is None else spec.env.id,
         n_s=len(spec.names),
         n_a=len(spec.actions),
         action_type=spec.action_type,  # type: ignore[arg-type]
@@ -732,10 +709,13 @@ def build_task(spec: TaskSpec) -> Task:
         text=text,
         components=tuple(c.name for c in spec.components),
         diagnostics=diag_names,
-        env_kwargs=dict(spec.env.kwargs),
+        env_kwargs={} if spec.env is None else dict(spec.env.kwargs),
         optimal_return=spec.optimal_return,
-        setup=Prepare(spec.env),
+        setup=NoEnv(spec.name) if spec.env is None else Prepare(spec.env),
         spec=spec,
+        prompt_name=spec.prompt_name,
+        action_low=spec.action_low,
+        action_high=spec.action_high,
     )
 
 
@@ -745,7 +725,10 @@ def _task_from_json_text(text: str) -> Task:
 
 
 def task_from_json(d: Mapping[str, Any]) -> Task:
-    """The task of a stored declaration (one Task object per distinct declaration in a process)."""
+    """The task of a stored declaration (one Task object per distinct declaration in a process).
+
+    Raises TaskFileError when the declaration is damaged or of another format.
+    """
     try:
         return _task_from_json_text(json.dumps(d, sort_keys=True))
     except (KeyError, TypeError, ValueError) as e:
@@ -754,5 +737,5 @@ def task_from_json(d: Mapping[str, Any]) -> Task:
         raise TaskFileError(f"stored task declaration is damaged ({type(e).__name__}: {e})") from None
 
 
-__all__ = ["Declared", "TaskFileError", "TaskImportError", "TaskSpec", "build_task", "read_task_file", "resolve", "spec_for_env",
-           "spec_from_table", "task_from_json"]  # fmt: skip
+__all__ = ["FORMAT", "Declared", "TaskFileError", "TaskSpec", "build_task", "read_task_file", "finish_spec", "refuse_wildcards", "resolve",
+           "resolve_spaces", "spec_for_env", "spec_from_table", "task_from_json"]  # fmt: skip
