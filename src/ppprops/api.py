@@ -259,6 +259,9 @@ def search(
         StoreError: the run directory cannot be written.
         MissingExtraError: the task needs an extra that is not installed (``mujoco``, ``robotics``, ...).
     """
+    from .evaluation import exit_if_importing_main_in_a_worker
+
+    exit_if_importing_main_in_a_worker()  # an unguarded script re-imported by a worker must not start a second run
     config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
     from .naming import default_run_dir

@@ -10,6 +10,7 @@ import multiprocessing
 from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -32,6 +33,21 @@ class EpisodeLimitError(ConfigError):
 
 class WorkerError(ConfigError):
     """A worker process could not make the task's env; the message is the worker's own error line."""
+
+
+class EpisodeError(ConfigError):
+    """The env raised in ``reset`` or ``step`` during an episode: one line naming the user's
+    exception and where in their code (``tasks.envs.describe_user_error``); the run can be resumed
+    once the env is fixed."""
+
+
+class PoolError(ConfigError):
+    """The worker processes stopped (``BrokenProcessPool``); the line says the likely cause."""
+
+
+POOL_BROKEN = ("the worker processes of workers > 1 stopped before running an episode (BrokenProcessPool). Most often a script "
+               "that starts a search with workers > 1 is missing its guard: Python's multiprocessing re-imports the script in every "
+               "worker, so put the code that runs the search under `if __name__ == \"__main__\":` (or use workers=1)")
 
 
 class Actor(Protocol):
@@ -84,7 +100,10 @@ def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: in
         FeedbackKeyError: the env's info lacks a declared component or diagnostic.
     """
     recorder = task.feedback()
-    obs, info = env.reset(seed=seed)
+    try:
+        obs, info = env.reset(seed=seed)
+    except Exception as e:  # the user's env: one line, never a traceback
+        raise EpisodeError(f"the env of task {task.name} raised in reset (episode seed {seed}): {_user_error(e)}") from None
     total = 0.0
     steps = 0
     terminated = truncated = False
@@ -97,7 +116,11 @@ def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: in
         action = policy.act(s)
         if on_step is not None:
             on_step(s, action)
-        obs, reward, terminated, truncated, info = env.step(action)
+        try:
+            obs, reward, terminated, truncated, info = env.step(action)
+        except Exception as e:
+            raise EpisodeError(f"the env of task {task.name} raised in step {steps + 1} (episode seed {seed}): "
+                               f"{_user_error(e)}") from None
         reward = float(reward)
         if not np.isfinite(reward) or not np.isfinite(total + reward):
             numerical_fault = True  # a bad reward, or a sum that overflowed
@@ -119,6 +142,28 @@ def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: in
     if numerical_fault:
         diagnostics["numerical_fault"] = 1.0
     return Episode(ret=total, components=dict(fb.components), diagnostics=diagnostics)
+
+
+def exit_if_importing_main_in_a_worker() -> None:
+    """In a worker process that multiprocessing started, while it re-imports the user's main script
+    (an unguarded script that starts a search with workers > 1): leave quietly, before anything is
+    made or written. The parent then sees its pool break and says, in one line, to add the
+    ``if __name__ == "__main__":`` guard (``POOL_BROKEN``); no second run starts, no traceback
+    comes from the worker."""
+    import sys
+    from types import FrameType
+
+    frame: FrameType | None = sys._getframe(1)
+    while frame is not None:  # module-level code of the script multiprocessing re-imports as __mp_main__
+        if frame.f_code.co_name == "<module>" and frame.f_globals.get("__name__") == "__mp_main__":
+            raise SystemExit(3)
+        frame = frame.f_back
+
+
+def _user_error(e: BaseException) -> str:
+    from .tasks.envs import describe_user_error
+
+    return describe_user_error(e)
 
 
 def aggregate(episodes: Sequence[Episode]) -> Feedback:
@@ -240,7 +285,11 @@ class Evaluator:
             (np.asarray(theta, dtype=np.float64), int(s)) for theta, seeds in zip(thetas, seeds_list, strict=True) for s in seeds
         ]
         chunk = max(1, len(jobs) // (4 * self.workers))  # fewer round trips for many short episodes
-        flat = list(pool.map(_worker_episode, [j[0] for j in jobs], [j[1] for j in jobs], chunksize=chunk))
+        try:
+            flat = list(pool.map(_worker_episode, [j[0] for j in jobs], [j[1] for j in jobs], chunksize=chunk))
+        except BrokenProcessPool:
+            self._pool = None  # gone; a later evaluate starts a new one
+            raise PoolError(POOL_BROKEN) from None
         out, start = [], 0
         for seeds in seeds_list:
             out.append(flat[start : start + len(seeds)])

@@ -42,7 +42,7 @@ from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
-from .evaluation import Episode, EpisodeLimitError, Evaluator, WorkerError, aggregate
+from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, PoolError, WorkerError, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
 from .llm.recording import RecordingChat
@@ -341,6 +341,8 @@ class Study:
 
         Raises:
             LLMError: the endpoint stayed down past the retries (status ``failed``, resumable).
+            EpisodeError, PoolError: the user's env raised in reset or step, or the worker processes
+                stopped (status ``failed``, resumable once fixed).
             KeyboardInterrupt: Ctrl-C (status ``interrupted``, resumable).
             FeedbackKeyError, EpisodeLimitError, WorkerError: the env broke its task's
                 declaration (status ``stopped: ...``).
@@ -388,6 +390,9 @@ class Study:
         except BROKEN_TASK as e:  # the env broke its declaration
             store.set_status(RunStatus.STOPPED, str(e))
             raise
+        except (EpisodeError, PoolError) as e:  # the user's env raised, or the workers died: fix it, then resume
+            self._mark(RunStatus.FAILED, str(e))
+            raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from None
         if fe is not None:
             events.on_final(fe)
         return fe

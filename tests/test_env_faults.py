@@ -1,0 +1,108 @@
+"""A user's env that raises, and a script without its __main__ guard (issue 23, part 2).
+
+Each is one line naming the user's exception (type, message, where in their code), exit 2, the
+run marked ``failed: <reason>`` in the store and by ``show``, resumable, nothing lost.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+import ppprops
+from ppprops.cli import main
+from ppprops.store import open_store
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+
+FAULTY = textwrap.dedent('''
+    import gymnasium as gym
+    import numpy as np
+
+
+    class Faulty(gym.Env):
+        """Raises in step once it has been stepped FAIL_AT times (episodes of 10 steps)."""
+
+        FAIL_AT = {fail_at}
+
+        def __init__(self):
+            self.observation_space = gym.spaces.Box(-10.0, 10.0, (1,), dtype=np.float64)
+            self.action_space = gym.spaces.Discrete(2)
+            self.calls = 0
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            self.x = 0.0
+            return np.array([self.x]), {{}}
+
+        def step(self, action):
+            self.calls += 1
+            if self.calls >= self.FAIL_AT:
+                raise RuntimeError("motor driver fault")
+            self.x += 0.1 if int(action) else -0.1
+            return np.array([self.x]), -abs(self.x), False, self.calls % 10 == 0, {{}}
+''')
+
+
+def _ppprops(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-m", "ppprops", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=300)
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_an_env_raising_mid_run_is_one_line_a_failed_status_and_resumable(tmp_path: Path, workers: str) -> None:
+    (tmp_path / "faulty.py").write_text(FAULTY.format(fail_at=30))
+    args = ["run", "--env", "faulty:Faulty", "--method", "random", "--warmup", "3", "--iterations", "2", "--seed", "3",
+            "--final-episodes", "2", "--out", "r", "--quiet", "--workers", workers]
+    proc = _ppprops(args, tmp_path)
+    assert proc.returncode == 2 and proc.stdout == ""
+    line = "ppprops: error: the env of task faulty:Faulty raised in step 10 (episode seed "
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(line), proc.stderr
+    line_no = FAULTY.splitlines().index('            raise RuntimeError("motor driver fault")') + 1
+    where = f"RuntimeError: motor driver fault (at {tmp_path / 'faulty.py'}:{line_no}, in step); the run is saved: continue with 'ppprops resume r'"
+    assert proc.stderr.rstrip().endswith(where), proc.stderr
+    with open_store(tmp_path / "r") as store:
+        status = store.status()
+        assert status.startswith("failed: the env of task faulty:Faulty raised in step 10") and "motor driver fault" in status
+        assert store.candidate_count() == 2  # the two episodes before the fault are kept
+    shown = json.loads(_ppprops(["show", "r", "--json"], tmp_path).stdout)
+    assert shown["status"] == status and shown["counts"]["candidates"] == 2
+    assert ppprops.load_run(tmp_path / "r").status == status
+    (tmp_path / "faulty.py").write_text(FAULTY.format(fail_at=10**9))  # the user fixes the robot
+    resumed = _ppprops(["resume", "r", "--quiet"], tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    with open_store(tmp_path / "r") as store:
+        assert store.status() == "finished" and [c.index for c in store.candidates()] == [0, 1, 2, 3, 4]
+
+
+def test_a_bad_env_kwarg_of_a_gymnasium_env_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", "--env", "Pendulum-v1", "--env-kwargs", '{"g": "heavy"}', "--method", "random", "--warmup", "2",
+                 "--iterations", "1", "--out", str(tmp_path / "p"), "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1
+    assert "the env of task Pendulum-v1 raised in step 1" in err and "TypeError: unsupported operand type(s) for /: 'str' and 'float'" in err
+    with open_store(tmp_path / "p") as store:
+        assert store.status().startswith("failed: the env of task Pendulum-v1 raised in step 1")
+
+
+def test_a_script_without_its_main_guard_gets_one_clear_error_and_one_run(tmp_path: Path) -> None:
+    """multiprocessing re-imports the script in each worker: the workers leave quietly (no second
+    run, no traceback of theirs), and the search stops with a line that names the guard."""
+    (tmp_path / "unguarded.py").write_text(
+        "import ppprops\n"
+        "ppprops.search('CartPole', method='random', warmup=3, iterations=2, seed=1, out='runs/x',\n"
+        "               evaluation={'workers': 2, 'final_episodes': 2})\n"
+    )
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.run([sys.executable, "unguarded.py"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1 and proc.stderr.count("Traceback") == 1  # the script's own uncaught error, nothing from workers
+    assert 'put the code that runs the search under `if __name__ == "__main__":`' in proc.stderr.splitlines()[-1]
+    assert [p.name for p in (tmp_path / "runs").iterdir()] == ["x"]
+    with open_store(tmp_path / "runs" / "x") as store:
+        assert store.status().startswith("failed: the worker processes of workers > 1 stopped") and store.candidate_count() == 0
