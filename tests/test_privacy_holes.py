@@ -199,9 +199,12 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
     assert est.applicable, est.detail
     a = np.asarray(est.value, dtype=float)
     known = np.isfinite(a)
-    # noise replayed from the run seed gives back the public width: a_j = 1 whatever the true a_j is
-    assert known.sum() >= 5 and np.allclose(a[known], 1.0, rtol=0.05), (a, est.detail)
+    # the noise is keyed by the secrets (no replay from the run seed) and drawn at a public width in the
+    # encoded space: its spread measures that width, a_j about 1, whatever the true a_j is
+    assert known.sum() >= 5 and "spread of" in est.detail, (a, est.detail)
+    assert np.median(np.abs(np.log(a[known]))) < 0.35, a  # about the public width
     assert np.median(np.abs(np.log(secrets.a[known]))) > 0.5  # the true scales are far from 1
+    assert np.median(np.abs(np.log(a[known] / secrets.a[known]))) > 0.5  # so the estimate is not them
 
 
 # -- the new attacks on pp and pp-hardened --------------------------------------------------------------
@@ -230,7 +233,8 @@ def test_warped_lattice_recovers_c_under_pp_and_the_old_undithered_warp_but_not_
 
     facts = hardening.facts_for
     monkeypatch.setattr(hardening, "facts_for", lambda name: replace(facts(name), resolution={}))
-    old = [(s, _estimate(_simulate(tmp_path / "old", task, "pp-hardened", s), task, "warped-lattice")) for s in range(3)]
+    # (it needs a favourable draw: 1 of these 8 seeded runs on CartPole, 2 on Acrobot)
+    old = [(s, _estimate(_simulate(tmp_path / "old", task, "pp-hardened", s), task, "warped-lattice")) for s in range(8)]
     hits = [(s, e) for s, e in old if e.applicable]
     assert hits, [e.detail for _, e in old]
     for s, e in hits:

@@ -75,7 +75,7 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
         except OSError as e:
             raise StoreError(f"cannot write the key file in {run_dir}: {e.strerror}") from None
         with RunStore(tmp / DB_NAME) as store:  # closed (the WAL checkpointed) before the directory moves
-            store.init_run(run_id, config.to_json(), secrets.fingerprint())
+            store.init_run(run_id, config.to_json(), secrets.fingerprint(), keyed_streams=True)
         try:
             os.rename(tmp, run_dir)  # onto a missing or empty directory, atomically
         except OSError as e:

@@ -249,14 +249,18 @@ class RunStore:
         self.close()
 
     # -- run-level ------------------------------------------------------------------------
-    def init_run(self, run_id: str, config: dict[str, Any], key_fingerprint: str) -> None:
+    def init_run(self, run_id: str, config: dict[str, Any], key_fingerprint: str, *, keyed_streams: bool = False) -> None:
         """Record a new run: its id, its config (``RunConfig.to_json()`` or an RL baseline's), the
-        fingerprint of its secrets, status ``running``. Raises StoreError if a run is already there."""
+        fingerprint of its secrets, status ``running``, and (``keyed_streams``) that its random
+        streams are keyed by its secrets (``seeding.Streams``). Raises StoreError if a run is already there."""
         if self._meta("run_id") is not None:
             raise StoreError(f"{self.path} already holds run {self._meta('run_id')}")
+        rows = [("run_id", run_id), ("config", json.dumps(config)), ("key_fingerprint", key_fingerprint),
+                ("status", RunStatus.RUNNING.value), ("created", str(time.time()))]
+        if keyed_streams:
+            rows.append(("streams", "keyed"))
         with self._tx() as db:
-            for k, v in (("run_id", run_id), ("config", json.dumps(config)), ("key_fingerprint", key_fingerprint),
-                         ("status", RunStatus.RUNNING.value), ("created", str(time.time()))):
+            for k, v in rows:
                 db.execute("INSERT INTO meta (key, value) VALUES (?, ?)", (k, v))
 
     def run_id(self) -> str:
@@ -290,10 +294,6 @@ class RunStore:
         """True when the run's random streams are keyed by its secrets (``seeding.Streams``); runs
         recorded before streams were keyed derive them from the run seed alone."""
         return self._meta("streams") == "keyed"
-
-    def set_streams_keyed(self) -> None:
-        """Record that the run's random streams are keyed by its secrets (done once, at creation)."""
-        self._set_meta("streams", "keyed")
 
     def key_fingerprint(self) -> str:
         """The fingerprint of the run's secrets (``Secrets.fingerprint``); "" when none is stored."""

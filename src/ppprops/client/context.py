@@ -48,6 +48,19 @@ def warmup_box(box: tuple[float, float]) -> tuple[float, float]:
     return (-half, half)
 
 
+NEUTRAL_TITLE = "Task"  # what a prompt calls a task whose file names nothing for the provider (issue 20)
+
+
+def prompt_title(task: Task, mechanisms: Mechanisms) -> str:
+    """The task's name as a prompt shows it: the task file's ``prompt_name`` (a name meant for the
+    provider; the paper's tasks set their own), else, under every preset that encodes parameters, a
+    neutral name, so a user's module, class, file or directory name never reaches a prompt. Presets
+    that show raw parameters show the task's name."""
+    if task.prompt_name:
+        return task.prompt_name
+    return NEUTRAL_TITLE if mechanisms.encode_params else task.name
+
+
 def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> PromptContext:
     """The public context of every prompt (wire side): task text as the mechanisms allow, D, the box
     (encoded when the warm-up is drawn in the encoded space), digits, and the switches. Holds no secret.
@@ -78,7 +91,7 @@ def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> Prompt
         params_style=settings.params_style,
         param_digits=settings.param_digits,
         layout=settings.layout,
-        title=task.name,
+        title=prompt_title(task, m),
         history_limit=settings.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,
