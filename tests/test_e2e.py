@@ -25,7 +25,7 @@ def _run(capsys, *args: str) -> tuple[int, str, str]:  # type: ignore[no-untyped
 def test_cli_run_show_and_policy_eval(tmp_path: Path, capsys, task: str, method: str) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     code, stdout, _ = _run(capsys, "run", "--env", task, "--method", method, "--warmup", "3", "--iterations", "3",
-                           "--final-episodes", "4", "--seed", "5", "--out", str(out), "--quiet")
+                           "--final-episodes", "4", "--select-top", "0", "--seed", "5", "--out", str(out), "--quiet")
     assert code == 0, stdout
     assert {p.name for p in out.iterdir()} >= {"run.sqlite", "secrets.key", "best_policy.json"}
     assert stat.S_IMODE(os.stat(out / "secrets.key").st_mode) == 0o600
@@ -69,7 +69,7 @@ def test_cli_run_show_and_policy_eval(tmp_path: Path, capsys, task: str, method:
 def test_unbounded_history_shows_every_entry(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     code, _, _ = _run(capsys, "run", "--env", "CartPole", "--method", "vanilla", "--warmup", "12", "--iterations", "2",
-                      "--top-k", "0", "--final-episodes", "0", "--out", str(out), "--quiet")
+                      "--top-k", "0", "--final-episodes", "0", "--select-top", "0", "--out", str(out), "--quiet")
     assert code == 0
     from ppprops.store import open_store
 

@@ -59,7 +59,7 @@ def _ppprops(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
 def test_an_env_raising_mid_run_is_one_line_a_failed_status_and_resumable(tmp_path: Path, workers: str) -> None:
     (tmp_path / "faulty.py").write_text(FAULTY.format(fail_at=30))
     args = ["run", "--env", "faulty:Faulty", "--method", "random", "--warmup", "3", "--iterations", "2", "--seed", "3",
-            "--final-episodes", "2", "--out", "r", "--quiet", "--workers", workers]
+            "--final-episodes", "2", "--select-top", "0", "--out", "r", "--quiet", "--workers", workers]
     proc = _ppprops(args, tmp_path)
     assert proc.returncode == 2 and proc.stdout == ""
     line = "ppprops: error: the env of task faulty:Faulty raised in step 10 (episode seed "

@@ -63,7 +63,7 @@ def _resumed(out: Path, total: int, capsys, *extra: str) -> None:  # type: ignor
 def test_ctrl_c_during_the_warmup(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     run = Launched(["run", "--env", "Highway-Fast", "--method", "random", "--warmup", "12", "--iterations", "2",
-                    "--final-episodes", "2", "--out", str(out), "--quiet"])  # fmt: skip
+                    "--final-episodes", "2", "--select-top", "0", "--out", str(out), "--quiet"])  # fmt: skip
     run.wait_for(lambda: count(out / "run.sqlite") >= 1, "a warm-up candidate")
     _interrupted(run, out)
     assert 1 <= count(out / "run.sqlite") < 12, "the signal did not land in the warm-up"
@@ -73,7 +73,7 @@ def test_ctrl_c_during_the_warmup(tmp_path: Path, capsys) -> None:  # type: igno
 def test_ctrl_c_during_the_final_evaluation(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     run = Launched(["run", "--env", "Highway-Fast", "--method", "random", "--warmup", "2", "--iterations", "0",
-                    "--final-episodes", "12", "--out", str(out)])  # fmt: skip
+                    "--final-episodes", "12", "--select-top", "0", "--out", str(out)])  # fmt: skip
     run.wait_for(lambda: "final evaluation" in run.stderr, "the final evaluation's progress")
     _interrupted(run, out)
     assert count(out / "run.sqlite") == 2
@@ -87,7 +87,7 @@ def test_ctrl_c_during_the_final_evaluation(tmp_path: Path, capsys) -> None:  # 
 def test_ctrl_c_during_a_remote_llm_call(tmp_path: Path, capsys, answered: int) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     with stalling_endpoint(fast=answered) as (url, seen):
-        run = Launched(["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "4", "--final-episodes", "2",
+        run = Launched(["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "4", "--final-episodes", "2", "--select-top", "0",
                         "--base-url", url, "--model", "m", "--retries", "0", "--out", str(out), "--quiet"])  # fmt: skip
         run.wait_for(lambda: len(seen) > answered, f"LLM request {answered + 1} to arrive")
         _interrupted(run, out)
@@ -100,7 +100,7 @@ def test_ctrl_c_during_a_remote_llm_call(tmp_path: Path, capsys, answered: int) 
 @pytest.mark.parametrize("moment", ["model-loading", "first-call", "later-call"])
 def test_ctrl_c_with_the_embedded_model(tmp_path: Path, capsys, moment: str) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
-    run = Launched(["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "2", "--final-episodes", "2",
+    run = Launched(["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "2", "--final-episodes", "2", "--select-top", "0",
                     "--out", str(out)])  # fmt: skip
     if moment == "model-loading":
         run.wait_for(lambda: "loading the embedded model" in run.stderr, "the model loading")

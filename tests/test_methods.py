@@ -89,7 +89,7 @@ def test_a_method_added_to_the_registry_runs_everywhere(tmp_path: Path, monkeypa
     monkeypatch.setattr(strategies, "centre_phase", lambda s: Phase("centre", Centre(), s.iterations), raising=False)
     monkeypatch.setitem(METHODS, "centre", Method("centre", MethodKind.BLACK_BOX, "the box centre, then steps", phase="centre_phase"))
     cfg = run_config(run_parser().parse_args(["--env", "CartPole", "--method", "centre", "--warmup", "2", "--iterations", "3",
-                                              "--final-episodes", "1"]))  # fmt: skip
+                                              "--final-episodes", "1", "--select-top", "0"]))  # fmt: skip
     start(cfg, tmp_path / "r")
     store = open_store(tmp_path / "r")
     try:

@@ -128,7 +128,7 @@ def _one_line(err: str) -> str:
     return lines[0].removeprefix("ppprops: error: ")
 
 
-QUICK = ["--method", "random", "--warmup", "3", "--iterations", "2", "--final-episodes", "2", "--quiet"]
+QUICK = ["--method", "random", "--warmup", "3", "--iterations", "2", "--final-episodes", "2", "--select-top", "0", "--quiet"]
 
 
 # -- failure 3: feedback keys are checked by the first episode, or by `ppprops task check` ------
@@ -195,7 +195,7 @@ def test_a_dict_info_key_is_expanded_by_task_check_then_named(capsys, tmp_path: 
 def test_an_env_that_breaks_its_keys_mid_run_stops_it_cleanly(capsys, tmp_path: Path, user_dir: Path) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     code, _, err = _run(capsys, ["run", "--env", "byor_robots:Flaky", "--env-kwargs", '{"mass": 1.0}', "--diagnostic", "pos",
-                                 "--method", "random", "--warmup", "6", "--iterations", "0", "--final-episodes", "0",
+                                 "--method", "random", "--warmup", "6", "--iterations", "0", "--final-episodes", "0", "--select-top", "0",
                                  "--quiet", "--out", str(out)])  # fmt: skip
     line = "byor_robots:Flaky: diagnostic 'pos' is not a number in the env's info (it is a ndarray of shape (2,), during a run)"
     assert code == 2 and _one_line(err) == line
@@ -459,7 +459,7 @@ SCRIPT = textwrap.dedent(
                   "observation": {"indices": [0, 1], "values": {"x": "position", "v": "velocity"}},
                   "components": {"reward_pos": "minus the distance from 0"}})
         try:
-            result = ppprops.search("Byor-Pos", method="cmaes", warmup=4, iterations=6, evaluation={"final_episodes": 3, "workers": workers},
+            result = ppprops.search("Byor-Pos", method="cmaes", warmup=4, iterations=6, evaluation={"final_episodes": 3, "select_top": 0, "workers": workers},
                                     seed=0, out=out)
         except ConfigError as e:
             print(json.dumps({"error": str(e)}))
@@ -539,7 +539,7 @@ def test_search_with_an_env_factory_and_two_workers(tmp_path: Path) -> None:
         from point_robot import make_point_robot
 
         result = ppprops.search(make_point_robot, task_options={"env_kwargs": {"mass": 2.0}, "components": ["reward_distance", "reward_effort"]},
-                                method="random", warmup=4, iterations=4, evaluation={"final_episodes": 4, "workers": 2},
+                                method="random", warmup=4, iterations=4, evaluation={"final_episodes": 4, "select_top": 0, "workers": 2},
                                 seed=0, out=tmp_path / "r")  # fmt: skip
     finally:
         sys.path.remove(str(EXAMPLE))
@@ -560,7 +560,7 @@ def test_search_with_a_chat_object(tmp_path: Path) -> None:
     from ppprops.privacy.simulate import EchoOptimizer
 
     chat = EchoOptimizer()
-    result = ppprops.search("CartPole", method="pp", warmup=3, iterations=3, evaluation={"final_episodes": 2}, llm=chat, out=tmp_path / "r")
+    result = ppprops.search("CartPole", method="pp", warmup=3, iterations=3, evaluation={"final_episodes": 2, "select_top": 0}, llm=chat, out=tmp_path / "r")
     assert chat.calls == 3 and [c.source for c in result.history] == ["warmup"] * 3 + ["llm"] * 3
     store = open_store(tmp_path / "r")
     calls = store.llm_calls()
@@ -582,7 +582,7 @@ def test_example_script_search_cartpole(tmp_path: Path) -> None:
     res = _python([str(ROOT / "examples" / "search_cartpole.py"), str(tmp_path / "r")], cwd=tmp_path,
                   env={"PPPROPS_EXAMPLE_ITERATIONS": "2"})  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
-    assert re.search(r"^CartPole pp: 12 candidates, best search return ", res.stdout, re.M)
+    assert re.search(r"^CartPole pp: 17 candidates, best search return ", res.stdout, re.M)
     assert re.search(r"^deployed policy: -?\d+\.\d over 10 episodes \(W is 4x2\)$", res.stdout, re.M)
 
 
@@ -633,7 +633,7 @@ def test_guide_commands_run(tmp_path: Path) -> None:
         assert res.returncode == 0, (command, res.stderr[-2000:])
         outputs.append(res.stdout)
     summary = ppprops.load_run(work / "runs" / "point")
-    assert summary.status == "finished" and len(summary.history) == 8 and summary.final is not None
+    assert summary.status == "finished" and len(summary.history) == 13 and summary.final is not None  # 5 + 3 + 5 re-evaluations
     assert [c.source for c in summary.history].count("warmup") == 5
     assert f"mean return {summary.final.mean:.2f}" in outputs[2]  # policy eval reproduces the final evaluation
     assert "CLEAN: no raw parameter" in outputs[3]

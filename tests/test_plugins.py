@@ -27,7 +27,7 @@ from ppprops.runner import start
 from support import doc_block, make_config
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text(encoding="utf-8")
-SMALL = ["--warmup", "3", "--iterations", "3", "--final-episodes", "2", "--seed", "1"]
+SMALL = ["--warmup", "3", "--iterations", "3", "--final-episodes", "2", "--select-top", "0", "--seed", "1"]
 
 # A second plugin, in the "module:function" form: the function registers a method when called.
 HALVE = '''
@@ -143,7 +143,7 @@ def test_a_plugin_method_runs_from_the_shell_and_reads_back_in_new_processes(sit
 
 def test_a_plugin_method_runs_in_an_experiment_grid(site: Path, tmp_path: Path) -> None:
     spec = tmp_path / "toy.toml"
-    spec.write_text('name = "toy"\nseeds = 1\n\n[run]\nwarmup = 3\niterations = 3\nfinal-episodes = 2\n\n'
+    spec.write_text('name = "toy"\nseeds = 1\n\n[run]\nwarmup = 3\niterations = 3\nfinal-episodes = 2\nselect-top = 0\n\n'
                     '[[grid]]\ntasks = ["CartPole"]\nmethods = ["shrink"]\n')  # fmt: skip
     grid = tmp_path / "grid"
     res = _python(["-m", "ppprops", "experiment", str(spec), "--out", str(grid), "--jobs", "1"], site, cwd=tmp_path)

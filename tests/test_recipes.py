@@ -68,7 +68,7 @@ def shrink_method(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[M
 
 def test_recipe_add_a_method(shrink_method: Method, tmp_path: Path) -> None:
     _in_doc('ppprops.search(task, method="shrink")', '[project.entry-points."ppprops.plugins"]\nshrink = "my_ppprops.shrink"')
-    result = ppprops.search("CartPole", method="shrink", warmup=4, iterations=3, evaluation={"final_episodes": 0}, seed=1, out=tmp_path / "r")
+    result = ppprops.search("CartPole", method="shrink", warmup=4, iterations=3, evaluation={"final_episodes": 0, "select_top": 0}, seed=1, out=tmp_path / "r")
     assert result.status == "finished"
     sources = [c.source for c in result.history]
     assert sources == ["warmup"] * 4 + ["shrink"] * 3
@@ -80,7 +80,7 @@ def test_recipe_add_a_method(shrink_method: Method, tmp_path: Path) -> None:
     # ppprops run --method shrink in the same process (the CLI's main, not a shell)
     out = tmp_path / "cli"
     code = main(["run", "--env", "CartPole", "--method", "shrink", "--warmup", "2", "--iterations", "2",
-                             "--final-episodes", "0", "--out", str(out), "--quiet"])  # fmt: skip
+                             "--final-episodes", "0", "--select-top", "0", "--out", str(out), "--quiet"])  # fmt: skip
     assert code == 0 and [c.source for c in ppprops.load_run(out).history] == ["warmup"] * 2 + ["shrink"] * 2
     with pytest.raises(ConfigError, match="already registered"):
         register_method(shrink_method)
@@ -95,7 +95,7 @@ def test_recipe_add_a_task(tmp_path: Path) -> None:
     _in_doc('ppprops.search("drift.toml", method="random")')
     (tmp_path / "drift_env.py").write_text(doc_block(DOC, "# drift_env.py, next to drift.toml"))  # the env the page shows
     (tmp_path / "drift.toml").write_text(toml)
-    result = ppprops.search(tmp_path / "drift.toml", method="random", warmup=3, iterations=4, evaluation={"final_episodes": 2},
+    result = ppprops.search(tmp_path / "drift.toml", method="random", warmup=3, iterations=4, evaluation={"final_episodes": 2, "select_top": 0},
                             seed=0, out=tmp_path / "run")  # fmt: skip
     assert result.status == "finished" and result.task == "Drift"
     assert [c.source for c in result.history] == ["warmup"] * 3 + ["random"] * 4

@@ -37,7 +37,7 @@ def _count(db: Path) -> int:
 def test_resume_after_kill_9(tmp_path: Path, capsys, kill_after: int) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "ppprops", "run", "--env", "CartPole", "--method", "pp", "--warmup", "3",
-           "--iterations", "4", "--final-episodes", "3", "--out", str(out), "--quiet"]
+           "--iterations", "4", "--final-episodes", "3", "--select-top", "0", "--out", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
     while _count(out / "run.sqlite") < kill_after and proc.poll() is None and time.monotonic() < deadline:

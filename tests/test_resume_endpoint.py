@@ -23,7 +23,8 @@ def test_a_wrong_url_is_corrected_on_resume(tmp_path: Path, capsys, monkeypatch)
     with FaultServer(FaultConfig(fault_rate=0.0)) as server:
         wrong = server.base_url + "/chat/completions"  # a common mistake: the full route instead of the root
         code, _, err = _call(capsys, ["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "4",
-                                      "--final-episodes", "2", "--base-url", wrong, "--model", "m", "--out", str(out), "--quiet"])  # fmt: skip
+                                      "--final-episodes", "2", "--select-top", "0", "--base-url", wrong, "--model", "m",
+                                      "--out", str(out), "--quiet"])  # fmt: skip
         assert code == 2 and f"ppprops resume {out}" in err and err.count("\n") == 1
         store = open_store(out)
         warmup = [(c.index, c.params.tolist()) for c in store.candidates()]
@@ -63,7 +64,7 @@ def test_a_wrong_url_is_corrected_on_resume(tmp_path: Path, capsys, monkeypatch)
 
 def test_a_bad_endpoint_on_resume_is_one_line_and_changes_nothing(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
-    assert main(["run", "--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "0",
+    assert main(["run", "--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "0", "--select-top", "0",
                  "--out", str(out), "--quiet"]) == 0  # fmt: skip
     capsys.readouterr()
     db_before = (out / "run.sqlite").read_bytes()
@@ -78,7 +79,7 @@ def test_switching_to_another_model_is_recorded(tmp_path: Path, capsys) -> None:
     out = tmp_path / "run"
     with FaultServer(FaultConfig(fault_rate=0.0)) as a, FaultServer(FaultConfig(fault_rate=0.0, seed=1)) as b:
         # stop after two LLM iterations: the first endpoint's budget is three requests, then it answers 503
-        args = ["run", "--env", "CartPole", "--method", "pp", "--warmup", "2", "--iterations", "4", "--final-episodes", "0",
+        args = ["run", "--env", "CartPole", "--method", "pp", "--warmup", "2", "--iterations", "4", "--final-episodes", "0", "--select-top", "0",
                 "--base-url", a.base_url, "--model", "first", "--retries", "0", "--out", str(out), "--quiet"]  # fmt: skip
         a.config.max_requests = 2
         assert _call(capsys, args)[0] == 2

@@ -64,7 +64,7 @@ def _record(run_dir: Path) -> dict[str, Any]:
 
 @pytest.mark.parametrize("method", ["pp", "pp-hardened"])
 def test_the_shell_loop_gives_the_same_run_as_search(tmp_path: Path, method: str) -> None:
-    flags = ["--env", "CartPole", "--method", method, "--warmup", "4", "--iterations", "4", "--seed", "7", "--final-episodes", "3",
+    flags = ["--env", "CartPole", "--method", method, "--warmup", "4", "--iterations", "4", "--seed", "7", "--final-episodes", "3", "--select-top", "0",
              "--episodes", "2", "--model", "m", "--retries", "0"]  # fmt: skip
     with FaultServer(FaultConfig(fault_rate=0.0, seed=5)) as server:
         made = _ppprops(["study", "create", *flags, "--base-url", server.base_url, "--out", "shell"], tmp_path)
@@ -125,7 +125,7 @@ def test_bad_tells_are_one_line_and_store_nothing(tmp_path: Path) -> None:
     assert json.loads(_ppprops(["ask", "s"], tmp_path).stdout) == trial  # still the same trial
     ok = _ppprops(["tell", "s", "0", "--return", "12", "--diagnostic", "episode_length=12", "--diagnostic", "termination=pole_fell"],
                   tmp_path)  # fmt: skip
-    assert ok.returncode == 0 and ok.stdout.startswith("trial 0: return 12; best 12 (trial 0); 1 of 3 told")
+    assert ok.returncode == 0 and ok.stdout.startswith("trial 0: return 12; best 12 (trial 0); 1 of 8 told")  # 2 + 1 + 5 re-evaluations
     again = _ppprops(["tell", "s", "0", "--return", "12"], tmp_path)
     assert again.returncode == 2 and "trial 0 was already told" in again.stderr
 

@@ -120,14 +120,51 @@ def test_ask_after_the_budget_and_finalize_with_the_users_own_episodes(study: St
     while not study.done:
         trial = study.ask()
         study.tell(trial, float(trial.number), diagnostics={"episode_length": float(trial.number)})
-    with pytest.raises(StudyComplete, match="nothing more to ask .all 10 of 10 trials are told."):
+    with pytest.raises(StudyComplete, match="nothing more to ask .all 15 of 15 trials are told."):
         study.ask()
     fe = study.finalize(returns=[7.0, 9.0])
-    assert fe is not None and fe.candidate_index == 9 and fe.returns == (7.0, 9.0)  # the best told return is trial 9's
+    assert fe is not None and fe.returns == (7.0, 9.0) and fe.candidate_index == study.best.index  # type: ignore[union-attr]
     assert study.status == (RunStatus.FINISHED, "")
     doc = json.loads((study.run_dir / "best_policy.json").read_text())
-    assert doc["theta"] == [float(v) for v in study.trials[9].params]
-    assert np.array_equal(study.policy().theta, study.trials[9].params)
+    assert doc["theta"] == [float(v) for v in study.trials[fe.candidate_index].params]
+    assert np.array_equal(study.policy().theta, study.trials[fe.candidate_index].params)
+
+
+def test_the_lucky_one_episode_candidate_is_not_handed_over(study: Study) -> None:
+    """Issue 21: candidate 9 had the best single episode (500), candidate 8 is the better policy.
+    The selection stage re-runs the top 5 on 10 fresh episodes each; the pooled mean picks 8."""
+    search = {9: 500.0, 8: 400.0, 7: 300.0, 6: 200.0, 5: 100.0}
+    reeval = {9: [60.0] * 10, 8: [420.0] * 10, 7: [310.0] * 10, 6: [150.0] * 10, 5: [90.0] * 10}
+    while not study.done:
+        trial = study.ask()
+        if trial.reevaluates is None:
+            ret = search.get(trial.number, 10.0)
+            study.tell(trial, ret, diagnostics={"episode_length": ret})
+        else:
+            assert trial.source == "reeval" and trial.phase == "selection" and len(trial.seeds) == 10
+            assert np.array_equal(trial.theta, study.trials[trial.reevaluates].params)  # the same policy, fresh episodes
+            r = reeval[trial.reevaluates]
+            study.tell(trial, r, diagnostics=[{"episode_length": x} for x in r])
+    cands = study.trials
+    assert [c.reevaluates for c in cands[10:]] == [9, 8, 7, 6, 5]  # the top 5 by search return, best first
+    assert len({s for c in cands[10:] for s in c.seeds} & {s for c in cands[:10] for s in c.seeds}) == 0  # fresh seeds
+    assert study.best is not None and study.best.index == 8  # pooled: 8 -> (400 + 4200) / 11, 9 -> (500 + 600) / 11
+    fe = study.finalize(returns=[1.0])
+    assert fe is not None and fe.candidate_index == 8
+    doc = json.loads((study.run_dir / "best_policy.json").read_text())
+    assert doc["search"]["candidate"] == 8 and doc["search"]["selection"] == {"mean": pytest.approx(4600 / 11), "episodes": 11}
+    from ppprops.loop import best_candidate, search_candidates
+
+    assert best_candidate(search_candidates(cands)).index == 9  # the old rule would have handed over the lucky one
+    from ppprops.report import format_summary, run_summary
+
+    summary = run_summary(study.run_dir)  # the extra episodes are stored and counted
+    assert summary["counts"]["episodes"] == {"search": 10, "selection": 50, "final": 1}
+    assert summary["counts"]["by_source"]["reeval"] == 5 and summary["best"]["index"] == 8
+    assert summary["best"]["search_best"] == {"return": 500.0, "index": 9}
+    text = format_summary(summary)
+    assert "episodes 10 in the search, 50 re-evaluating the best candidates, 1 in the final evaluation" in text
+    assert "best     candidate 8: mean 418.18 over 11 episodes" in text and "single search return was 500.00 (candidate 9)" in text
 
 
 def test_a_callback_returning_false_stops_the_search_cleanly(tmp_path: Path) -> None:
@@ -156,7 +193,7 @@ def test_cmaes_population_size_is_an_option_of_the_method(tmp_path: Path) -> Non
                           task=get_task("CartPole"))
     with Study.create(config, tmp_path / "c") as study:
         study.optimize()
-        assert study.store.candidate_count() == 11
+        assert study.store.candidate_count() == 16  # 3 warm-up + 8 CMA-ES + 5 re-evaluations
         assert study._phases is not None and study._phases[1].proposer._es.popsize == 4  # type: ignore[attr-defined]
     for options, message in [({"popsize": 1}, "popsize must be >= 2"), ({"pop": 4}, "has no option 'pop'"),
                               ({"popsize": "4"}, "popsize")]:  # fmt: skip
@@ -233,7 +270,7 @@ def test_kill_between_ask_and_tell_then_ask_again_gives_the_same_trial(tmp_path:
         calls = study.store.llm_calls()
         cands = study.trials
     llm = [c for c in cands if c.source == "llm"]
-    assert [c.index for c in cands] == list(range(config.warmup + config.iterations))  # each candidate once
+    assert [c.index for c in cands] == list(range(config.warmup + config.iterations + 5))  # each candidate once (+ 5 re-evaluations)
     assert sorted(c["iteration"] for c in calls) == [c.iteration for c in llm]  # one LLM call per LLM candidate
 
 

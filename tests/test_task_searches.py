@@ -23,7 +23,7 @@ def test_short_pp_search_completes(tmp_path: Path, capsys, name: str) -> None:  
     task = get_task(name)
     # three history entries of D numbers plus a D-number answer must fit the model's context
     context = 32768 if task.D > 200 else 16384
-    code = main(["run", "--env", name, "--method", "pp", "--warmup", "2", "--iterations", "2", "--final-episodes", "1",
+    code = main(["run", "--env", name, "--method", "pp", "--warmup", "2", "--iterations", "2", "--final-episodes", "1", "--select-top", "0",
                  "--context-size", str(context), "--out", str(out), "--quiet"])
     assert code == 0
     capsys.readouterr()

@@ -67,8 +67,9 @@ class SearchResult:
     """A run: where it is, how it ended, its best policy and every candidate it evaluated.
 
     ``history[i]`` is candidate i (raw parameters ``params`` of shape (D,), its ``feedback``, its
-    encoded form as the LLM saw it, and its ``source``: warmup, llm, fallback, ...). ``best_return``
-    is the best candidate's search-time mean return; ``final`` the final evaluation of it on fresh
+    encoded form as the LLM saw it, and its ``source``: warmup, llm, fallback, ..., and ``reeval``
+    for the selection stage's re-evaluations). ``best_index`` is the candidate handed over
+    (``loop.select_best``) and ``best_return`` its search-time mean return; ``final`` the final evaluation of it on fresh
     episodes (None with ``final_episodes=0``). ``policy`` is the deployable policy file
     (``run_dir / "best_policy.json"``) as a callable; None until the run has finished.
     """
@@ -116,7 +117,8 @@ GROUPS: dict[str, dict[str, str]] = {
             "retry_max_delay": "retry_max_delay", "retry_after_cap": "retry_after_cap", "on_llm_failure": "on_llm_failure"},
     "prompt": {"top_k": "top_k", "form": "prompt_form", "params": "prompt_params", "digits": "param_digits",
                "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries"},
-    "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers"},
+    "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers", "select_top": "select_top",
+                   "select_episodes": "select_episodes"},
     "task_options": {"env_kwargs": "env_kwargs", "max_episode_steps": "max_episode_steps", "gym_packages": "gym_packages",
                      "obs_keys": "obs_keys", "components": "components", "diagnostics": "diagnostics"},
 }  # fmt: skip
@@ -241,7 +243,10 @@ def search(
             ``layout``, ``decimals``, ``parse_retries``.
         evaluation: ``episodes`` per candidate (default: the method's, 1; 20 for r2po),
             ``final_episodes`` (fresh episodes for the best policy, default 20), ``workers``
-            (processes running episodes; results identical to one).
+            (processes running episodes; results identical to one), ``select_top`` and
+            ``select_episodes`` (the selection stage: the top candidates of the search run again on
+            fresh episodes and the best pooled mean is handed over; default 5 x 10, 0 for a task
+            without an env; ``select_top=0`` hands over the best search-time return).
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
@@ -371,7 +376,7 @@ def load_run(run_dir: Pathish) -> SearchResult:
             stored configuration names a method unknown in this process (a plugin not installed).
         PPPropsError: the run's ``best_policy.json`` is damaged (``load_policy``).
     """
-    from .loop import best_candidate
+    from .loop import search_candidates, select_best
     from .store import open_store
 
     run_dir = Path(run_dir)
@@ -384,7 +389,7 @@ def load_run(run_dir: Pathish) -> SearchResult:
         history = tuple(store.candidates())
         fe = store.final_eval()
         status = store.status()
-    best = best_candidate(list(history)) if history else None
+    best = select_best(list(history)) if search_candidates(list(history)) else None
     final = None
     if fe is not None and fe.returns:
         final = Evaluation(task=config.task, returns=tuple(fe.returns), seeds=tuple(fe.seeds), seed=config.seed)

@@ -75,6 +75,13 @@ class RunConfig:
     top_k: Annotated[Int, Field(ge=0), Flag("history entries in the prompt; 0 = all", hint="0 keeps every entry")] = 10
     episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag("episodes per candidate", default_text="1; 20 for r2po")] = 1
     final_episodes: Annotated[Int, Field(ge=0, le=MAX_EPISODES), Flag("fresh episodes for the best policy")] = 20
+    # The selection stage (proposers.selection): the top candidates of the search run again on fresh
+    # episodes, and the best pooled mean is handed over. None: 5 for a task with an env, 0 without one.
+    select_top: Annotated[Int | None, Field(ge=0, le=MAX_EPISODES), Flag(
+        "candidates of the search re-evaluated on fresh episodes before the best is chosen (0: none, the best "
+        "search-time return is handed over)", default_text="5; 0 for a task without an env")] = None
+    select_episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag(
+        "fresh episodes per re-evaluated candidate")] = 10
     seed: Annotated[Int, Field(ge=0, lt=2**63), Flag("run seed: warm-up, episode seeds, LLM sampling seeds",
                                                       range_text="[0, 2^63)")] = 0
     box: Annotated[Box, Flag("feasible range of every parameter", metavar="LOW,HIGH", default_text="-6,6")] = (-6.0, 6.0)
@@ -119,6 +126,12 @@ class RunConfig:
         if self.method == "r2po" and self.prompt_form == "document":
             raise ConfigError("--prompt-form document does not apply to r2po (its critic is a chat prompt); use auto or chat")
         return self
+
+    def selection(self, has_env: bool = True) -> tuple[int, int]:
+        """(candidates re-evaluated, episodes each) of the selection stage: ``select_top`` (None: 5
+        for a task with an env, 0 without one) and ``select_episodes``."""
+        top = self.select_top if self.select_top is not None else (5 if has_env else 0)
+        return top, self.select_episodes
 
     @property
     def prompt(self) -> PromptSettings:

@@ -1,4 +1,4 @@
-"""Where a candidate belongs in a search, and which candidate is the best.
+"""Where a candidate belongs in a search, and which candidate is the best (the one handed over).
 
 A search is a sequence of phases (for PP-ProPS: warm-up, then LLM iterations; ``proposers.base.Phase``).
 Each candidate index belongs to exactly one (phase, iteration), so a study (``ppprops.study``)
@@ -10,10 +10,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
+
 from .proposers.base import Phase
 from .values import Candidate
 
-__all__ = ["Phase", "best_candidate", "locate"]
+__all__ = ["Phase", "best_candidate", "locate", "pooled_returns", "select_best", "search_candidates"]
 
 
 def locate(phases: Sequence[Phase], index: int) -> tuple[Phase, int]:
@@ -44,3 +46,44 @@ def best_candidate(candidates: Sequence[Candidate]) -> Candidate:
         if c.ret > best.ret:
             best = c
     return best
+
+
+def search_candidates(candidates: Sequence[Candidate]) -> list[Candidate]:
+    """The candidates of the search itself: every one but the selection stage's re-evaluations."""
+    return [c for c in candidates if c.reevaluates is None]
+
+
+def pooled_returns(candidates: Sequence[Candidate]) -> dict[int, tuple[float, ...]]:
+    """For each search candidate that was re-evaluated: every episode return it has, those of the
+    search and those of its re-evaluations (raw reward units), by its index."""
+    by_index = {c.index: c for c in candidates}
+    pooled: dict[int, list[float]] = {}
+    for r in candidates:
+        if r.reevaluates is None or r.reevaluates not in by_index:
+            continue
+        if r.reevaluates not in pooled:
+            own = by_index[r.reevaluates].feedback
+            pooled[r.reevaluates] = list(own.episode_returns) or [own.ret]
+        pooled[r.reevaluates] += list(r.feedback.episode_returns) or [r.ret]
+    return {k: tuple(v) for k, v in pooled.items()}
+
+
+def select_best(candidates: Sequence[Candidate]) -> Candidate:
+    """The candidate handed over (the policy file, the final evaluation, ``SearchResult.best``).
+
+    Without re-evaluations: ``best_candidate`` of the search's candidates (Algorithm 1's
+    ``theta_best``). After the selection stage (the top candidates of the search run again on fresh
+    episodes): the re-evaluated search candidate with the highest mean over all its episodes,
+    search and re-evaluation pooled, so one lucky episode cannot win on its own; the earliest wins
+    a tie, and a non-finite mean never does. Raises ValueError for an empty sequence.
+    """
+    search = search_candidates(candidates)
+    if not search:
+        raise ValueError("no candidates")
+    pooled = pooled_returns(candidates)
+    means = {i: float(np.mean(v)) for i, v in pooled.items() if v and all(math.isfinite(r) for r in v)}
+    if not means:
+        return best_candidate(search)
+    top = max(means.values())
+    index = min(i for i, m in means.items() if m == top)
+    return next(c for c in search if c.index == index)

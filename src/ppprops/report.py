@@ -9,7 +9,7 @@ from typing import Any
 
 from .baselines.record import format_rl_summary, rl_summary
 from .config import RunConfig
-from .loop import best_candidate
+from .loop import best_candidate, pooled_returns, search_candidates, select_best
 from .status import RunKind, RunStatus, effective
 from .store import open_store
 
@@ -63,7 +63,10 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         adaptations = store.llm_adaptations()
         fe = store.final_eval()
         pending = store.pending_trial()
-        best = best_candidate(cands) if cands else None
+        search = search_candidates(cands)
+        best = select_best(cands) if search else None
+        first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
+        pooled = pooled_returns(cands).get(best.index) if best is not None else None
         status, reason = effective(store.status(), run_dir)
         return _finite({
             "run_id": store.run_id(),
@@ -75,7 +78,10 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
             "seed": config.seed,
             "config": config.to_json(),
             "endpoint_changes": store.endpoint_changes(),
-            "best": {"return": best.ret, "index": best.index} if best else None,
+            "best": {"return": best.ret, "index": best.index,
+                     "selection": {"mean": float(sum(pooled) / len(pooled)), "episodes": len(pooled)} if pooled else None,
+                     "search_best": {"return": first_pick.ret, "index": first_pick.index} if first_pick is not None else None}
+            if best else None,
             "final_eval": {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "returns": list(fe.returns)}
             if fe is not None and fe.returns
             else None,
@@ -86,6 +92,9 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                 "fallback": sum(c.source == "fallback" for c in cands),
                 "by_source": dict(Counter(c.source for c in cands)),
                 "clipped_candidates": sum(c.clipped > 0 for c in cands),
+                "episodes": {"search": sum(len(c.seeds) or 1 for c in search),
+                             "selection": sum(len(c.seeds) or 1 for c in cands if c.reevaluates is not None),
+                             "final": len(fe.returns) if fe is not None else 0},
                 "llm_calls": len(calls),
                 "request_adaptations": len(adaptations),
                 **_fault_counts(cands, calls),
@@ -102,6 +111,7 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
                     "diagnostics": c.feedback.diagnostics,
                     "clipped": c.clipped,
                     "note": c.note,
+                    "reevaluates": c.reevaluates,
                 }
                 for c in cands
             ],
@@ -142,6 +152,10 @@ def format_summary(s: dict[str, Any]) -> str:
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())
     lines.append(f"evals    {c['candidates']} ({sources}); {c['llm_calls']} LLM calls")
+    ep = c.get("episodes")
+    if ep:
+        lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "
+                     "final evaluation")
     if c["answer_failures"]:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
     if c.get("answers_from_reasoning"):
@@ -162,7 +176,15 @@ def format_summary(s: dict[str, Any]) -> str:
     for ch in s.get("endpoint_changes") or []:
         lines.append(f"endpoint changed on resume after {ch['candidates']} candidates: {_endpoint(ch['from'])} -> {_endpoint(ch['to'])}")
     if s["best"] and s["best"]["return"] is not None:
-        lines.append(f"best     return {s['best']['return']:.2f} (candidate {s['best']['index']})")
+        b = s["best"]
+        sel = b.get("selection")
+        if sel:
+            first = b.get("search_best") or {}
+            lines.append(f"best     candidate {b['index']}: mean {sel['mean']:.2f} over {sel['episodes']} episodes (search and "
+                         f"re-evaluation); the best single search return was {first.get('return', float('nan')):.2f} "
+                         f"(candidate {first.get('index')})")
+        else:
+            lines.append(f"best     return {b['return']:.2f} (candidate {b['index']})")
     if s["final_eval"]:
         fe = s["final_eval"]
         lines.append(f"final    {fe['mean']:.2f} +- {fe['std']:.2f} over {fe['episodes']} fresh episodes")

@@ -105,6 +105,8 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("candidates", "eval_s", "REAL"),
     ("llm_calls", "form", "TEXT"),
     ("llm_calls", "decisions", "TEXT"),
+    ("candidates", "reevaluates", "INTEGER"),
+    ("pending", "reevaluates", "INTEGER"),
 )
 
 
@@ -337,12 +339,12 @@ class RunStore:
     def _insert_candidate(db: sqlite3.Connection, c: Candidate) -> None:
         db.execute(
             "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
-            " created, ask_s, eval_s) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            " created, ask_s, eval_s, reevaluates) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             (
                 c.index, c.iteration, c.source,
                 json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
                 json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
-                c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s,
+                c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s, c.reevaluates,
             ),
         )
 
@@ -358,22 +360,23 @@ class RunStore:
                 if other is not None:
                     raise StoreError(f"trial {other[0]} is already pending in {self.path}")
                 db.execute(
-                    "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                    "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created,"
+                    " reevaluates) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                     (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
-                     t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time()),
+                     t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time(), t.reevaluates),
                 )
         except sqlite3.IntegrityError:
             raise StoreError(f"trial {t.number} is already pending in {self.path}") from None
 
     def pending_trial(self) -> Trial | None:
         """The trial asked for and not yet told, or None."""
-        row = self._read("SELECT idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a FROM pending"
+        row = self._read("SELECT idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates FROM pending"
                          " ORDER BY idx LIMIT 1").fetchone()
         if row is None:
             return None
         return Trial(number=row[0], phase=row[1], iteration=row[2], source=row[3], theta=np.asarray(json.loads(row[4])),
-                     seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10])
+                     seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10],
+                     reevaluates=row[11])
 
     def candidate_count(self) -> int:
         """How many candidates are recorded."""
@@ -383,15 +386,15 @@ class RunStore:
         """Every recorded candidate from index ``since`` on, by index (``params`` and ``params_enc``:
         float64 arrays of shape (D,))."""
         rows = self._read(
-            "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s"
-            " FROM candidates WHERE idx >= ? ORDER BY idx", (int(since),)
+            "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s,"
+            " reevaluates FROM candidates WHERE idx >= ? ORDER BY idx", (int(since),)
         ).fetchall()
         return [
             Candidate(
                 index=r[0], iteration=r[1], source=r[2],
                 params=np.asarray(json.loads(r[3])), params_enc=np.asarray(json.loads(r[4])),
                 feedback=Feedback.from_json(json.loads(r[5])), feedback_enc=Feedback.from_json(json.loads(r[6])),
-                clipped=r[7], seeds=tuple(json.loads(r[8])), note=r[9], ask_s=r[10], eval_s=r[11],
+                clipped=r[7], seeds=tuple(json.loads(r[8])), note=r[9], ask_s=r[10], eval_s=r[11], reevaluates=r[12],
             )
             for r in rows
         ]

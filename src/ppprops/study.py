@@ -48,7 +48,7 @@ from .fileio import write_json_atomic
 from .llm.recording import RecordingChat
 from .llm.session import LazyChat
 from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
-from .loop import best_candidate, locate
+from .loop import locate, pooled_returns, search_candidates, select_best
 from .methods import Method, get_method
 from .policy_file import Policy, policy_document
 from .proposers.base import Phase, SearchSetup, StopSearch
@@ -181,9 +181,14 @@ class Study:
 
     # -- where it stands ----------------------------------------------------------------------
     @property
+    def has_env(self) -> bool:
+        """True when the task has an env ppprops can run (False: a robot outside Python)."""
+        return bool(self.task.has_env)
+
+    @property
     def total(self) -> int:
-        """The search's budget: warm-up plus search-phase candidates."""
-        return self.config.warmup + self.config.iterations
+        """The study's budget of trials: warm-up, search phase and the selection stage's re-evaluations."""
+        return self.config.warmup + self.config.iterations + self.config.selection(self.has_env)[0]
 
     @property
     def trials(self) -> list[Candidate]:
@@ -212,9 +217,10 @@ class Study:
 
     @property
     def best(self) -> Candidate | None:
-        """The best told trial (highest finite raw return; ``loop.best_candidate``), None before any."""
+        """The search candidate to hand over (``loop.select_best``: after the selection stage, the
+        best mean over all its episodes; before it, the best search-time return), None before any."""
         cands = self.store.candidates()
-        return best_candidate(cands) if cands else None
+        return select_best(cands) if search_candidates(cands) else None
 
     # -- ask / tell ---------------------------------------------------------------------------
     def ask(self) -> Trial:
@@ -242,10 +248,11 @@ class Study:
             except StopSearch as stop:
                 self.store.set_status(RunStatus.STOPPED, stop.reason)
                 raise
+            seeds = proposal.seeds if proposal.seeds is not None else tuple(self.streams.episode_seeds(n, self.config.episodes))
             trial = Trial(number=n, phase=phase.name, iteration=iteration, source=proposal.source,
                           theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
-                          seeds=tuple(self.streams.episode_seeds(n, self.config.episodes)), clipped=proposal.clipped,
-                          note=proposal.note, ask_s=time.perf_counter() - t0)  # fmt: skip
+                          seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=time.perf_counter() - t0,
+                          reevaluates=proposal.reevaluates)  # fmt: skip
             self.store.add_pending(trial)
             return trial
 
@@ -277,7 +284,8 @@ class Study:
             fb = feedback if feedback is not None else self._feedback(returns, components, diagnostics)
             cand = Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
                              params_enc=self.codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(self.codec, fb),
-                             clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s)  # fmt: skip
+                             clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s,
+                             reevaluates=pending.reevaluates)  # fmt: skip
             self.store.record_trial(cand)
             if self._phases is not None:
                 self._sync()
@@ -326,7 +334,7 @@ class Study:
         """The episode runner of the task's env (``config.workers`` processes), made on first use.
         Raises ConfigError for a task without an env."""
         if self._evaluator is None:
-            if not getattr(self.task, "has_env", True):
+            if not self.has_env:
                 raise ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
             self._evaluator = Evaluator(self.task, workers=self.config.workers)
         return self._evaluator
@@ -375,7 +383,7 @@ class Study:
                 cand = self.tell(trial, feedback=fb, eval_s=time.perf_counter() - t0)
                 if math.isfinite(cand.ret):  # a numerical fault is never the best so far
                     best[0] = max(best[0], cand.ret)
-                latency = self._last_latency() if cand.source != "warmup" else None
+                latency = self._last_latency() if cand.source not in ("warmup", "reeval") else None
                 events.on_candidate(cand, latency, best[0])
                 if any(cb(cand, self) is False for cb in callbacks):
                     store.set_status(RunStatus.STOPPED, "stopped by a callback")
@@ -398,8 +406,8 @@ class Study:
         return fe
 
     def _last_latency(self) -> float | None:
-        phases = self._phases or []
-        return getattr(phases[-1].proposer, "last_latency", None) if len(phases) > 1 else None
+        phases = [p for p in self._phases or [] if p.name not in ("warmup", "selection")]
+        return getattr(phases[0].proposer, "last_latency", None) if phases else None
 
     def _mark(self, status: RunStatus, reason: str = "") -> None:
         """Best effort: the stored status says how the run ended (a store that fails is left as it is)."""
@@ -425,9 +433,9 @@ class Study:
         if store.pending_trial() is not None and store.run_status()[0] is not RunStatus.STOPPED:
             raise ConfigError(f"trial {store.pending_trial().number} is pending: tell it before finalizing")  # type: ignore[union-attr]
         done = store.candidates()
-        if not done:
+        if not search_candidates(done):
             raise ConfigError("no trial has been told: nothing to finalize")
-        best = best_candidate(done)
+        best = select_best(done)
         fe = store.final_eval()
         if returns is not None:
             values = tuple(float(r) for r in returns)
@@ -435,7 +443,7 @@ class Study:
                 raise ConfigError("final returns must be one or more finite numbers")
             fe = FinalEval(candidate_index=best.index, returns=values, seeds=())
             store.set_final_eval(fe)
-        elif getattr(self.task, "has_env", True) and (fe is None or fe.candidate_index != best.index):
+        elif self.has_env and (fe is None or fe.candidate_index != best.index):
             seeds = seeding.final_eval_seeds(self.config.seed, self.config.final_episodes)
             fe = FinalEval(candidate_index=best.index, returns=final_returns(self.evaluator, best.params, seeds, events),
                            seeds=tuple(seeds))
@@ -449,14 +457,17 @@ class Study:
         return fe
 
     def policy_document(self, best: Candidate | None = None, fe: FinalEval | None = None) -> dict[str, Any]:
-        """The policy file's content for ``best`` (default: the best told trial)."""
+        """The policy file's content for ``best`` (default: the candidate to hand over, ``best``)."""
         best = best if best is not None else self.best
         if best is None:
             raise ConfigError("no trial has been told: there is no policy yet")
         final = {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "seed": self.config.seed} if fe is not None and fe.returns else None
-        search = {"run_id": self.store.run_id(), "method": self.config.method, "seed": self.config.seed, "return": best.ret,
-                  "candidate": best.index}
-        env = None if self.task.discrete or not getattr(self.task, "has_env", True) else self.evaluator.env
+        search: dict[str, Any] = {"run_id": self.store.run_id(), "method": self.config.method, "seed": self.config.seed, "return": best.ret,
+                                  "candidate": best.index}
+        pooled = pooled_returns(self.store.candidates()).get(best.index)
+        if pooled:
+            search["selection"] = {"mean": float(np.mean(pooled)), "episodes": len(pooled)}
+        env = None if self.task.discrete or not self.has_env else self.evaluator.env
         return policy_document(self.task, best.params, env=env, search=search, final_eval=final)
 
     def policy(self) -> Policy:
@@ -496,8 +507,13 @@ class Study:
                                     iterations=config.iterations, prompt=config.prompt_settings(form), llm=config.llm,
                                     options=self.method.parse_options(config.method_options), on_llm_failure=config.on_llm_failure,
                                     parse_retries=config.parse_retries, chat=chat,
-                                    evaluator=self.evaluator if getattr(self.task, "has_env", True) else None)  # fmt: skip
+                                    evaluator=self.evaluator if self.has_env else None)  # fmt: skip
                 phases.append(search_phase(self.method, setup))
+            top, episodes = config.selection(self.has_env)
+            if top:
+                from .proposers.selection import SelectionProposer
+
+                phases.append(Phase("selection", SelectionProposer(self.streams, episodes), top))
             self._phases = phases
             self._told = 0
             self._sync()

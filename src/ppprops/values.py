@@ -69,6 +69,8 @@ class Candidate:
         note: why a fallback was used, or other remarks.
         ask_s: seconds in the proposer's ask (LLM calls included); None when not measured.
         eval_s: seconds evaluating its episodes; None when not measured.
+        reevaluates: for a re-evaluation of the selection stage (source ``reeval``), the index of
+            the search candidate it re-evaluates on fresh episodes; None otherwise.
     """
 
     index: int
@@ -83,6 +85,7 @@ class Candidate:
     note: str = ""
     ask_s: float | None = None
     eval_s: float | None = None
+    reevaluates: int | None = None
 
     @property
     def ret(self) -> float:
@@ -127,6 +130,7 @@ class Trial:
         clipped: coordinates that had to be clipped into the box.
         note: why a fallback was used, or other remarks.
         ask_s: seconds the proposer took to ask it (LLM calls included).
+        reevaluates: a re-evaluation of the selection stage: the search candidate it runs again.
     """
 
     number: int
@@ -140,6 +144,7 @@ class Trial:
     clipped: int = 0
     note: str = ""
     ask_s: float | None = None
+    reevaluates: int | None = None
 
     @property
     def W(self) -> np.ndarray:
@@ -172,6 +177,7 @@ class Trial:
             "seeds": list(self.seeds),
             "clipped": self.clipped,
             "note": self.note,
+            "reevaluates": self.reevaluates,
         }
 
     def __eq__(self, other: object) -> bool:

@@ -92,9 +92,9 @@ def read_run(path: Path) -> RunRecord:
     rec = RunRecord(
         name=path.name, path=path, kind=kind, task=str(s["env"]), method=str(s["method"]),
         top_k=None if kind == RunKind.RL else int(cfg.get("top_k", DEFAULT_K)), seed=int(s["seed"]), status=str(s["status"]),
-        best=(s["best"] or {}).get("return") if kind == RunKind.SEARCH else None, final=fe["mean"] if fe else None,
+        best=_search_best(s) if kind == RunKind.SEARCH else None, final=fe["mean"] if fe else None,
         warmup=int(cfg.get("warmup", 0)) if kind == RunKind.SEARCH else 0,
-        returns=[c["return"] for c in s["candidates"]],
+        returns=[c["return"] for c in s["candidates"] if c.get("reevaluates") is None],  # the search, not the selection stage
         calls=[{k: c[k] for k in ("iteration", "latency_s", "prompt_chars", "ok")} for c in s["llm_calls"]],
     )  # fmt: skip
     spec = cfg.get("task_spec")
@@ -105,6 +105,14 @@ def read_run(path: Path) -> RunRecord:
     except (ConfigError, KeyError, TypeError):
         rec.D = None
     return rec
+
+
+def _search_best(s: dict[str, Any]) -> float | None:
+    """The best single return of the search (the paper's number, Algorithm 1's theta_best), whichever
+    candidate the selection stage handed over."""
+    best = s.get("best") or {}
+    first = best.get("search_best") or best
+    return first.get("return")
 
 
 # -- aggregation -----------------------------------------------------------------------------

@@ -47,8 +47,10 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
+from ..proposers.llm import stall_count
 from ..store import Candidate, open_store
 from ..wire.document import continuation_grammar, document_target, document_temperature
+from ..wire.forms import FORMS
 from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
 from ..wire.turns import judge_answer
 from . import reconstruct as rc
@@ -435,7 +437,7 @@ class _Auditor:
         if not isinstance(doc, dict):
             self.free(str(row["request"]), "a request body that is not a JSON object", where)
         elif "prompt" in doc and "messages" not in doc:
-            self.document_body(doc, req)
+            self.document_body(doc, req, row.get("decisions"))
             document = True
         else:
             for key, value in doc.items():
@@ -460,11 +462,14 @@ class _Auditor:
         if row.get("ok"):
             self.answered[(req.iteration, req.attempt)] = row
 
-    def document_body(self, doc: dict[str, Any], req: Request) -> None:
+    def document_body(self, doc: dict[str, Any], req: Request, decisions: dict[str, Any] | None = None) -> None:
         """A document-form request (the completions endpoint, ``wire.document``): ``prompt`` is the
         document, rebuilt and compared; ``grammar`` must be the continuation grammar of the history
-        it shows and ``temperature`` the form's for this iteration and attempt; the other fields as
-        the client's request shape holds them at this call (``ClientReplay.document_fields``)."""
+        it shows and ``temperature`` the form's for this iteration, attempt and stall count (the
+        audit's own count from the shown returns); the other fields as the client's request shape
+        holds them at this call (``ClientReplay.document_fields``). The decisions recorded with the
+        call (``wire.forms.DocumentForm.check_decisions``) must be the ones the form makes from
+        public values."""
         where = req.where
         text = doc["prompt"]
         shown: list[Candidate | None] = []
@@ -475,8 +480,14 @@ class _Auditor:
         verified = bool(shown) and all(c is not None for c in shown)
         grammar = continuation_grammar(self.task.D, [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None],
                                        self.ctx) if verified else None
+        stalled = stall_count(self.cands[: self.config.warmup + req.iteration])  # as the proposer counted it
         expected = self.replay.document_fields(grammar, document_temperature(req.iteration, req.attempt,
-                                                                             self.config.llm.temperature))
+                                                                             self.config.llm.temperature, stalled))
+        if decisions is not None and verified:
+            entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
+            for problem in FORMS["document"].check_decisions(decisions, self.ctx, entries, iteration=req.iteration, attempt=req.attempt,
+                                                             temperature=self.config.llm.temperature, stalled=stalled):
+                self.finding("unverified", "decisions", f"a recorded decision of the document form: {problem}", where)
         for key, value in doc.items():
             at = f"{where}, field {key}"
             if key == "prompt":

@@ -37,6 +37,8 @@ class Proposal:
     source: str  # recorded as the candidate's source: warmup, llm, fallback, random, ...
     clipped: int = 0  # coordinates that had to be clipped into the box
     note: str = ""
+    seeds: tuple[int, ...] | None = None  # its own episode seeds (None: the run's, ``episodes`` of them)
+    reevaluates: int | None = None  # the search candidate it runs again (the selection stage)
 
 
 class Proposer(Protocol):

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -109,6 +109,8 @@ class LLMProposer:
         self.failures: Counter[str] = Counter()
         self.last_latency: float | None = None
         self.last_exchange: Exchange | None = None
+        self._best_enc = -math.inf  # the best encoded return told so far (the last entry the prompt shows)
+        self.stalled = 0  # LLM-phase candidates in a row that did not raise it (``wire.document.STALL_AFTER``)
 
     @property
     def D(self) -> int:
@@ -118,9 +120,13 @@ class LLMProposer:
     def tell(self, candidate: Candidate) -> None:
         """Add the candidate's encoded entry to the history (a non-finite return is never shown) and track the best."""
         fb = candidate.feedback_enc
+        if candidate.source in ("llm", "fallback"):  # the search's own candidates: did this one raise the best shown?
+            raised = math.isfinite(fb.ret) and math.isfinite(candidate.ret) and fb.ret > self._best_enc
+            self.stalled = 0 if raised else self.stalled + 1
         if not (math.isfinite(fb.ret) and math.isfinite(candidate.ret)):
             self.nonfinite_skipped += 1  # a numerical fault: never shown, never the best
             return
+        self._best_enc = max(self._best_enc, fb.ret)
         detailed = self.ctx.detailed_feedback
         self.entries.append(
             self.codec.entry(
@@ -159,7 +165,7 @@ class LLMProposer:
         detail = ""
         for attempt in range(1 + self.parse_retries):
             req = self.form.request(prompt, ctx=self.ctx, shown=shown, iteration=iteration, attempt=attempt, previous=previous,
-                                    detail=detail, temperature=self.temperature)
+                                    detail=detail, temperature=self.temperature, stalled=self.stalled)
             seed = self.codec.sampling_seed(self.streams.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
                 ex = self.chat.send(req, D=self.D, seed=seed, iteration=iteration, attempt=attempt)
@@ -208,6 +214,21 @@ class LLMProposer:
             theta = self.codec.decode(self.best.params_enc + noise)
         theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
+
+
+def stall_count(candidates: Sequence[Candidate]) -> int:
+    """The search's candidates (source ``llm`` or ``fallback``) in a row at the end of ``candidates``
+    that did not raise the best finite encoded return before them: ``LLMProposer.stalled`` once it
+    was told ``candidates`` (the audit recomputes a document request's temperature with it)."""
+    best, stalled = -math.inf, 0
+    for c in candidates:
+        fb = c.feedback_enc
+        finite = math.isfinite(fb.ret) and math.isfinite(c.ret)
+        if c.source in ("llm", "fallback"):
+            stalled = 0 if finite and fb.ret > best else stalled + 1
+        if finite:
+            best = max(best, fb.ret)
+    return stalled
 
 
 def _finite_components(components: Mapping[str, float]) -> dict[str, float]:

@@ -43,6 +43,11 @@ TARGET_FLOOR = 0.1
 TEMPERATURES = (0.6, 1.0)
 RETRY_STEP = 0.3
 MAX_TEMPERATURE = 2.0
+# Exploration when the search is stuck: after STALL_AFTER LLM iterations in a row that did not raise
+# the best shown return, an iteration is sampled at EXPLORE_TEMPERATURE (the base model then writes
+# new values within the scale the history shows, instead of copying the best entry again).
+STALL_AFTER = 3
+EXPLORE_TEMPERATURE = 1.5
 OPENING = "["  # the document ends inside the open list; the continuation starts after it
 LABEL = ":"  # between a value's index and the value
 
@@ -61,10 +66,17 @@ def document_target(history: Sequence[EncodedEntry], lift: float = TARGET_LIFT) 
     return best + lift * min(spread, abs(best))
 
 
-def document_temperature(iteration: int, attempt: int, temperature: float | None = None) -> float:
-    """The sampling temperature of one document request: ``temperature`` (``--temperature``) or
-    ``TEMPERATURES[iteration % len]``, plus ``RETRY_STEP`` per retry, at most 2."""
-    base = TEMPERATURES[iteration % len(TEMPERATURES)] if temperature is None else temperature
+def document_temperature(iteration: int, attempt: int, temperature: float | None = None, stalled: int = 0) -> float:
+    """The sampling temperature of one document request: ``temperature`` (``--temperature``), or
+    ``TEMPERATURES[iteration % len]``, or ``EXPLORE_TEMPERATURE`` when ``stalled`` (LLM iterations
+    in a row that did not raise the best shown return) has reached ``STALL_AFTER``; plus
+    ``RETRY_STEP`` per retry, at most 2. Public inputs only: the audit recomputes it."""
+    if temperature is not None:
+        base = temperature
+    elif stalled >= STALL_AFTER:
+        base = EXPLORE_TEMPERATURE
+    else:
+        base = TEMPERATURES[iteration % len(TEMPERATURES)]
     return min(MAX_TEMPERATURE, base + RETRY_STEP * attempt)
 
 

@@ -70,9 +70,10 @@ class PromptForm:
         return build_prompt(ctx, shown)
 
     def request(self, prompt: str, *, ctx: PromptContext, shown: Sequence[EncodedEntry], iteration: int, attempt: int,
-                previous: str | None = None, detail: str = "", temperature: float | None = None) -> FormRequest:
+                previous: str | None = None, detail: str = "", temperature: float | None = None, stalled: int = 0) -> FormRequest:
         """Attempt ``attempt`` of iteration ``iteration``: the prompt, or after the unusable answer
-        ``previous`` (its content) whose fault is ``detail``, the correction turns."""
+        ``previous`` (its content) whose fault is ``detail``, the correction turns. ``stalled``: LLM
+        iterations in a row that did not raise the best shown return (forms that explore use it)."""
         if attempt == 0:
             return FormRequest(self.name, self.endpoint, messages=prompt_messages(prompt))
         return FormRequest(self.name, self.endpoint, messages=correction_messages(prompt, previous, detail, ctx.D),
@@ -92,10 +93,10 @@ class PromptForm:
         return history_entry(ctx, e)
 
     def check_decisions(self, decisions: Mapping[str, Any], ctx: PromptContext, shown: Sequence[EncodedEntry], *,
-                        iteration: int, attempt: int, temperature: float | None) -> list[str]:
+                        iteration: int, attempt: int, temperature: float | None, stalled: int = 0) -> list[str]:
         """What is wrong with recorded ``decisions`` (empty: each is one the form makes from public
-        values). The audit calls this; a decision that is not derivable from the prompt and the
-        public settings could carry something else."""
+        values). The audit calls this with ``stalled`` as it counts it from the shown returns; a
+        decision that is not derivable from the prompt and the public settings could carry something else."""
         extra = sorted(set(decisions) - {"correction"})
         return [f"unknown decision {k!r}" for k in extra]
 
@@ -115,12 +116,12 @@ class DocumentForm(PromptForm):
         return build_document(ctx, shown)
 
     def request(self, prompt: str, *, ctx: PromptContext, shown: Sequence[EncodedEntry], iteration: int, attempt: int,
-                previous: str | None = None, detail: str = "", temperature: float | None = None) -> FormRequest:
+                previous: str | None = None, detail: str = "", temperature: float | None = None, stalled: int = 0) -> FormRequest:
         """The same document at every attempt, with the continuation grammar and the temperature
-        ``document_temperature(iteration, attempt, temperature)``."""
-        t = document_temperature(iteration, attempt, temperature)
+        ``document_temperature(iteration, attempt, temperature, stalled)`` (exploration when stuck)."""
+        t = document_temperature(iteration, attempt, temperature, stalled)
         return FormRequest(self.name, self.endpoint, prompt=prompt, grammar=continuation_grammar(ctx.D, shown, ctx), temperature=t,
-                           decisions={"temperature": t, "target": document_target(shown)})
+                           decisions={"temperature": t, "target": document_target(shown), "stalled": stalled})
 
     def judge(self, content: str | None, reasoning: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
               finish_reason: str | None = None) -> ParseResult:
@@ -132,11 +133,14 @@ class DocumentForm(PromptForm):
         return document_entry(ctx, e)
 
     def check_decisions(self, decisions: Mapping[str, Any], ctx: PromptContext, shown: Sequence[EncodedEntry], *,
-                        iteration: int, attempt: int, temperature: float | None) -> list[str]:
-        """The temperature must be the schedule's for this iteration and attempt, the target the
-        one ``document_target`` computes from the shown (encoded) returns."""
-        problems = [f"unknown decision {k!r}" for k in sorted(set(decisions) - {"temperature", "target"})]
-        if "temperature" in decisions and decisions["temperature"] != document_temperature(iteration, attempt, temperature):
+                        iteration: int, attempt: int, temperature: float | None, stalled: int = 0) -> list[str]:
+        """The stall count must be the audit's own count, the temperature the schedule's for this
+        iteration, attempt and stall count, and the target the one ``document_target`` computes from
+        the shown (encoded) returns."""
+        problems = [f"unknown decision {k!r}" for k in sorted(set(decisions) - {"temperature", "target", "stalled"})]
+        if "stalled" in decisions and decisions["stalled"] != stalled:
+            problems.append(f"stall count {decisions['stalled']!r} is not the {stalled} the shown returns give")
+        if "temperature" in decisions and decisions["temperature"] != document_temperature(iteration, attempt, temperature, stalled):
             problems.append(f"temperature {decisions['temperature']!r} is not the schedule's for iteration {iteration}, attempt {attempt}")
         if "target" in decisions and shown and decisions["target"] != document_target(shown):
             problems.append(f"target {decisions['target']!r} is not computed from the shown returns")

@@ -1,0 +1,80 @@
+"""The document form explores when the search is stuck (issue 21): after STALL_AFTER LLM iterations
+in a row that did not raise the best shown return, an iteration is sampled at EXPLORE_TEMPERATURE.
+The decision is recorded with the call, made from public values only, and the audit recomputes it."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from ppprops.llm.client import Exchange, RequestShape
+from ppprops.privacy.audit import audit_run
+from ppprops.runner import start
+from ppprops.store import open_store
+from ppprops.wire.document import EXPLORE_TEMPERATURE, STALL_AFTER, TEMPERATURES
+
+from support import make_config
+
+
+class Stubborn:
+    """A base model that always continues the document with the same poor policy."""
+
+    def __init__(self, llm: Any) -> None:
+        self.shape = RequestShape.for_config(llm)  # the body the run's own client would send
+        self.temperatures: list[float] = []
+
+    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
+                          temperature: float | None = None) -> Exchange:
+        self.temperatures.append(float(temperature or 0.0))
+        body = self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+        content = ",".join(f"{i}:{0.01 * len(self.temperatures) - 0.5:.2f}" for i in range(D)) + "]"  # new each time
+        return Exchange(json.dumps(body), None, content, None, len(prompt), None, None, 0.0, True, finish_reason="stop")
+
+    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
+        raise AssertionError("the document form never chats")
+
+    def count_tokens(self, text: str) -> int:
+        return len(text) // 4
+
+    def close(self) -> None:
+        pass
+
+
+def _run(tmp_path: Path) -> tuple[Path, Stubborn]:
+    config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2), prompt_form="document",
+                     select_top=0)
+    chat = Stubborn(config.llm)
+    start(config, tmp_path / "r", chat=chat)
+    return tmp_path / "r", chat
+
+
+def test_a_stuck_search_is_sampled_hotter_and_the_choice_is_recorded(tmp_path: Path) -> None:
+    run, chat = _run(tmp_path)
+    with open_store(run) as store:
+        cands, calls = store.candidates(), store.llm_calls()
+    stalled = []
+    best, k = max(c.feedback_enc.ret for c in cands[:3]), 0
+    for c in cands[3:]:  # the count as the proposer keeps it, from the returns shown
+        stalled.append(k)
+        k = 0 if c.feedback_enc.ret > best else k + 1
+        best = max(best, c.feedback_enc.ret)
+    expected = [EXPLORE_TEMPERATURE if s >= STALL_AFTER else TEMPERATURES[i % len(TEMPERATURES)] for i, s in enumerate(stalled)]
+    assert chat.temperatures == expected and EXPLORE_TEMPERATURE in expected  # the stubborn model got stuck, then hotter
+    decisions: list[dict[str, Any]] = [c["decisions"] for c in calls]
+    assert [d["stalled"] for d in decisions] == stalled and [d["temperature"] for d in decisions] == expected
+    assert all(c["form"] == "document" for c in calls)
+    report = audit_run(run)
+    assert not report.unverified and not report.leaks, report.format()
+
+
+def test_a_decision_the_form_did_not_make_is_flagged(tmp_path: Path) -> None:
+    run, _ = _run(tmp_path)
+    with sqlite3.connect(run / "run.sqlite") as db:
+        row_id, decisions = db.execute("SELECT id, decisions FROM llm_calls ORDER BY id LIMIT 1").fetchone()
+        forged = {**json.loads(decisions), "stalled": 7}  # a number the shown returns do not give
+        db.execute("UPDATE llm_calls SET decisions = ? WHERE id = ?", (json.dumps(forged), row_id))
+    report = audit_run(run)
+    assert any("stall count 7 is not the 0 the shown returns give" in f.detail for f in report.unverified), report.format()
