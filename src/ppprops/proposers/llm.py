@@ -53,6 +53,9 @@ FALLBACK_SIGMA = 0.05  # of the box width
 HINTS = {
     "length": "answers were cut off at the token limit: raise --max-tokens or lower --reasoning-effort",
     "reasoning_only": "answers held only reasoning: raise --max-tokens or lower --reasoning-effort",
+    "context_full": "the server's context is full (prompt and answer filled it; --max-tokens cannot help): start the "
+                    "server with a larger context (llama.cpp -c/--ctx-size, Ollama num_ctx; the embedded model: "
+                    "--context-size) or send a smaller prompt (--top-k, --param-digits)",
     "repeats_history": "answers repeated policies from the history",
 }
 
@@ -197,8 +200,10 @@ class LLMProposer:
         """The proposal in an answer (``wire.turns.judge_answer``; a document continuation:
         ``judge_continuation``), refused if it repeats the history shown."""
         if self.form == "document":
-            return judge_continuation(ex.content, self.ctx, self.shown(), finish_reason=ex.finish_reason)
-        return judge_answer(ex.content, ex.reasoning, self.ctx, self.shown(), finish_reason=ex.finish_reason)
+            result = judge_continuation(ex.content, self.ctx, self.shown(), finish_reason=ex.finish_reason)
+        else:
+            result = judge_answer(ex.content, ex.reasoning, self.ctx, self.shown(), finish_reason=ex.finish_reason)
+        return replace(result, error="context_full") if result.error == "length" and ex.context_full else result
 
     def _record(self, iteration: int, attempt: int, tries: tuple[Exchange, ...]) -> None:
         if self.on_exchange is not None:

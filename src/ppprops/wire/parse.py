@@ -24,7 +24,8 @@ Where the proposal comes from (one rule, for every server and model):
 
 A continuation of the document form (``wire.document``) is read by ``read_continuation``: the
 document ends inside an open list, so the answer is ``[`` plus the continuation up to its first
-``]``; whatever follows is the model writing more document and is never read. The values' index
+``]`` (or up to where it stopped, when the request's stop sequence ``]`` ended it); whatever
+follows is the model writing more document and is never read. The values' index
 labels (``0:1.5,1:-2``) are dropped and must count 0, 1, 2, ... Rule 1 holds for it too, and the
 numbers go through the same reader as a final text.
 
@@ -61,9 +62,11 @@ _REFUSAL = re.compile(r"\b(i can(?:no|')t|i cannot|i'm sorry|i am sorry|unable t
 _CUE = re.compile(r"\b(answer|propos\w*|final|output|submit|respond|go with|choose|my pick)\b", re.IGNORECASE)
 _OPEN_TAIL = re.compile(r"\[([^\[\]]*)$")
 
+# "context_full" is not the parser's: the client tells it apart from "length" by the token counts
+# (``llm.client.context_full``), and the proposer records it in its place.
 ERROR_KINDS = (
-    "empty", "reasoning_only", "length", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite",
-    "several_vectors", "labels",
+    "empty", "reasoning_only", "length", "context_full", "refusal", "no_numbers", "truncated", "wrong_length",
+    "non_finite", "several_vectors", "labels",
 )
 
 
@@ -380,7 +383,9 @@ def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_re
     """The proposal in the continuation of a document that ends with ``opening`` (an open list).
 
     The answer is ``opening`` + the text up to and including its first ``]``; text after that
-    is ignored. An answer cut off at the token limit is never used (``length``); an empty
+    is ignored. A continuation that ended by itself (``finish_reason`` ``stop``) without a ``]``
+    stopped at the request's stop sequence ``]``, which servers do not return: it is read as
+    closed there. An answer cut off at the token limit is never used (``length``); an empty
     continuation is ``empty``; one that never closes the list is ``truncated``. Never raises.
     """
     if finish_reason == "length":
@@ -391,6 +396,8 @@ def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_re
     if not body.strip():
         return _fail("empty", "the answer was empty")
     close = body.find("]")
+    if close < 0 and finish_reason == "stop":
+        body, close = body + "]", len(body)  # stopped at the stop sequence "]"
     head = body if close < 0 else body[: close + 1]
     head, bad = _unlabel(head)
     if bad:
