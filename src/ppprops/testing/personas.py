@@ -503,10 +503,23 @@ def base_model_runs_on(turn: Turn) -> Reply:
     return text_completion(turn, text, answer=turn.answer)
 
 
+def strict_completions(turn: Turn) -> Reply:
+    """A completions endpoint that does not know llama.cpp's ``grammar``: HTTP 400 naming it; else
+    ``base_model_runs_on`` (``stop`` honoured)."""
+    # OpenAI's API answers a field it does not know with HTTP 400, "Unrecognized request argument
+    # supplied: <name>" (invalid_request_error, param null), as quoted in openai/openai-python#1166
+    # and BerriAI/litellm#1233.
+    if "grammar" in turn.body:
+        return error(400, {"error": {"message": "Unrecognized request argument supplied: grammar",
+                                     "type": "invalid_request_error", "param": None, "code": None}})
+    return base_model_runs_on(turn)
+
+
 # A persona named here answers completions requests; any other answers them as ``document_plain``
 # (and a persona named only here answers chat requests as ``plain``).
 DOCUMENT_PERSONAS: dict[str, Callable[[Turn], Reply]] = {
     "plain": document_plain,
     "base_model_runs_on": base_model_runs_on,
     "context_full": context_full,
+    "strict_completions": strict_completions,
 }
