@@ -206,10 +206,10 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
 
 
 # -- the new attacks on pp and pp-hardened --------------------------------------------------------------
-def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20) -> Path:
+def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20, warmup: int = 10) -> Path:
     out = root / f"{task}__{method}__{seed}"
     with offline_llm():
-        start(make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed), out,
+        start(make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, seed=seed), out,
               secrets=seeded_secrets(method, task, seed))
     return out
 
@@ -246,17 +246,22 @@ def test_privacy_report_has_every_attack_row(tmp_path: Path) -> None:
     assert "audit exposed" in text
 
 
-@pytest.mark.slow
-def test_ant_survive_component_gives_c_under_pp_and_nothing_under_pp_hardened(tmp_path: Path) -> None:
+def test_ant_components_give_c_under_pp_and_nothing_under_pp_hardened(tmp_path: Path) -> None:
+    # seed 2: two policies saturate the actions in both runs, so saturated-ctrl applies to both (asserted):
+    # under pp it reads c off the shared map; under pp-hardened the control cost has a warped map of
+    # its own, so the same reading is of nothing
     pytest.importorskip("mujoco")
-    pp = _simulate(tmp_path, "Ant-Ultra", "pp", 0, iterations=4)
-    est = _estimate(pp, "Ant-Ultra", "survive-length")
-    assert est.applicable and abs(est.value / seeded_secrets("pp", "Ant-Ultra", 0).c - 1) < 0.01, est.detail
-    hard = _simulate(tmp_path, "Ant-Ultra", "pp-hardened", 0, iterations=4)
+    pp = _simulate(tmp_path, "Ant-Ultra", "pp", 2, iterations=2, warmup=6)
+    c = seeded_secrets("pp", "Ant-Ultra", 2).c
+    ests = {e.attack: e for e in run_attacks(load_requests(pp), "Ant-Ultra", (-6.0, 6.0))}
+    for name in ("survive-length", "additivity", "saturated-ctrl"):
+        assert ests[name].applicable and abs(ests[name].value / c - 1) < 0.01, (name, ests[name].detail)
+    hard = _simulate(tmp_path, "Ant-Ultra", "pp-hardened", 2, iterations=2, warmup=6)
     ests = {e.attack: e for e in run_attacks(load_requests(hard), "Ant-Ultra", (-6.0, 6.0))}
     assert not ests["survive-length"].applicable and not ests["additivity"].applicable
-    sat = ests["saturated-ctrl"]  # the control cost has a warped map of its own: any estimate is of nothing
-    assert not sat.applicable or abs(sat.value / seeded_secrets("pp-hardened", "Ant-Ultra", 0).c - 1) > 0.05
+    sat = ests["saturated-ctrl"]
+    assert sat.applicable, sat.detail  # the attack fires here too ...
+    assert abs(sat.value / seeded_secrets("pp-hardened", "Ant-Ultra", 2).c - 1) > 0.05  # ... and misses c
 
 
 # -- token counting sends nothing ------------------------------------------------------------------
