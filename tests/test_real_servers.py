@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_attacks import seeded_secrets
 
 from ppprops.cli import main
 from ppprops.client.secrets import Secrets
@@ -63,7 +64,9 @@ def run(tmp_path: Path, *personas: str, iterations: int = 2, llm: dict[str, Any]
         settings.update(llm or {})
         cfg = make_config(method=method, warmup=3, iterations=iterations, final_episodes=0, seed=RUN_SEED,
                           llm=LLMConfig(base_url=srv.base_url, model="m", **settings), **config)
-        secrets = Secrets(run_id=name, a=np.full(D, A), c=1.0) if method == "pp" else None
+        # fixed secrets: a run's outcome (and its audit verdict) repeats; pp-hardened's from its own distribution
+        secrets = Secrets(run_id=name, a=np.full(D, A), c=1.0) if method == "pp" else (
+            seeded_secrets(method, "CartPole", 0) if method == "pp-hardened" else None)
         start(cfg, out, secrets=secrets)
         answers = [a for _, _, a in srv.answers()]
     with open_store(out) as store:
