@@ -47,6 +47,14 @@ class Section:
     targets: list[tuple[str, str, bool | None]] = field(default_factory=list)  # (target, measured, met; None: no target)
 
 
+# --quick: every search a benchmark starts in this process (``config``) asks for at most this many
+# answer tokens and makes no corrections, so an LLM iteration costs one prefill and a few tokens:
+# the answers are cut off and the candidates are fallbacks, which exercises the same code paths
+# (requests, store, replay, timings) without the minutes a D=782 answer takes on 2 cores.
+QUICK_MAX_TOKENS = 8
+_quick = False
+
+
 @dataclass
 class Context:
     out: Path  # working directory for runs; kept so every figure can be traced to a store
@@ -54,6 +62,10 @@ class Context:
     keep: bool = False  # reuse a grid already recorded under ``out`` (resume it) instead of starting afresh
     collect: bool = False  # with keep: start nothing, report the runs the grid has finished (it may run elsewhere)
     cache: dict[str, Any] = field(default_factory=dict)  # runs one benchmark leaves for another
+
+    def __post_init__(self) -> None:
+        global _quick
+        _quick = self.quick  # config() reads it: the suite runs one Context per process
 
     def dir(self, name: str) -> Path:
         d = self.out / name
@@ -97,9 +109,13 @@ def machine() -> str:
 
 
 def config(task: str, method: str = "pp", **kw: Any) -> RunConfig:
+    """A benchmark run's settings; under ``--quick`` with ``QUICK_MAX_TOKENS`` and no corrections."""
     llm = kw.pop("llm", LLMConfig())
     base: dict[str, Any] = dict(warmup=10, iterations=10, top_k=10, final_episodes=0, seed=0)
     base.update(kw)
+    if _quick:
+        llm = replace(llm, max_tokens=llm.max_tokens or QUICK_MAX_TOKENS)
+        base["parse_retries"] = 0
     return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)
 
 

@@ -22,7 +22,7 @@ TARGET = 2.0  # percent of an iteration's wall time
 
 
 def run(ctx: Context) -> Section:
-    warmup, iters = (1, 2) if ctx.quick else (1, 3)
+    warmup, iters = (1, 1) if ctx.quick else (1, 3)
     run_dir = run_search(config(TASK, warmup=warmup, iterations=iters, top_k=10, seed=2, llm=LLMConfig(context_size=32768, timeout_s=900.0)),
                          ctx.dir("overhead") / "humanoid-torso")
     store = open_store(run_dir)

@@ -82,7 +82,7 @@ def run(ctx: Context) -> Section:
         raise SystemExit(f"--collect reports a recorded grid, and {out} holds none (run with --keep, or without both)")
     cmd = [sys.executable, "-m", "ppprops", "experiment", str(SPEC), "--out", str(out), "--quiet"]
     if ctx.quick:
-        cmd += ["--seeds", "2", "--warmup", "3", "--iterations", "2", "--final-episodes", "2"]
+        cmd += ["--seeds", "1", "--tasks", "CartPole,Acrobot", "--warmup", "3", "--iterations", "2", "--final-episodes", "1"]
     if not ctx.collect:
         subprocess.run(cmd, check=True)
     results: dict[tuple[str, str], dict[str, list[Any]]] = defaultdict(

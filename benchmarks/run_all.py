@@ -1,7 +1,7 @@
 """The benchmark suite: every figure of benchmarks/RESULTS.md, measured in one run.
 
     python benchmarks/run_all.py                 # about 2 hours on 2 idle cores; rewrites benchmarks/RESULTS.md
-    python benchmarks/run_all.py --quick --results /tmp/RESULTS.md   # tiny budgets: checks the suite runs
+    python benchmarks/run_all.py --quick --results /tmp/RESULTS.md --out /tmp/bench   # tiny budgets: checks the suite runs
     python benchmarks/run_all.py --keep --only quality prompt readme # reuse the recorded grid, rewrite 3 sections
 
 Needs the ``baselines`` and ``mujoco`` extras (CMA-ES; Ant and Humanoid). Runs are kept under
@@ -139,7 +139,9 @@ def main(argv: list[str] | None = None) -> int:
                         "instead of deleting it and starting afresh")
     p.add_argument("--collect", action="store_true",
                    help="with --keep: start nothing, report only the grid's finished runs (a grid still running elsewhere)")
-    p.add_argument("--quick", action="store_true", help="tiny budgets, to check the suite itself")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny budgets, to check the suite itself (a few minutes): one seed of the quality grid on CartPole "
+                        "and Acrobot, one LLM iteration per search, answers cut to a few tokens; the figures mean nothing")
     a = p.parse_args(argv)
     if a.collect and not a.keep:
         p.error("--collect reports a recorded grid: give --keep too")

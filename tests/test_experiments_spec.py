@@ -23,7 +23,9 @@ from ppprops.experiments.spec import build_spec, flags_table, load_spec, read_sp
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = ROOT / "experiments"
-PAPER = ROOT.parent / "shared" / "paper" / "pp-props-paper.tex"  # CI puts ../shared beside the clone
+# The paper's LaTeX source is not part of the repository: $PPPROPS_PAPER_TEX names it, else a
+# workspace that keeps it beside the clone (../shared/paper); without it the check is skipped.
+PAPER = Path(os.environ.get("PPPROPS_PAPER_TEX") or ROOT.parent / "shared" / "paper" / "pp-props-paper.tex")
 TEN = ["Ant-Ultra", "Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joints", "Humanoid-Torso",
        "Acrobot", "CartPole", "FetchReachDense", "Highway"]  # fmt: skip
 
@@ -224,6 +226,9 @@ def test_a_corrupt_grid_manifest_is_refused_and_left_as_it_is(tmp_path: Path, ho
 
 
 def test_paper_values_match_the_papers_main_table() -> None:
+    if not PAPER.is_file():
+        pytest.skip(f"the paper's LaTeX source is not in this clone ({PAPER} is absent; set PPPROPS_PAPER_TEX to check "
+                    "paper_values.py against it)")
     text = PAPER.read_text(encoding="utf-8")
     body = text[text.index(r"\label{tab:all_results}"):text.index(r"\end{tabular}", text.index(r"\label{tab:all_results}"))]
     names = {"Highway Env": "Highway"}

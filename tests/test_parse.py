@@ -24,6 +24,14 @@ GOOD = [
     ('{"params": ["1", "2", "3", "4"]}', (1, 2, 3, 4)),
     ('{"params": [1, 2, 3, 4]}\n{"params": [1, 2, 3, 4]}', (1, 2, 3, 4)),  # same vector restated
     ('{"params": [1e6, -1e6, 0, 0]}', (1e6, -1e6, 0, 0)),  # huge but finite: accepted, clipped later
+    # lists without brackets, in the layouts instruction-tuned chat models write
+    ("Here are the parameters:\n- 1\n- -2\n- 3.5\n- 4\n\nThey should balance it.", (1, -2, 3.5, 4)),
+    ("1. 1\n2. -2\n3. 3.5\n4. 4", (1, -2, 3.5, 4)),
+    ("1\n-2\n3.5\n4", (1, -2, 3.5, 4)),
+    ("| index | value |\n|---|---|\n| 0 | 1 |\n| 1 | -2 |\n| 2 | 3.5 |\n| 3 | 4 |", (1, -2, 3.5, 4)),
+    ("- **theta_0**: 1\n- **theta_1**: -2\n- theta_2: 3.5\n- theta_3 = 4", (1, -2, 3.5, 4)),
+    ("W[0][0] = 1\nW[0][1] = -2\nb[0] = 3.5\nb[1] = 4", (1, -2, 3.5, 4)),
+    ("1, -2, 3.5, 4", (1, -2, 3.5, 4)),
 ]
 BAD = [
     ("", "empty"),
@@ -40,7 +48,31 @@ BAD = [
     ('{"params": [1, 2, 3, 4]} or maybe {"params": [4, 3, 2, 1]}', "several_vectors"),
     ('{"params": [1.5, -2.25, 3', "truncated"),
     ("params[0]: 1\nparams[2]: 3\nparams[3]: 4", "wrong_length"),
+    ("1. Push left harder.\n2. Keep the rest.", "no_numbers"),  # a numbered list of words holds no vector
 ]
+
+# A list of the wrong size is wrong_length in every layout (issue 23: a bullet list of 4 of 10 numbers
+# was classified no_numbers, "no parameter vector was found"). D = 10 here; each holds 4 numbers.
+SHORT_LISTS = {
+    "bullets": "Here is my proposal:\n- 0.5\n- -1.2\n- 3.0\n- 0.1\n\nThis should keep the pole up.",
+    "star bullets": "* 0.5\n* -1.2\n* 3.0\n* 0.1",
+    "labelled bullets": "- cart position weight: 0.5\n- cart velocity weight: -1.2\n- pole angle: 3.0\n- bias: 0.1",
+    "numbered lines": "1. 0.5\n2. -1.2\n3. 3.0\n4. 0.1",
+    "numbered with parentheses": "1) 0.5\n2) -1.2\n3) 3.0\n4) 0.1",
+    "one per line": "0.5\n-1.2\n3.0\n0.1",
+    "one per line with commas": "0.5,\n-1.2,\n3.0,\n0.1",
+    "labelled lines": "p0 = 0.5\np1 = -1.2\np2 = 3.0\np3 = 0.1",
+    "matrix entries": "W[0][0] = 0.5\nW[0][1] = -1.2\nW[1][0] = 3.0\nb[0] = 0.1",
+    "table": "| i | value |\n|---|------|\n| 0 | 0.5 |\n| 1 | -1.2 |\n| 2 | 3.0 |\n| 3 | 0.1 |",
+    "one line": "My proposal: 0.5, -1.2, 3.0, 0.1",
+    "one line, spaces": "0.5 -1.2 3.0 0.1",
+}
+
+
+@pytest.mark.parametrize("layout", sorted(SHORT_LISTS))
+def test_a_short_list_is_wrong_length_in_any_layout(layout: str) -> None:
+    r = parse_answer(SHORT_LISTS[layout], 10)
+    assert (r.error, r.detail) == ("wrong_length", "expected 10 numbers, got 4"), r
 
 
 @pytest.mark.parametrize("text,expected", GOOD)

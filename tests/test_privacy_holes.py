@@ -208,10 +208,10 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
 
 
 # -- the new attacks on pp and pp-hardened --------------------------------------------------------------
-def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20) -> Path:
+def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20, warmup: int = 10) -> Path:
     out = root / f"{task}__{method}__{seed}"
     with offline_llm():
-        start(make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed), out,
+        start(make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, seed=seed), out,
               secrets=seeded_secrets(method, task, seed))
     return out
 
@@ -249,17 +249,32 @@ def test_privacy_report_has_every_attack_row(tmp_path: Path) -> None:
     assert "audit exposed" in text
 
 
-@pytest.mark.slow
-def test_ant_survive_component_gives_c_under_pp_and_nothing_under_pp_hardened(tmp_path: Path) -> None:
+def test_ant_components_give_c_under_pp_and_nothing_under_pp_hardened(tmp_path: Path) -> None:
     pytest.importorskip("mujoco")
-    pp = _simulate(tmp_path, "Ant-Ultra", "pp", 0, iterations=4)
-    est = _estimate(pp, "Ant-Ultra", "survive-length")
-    assert est.applicable and abs(est.value / seeded_secrets("pp", "Ant-Ultra", 0).c - 1) < 0.01, est.detail
-    hard = _simulate(tmp_path, "Ant-Ultra", "pp-hardened", 0, iterations=4)
-    ests = {e.attack: e for e in run_attacks(load_requests(hard), "Ant-Ultra", (-6.0, 6.0))}
-    assert not ests["survive-length"].applicable and not ests["additivity"].applicable
-    sat = ests["saturated-ctrl"]  # the control cost has a warped map of its own: any estimate is of nothing
-    assert not sat.applicable or abs(sat.value / seeded_secrets("pp-hardened", "Ant-Ultra", 0).c - 1) > 0.05
+    runs: dict[tuple[str, int], dict[str, Any]] = {}
+
+    def attacks(method: str, seed: int) -> dict[str, Any]:
+        if (method, seed) not in runs:
+            run = _simulate(tmp_path, "Ant-Ultra", method, seed, iterations=2, warmup=6)
+            runs[method, seed] = {e.attack: e for e in run_attacks(load_requests(run), "Ant-Ultra", (-6.0, 6.0))}
+        return runs[method, seed]
+
+    def c(method: str, seed: int) -> float:
+        return seeded_secrets(method, "Ant-Ultra", seed).c
+
+    # the survive component gives c under pp; under pp-hardened neither it nor the components' sum is shown
+    pp = attacks("pp", 0)
+    assert pp["survive-length"].applicable and abs(pp["survive-length"].value / c("pp", 0) - 1) < 0.01, pp["survive-length"].detail
+    hard = attacks("pp-hardened", 0)
+    assert not hard["survive-length"].applicable and not hard["additivity"].applicable
+    # saturated-ctrl fires only when two policies saturate the actions, which depends on the draw: the first of
+    # seeds 0-7 where it fires must give c under pp, and must miss it under pp-hardened (the control cost has a
+    # warped map of its own there). A preset on which it never fires fails the test: the claim went unchecked.
+    for method, close in (("pp", True), ("pp-hardened", False)):
+        seed = next((s for s in range(8) if attacks(method, s)["saturated-ctrl"].applicable), None)
+        assert seed is not None, f"saturated-ctrl never applied under {method} in seeds 0-7"
+        error = abs(attacks(method, seed)["saturated-ctrl"].value / c(method, seed) - 1)
+        assert (error < 0.01) if close else (error > 0.05), (method, seed, error)
 
 
 # -- token counting sends nothing ------------------------------------------------------------------

@@ -38,7 +38,7 @@ from support import make_config
 
 D = 10  # CartPole: (4 + 1) * 2
 A = 2.0  # every a_j: encoded = 2 * raw, so a persona's answers in [-3, 3] decode inside the box, unclipped
-PLAIN_BUDGET = default_max_tokens(D)  # 104
+PLAIN_BUDGET = default_max_tokens(D, explanation=True)  # 616: a chat request to an endpoint other than the embedded model
 
 
 @dataclass

@@ -4,6 +4,7 @@ counted, Retry-After is honoured up to its cap, and the fault server itself beha
 from __future__ import annotations
 
 import json
+import re
 import socket
 import time
 import urllib.error
@@ -41,7 +42,7 @@ def client_for(cfg: FaultConfig, **llm: object) -> Iterator[tuple[ChatClient, Fa
      ("reset", "dropped"), ("bad_json", "bad_response"), ("timeout", "timeout"), ("error_body", "http_502")],
 )
 def test_transient_fault_is_retried_to_the_bound_and_every_try_is_kept(kind: str, error_kind: str) -> None:
-    cfg = FaultConfig(fault_rate=1.0, kinds=(kind,), timeout_s=1.0, retry_after_s=0.01)
+    cfg = FaultConfig(fault_rate=1.0, kinds=(kind,), timeout_s=10.0, retry_after_s=0.01)  # stalls past every try
     with client_for(cfg) as (client, server):
         with pytest.raises(LLMUnavailable) as info:
             client.complete(MSG, D=6)
@@ -50,6 +51,8 @@ def test_transient_fault_is_retried_to_the_bound_and_every_try_is_kept(kind: str
     assert [t.retry for t in tries] == [0, 1, 2]
     assert all(not t.ok and t.error_kind == error_kind for t in tries)
     assert info.value.kind == error_kind and "3 times in a row" in str(info.value)
+    if kind == "timeout":  # each timed-out try of a request waits twice as long the next time
+        assert [re.search(r"within (\S+) s", t.error or "").group(1) for t in tries] == ["0.5", "1", "2"]  # type: ignore[union-attr]
 
 
 def test_a_fault_then_success_returns_the_answer_with_the_failed_tries() -> None:

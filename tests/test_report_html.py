@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import re
 import shutil
 import sqlite3
@@ -24,6 +25,7 @@ from ppprops.experiments.spec import build_spec
 from ppprops.testing.fault_server import FaultConfig, FaultServer
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+REQUIRE_CHROMIUM = "PPPROPS_REQUIRE_CHROMIUM"  # set by .ci/run: a missing browser fails the test instead of skipping it
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync"]  # fmt: skip
 
@@ -114,11 +116,53 @@ def test_reward_curve_mean_and_band_are_over_seeds(grid: Path) -> None:
     np.testing.assert_allclose(std, ys.std(axis=0))
 
 
-@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="chromium is not installed (.ci/run installs it)")
+def _chromium() -> str:
+    """The browser for the report page test: where it is missing, a skip with the reason, or a
+    failure when ``REQUIRE_CHROMIUM`` is set (``.ci/run`` sets it: CI must not skip this test)."""
+    if Path(CHROMIUM).exists():
+        return CHROMIUM
+    why = f"chromium is not installed ({CHROMIUM} is absent; .ci/run installs it)"
+    if os.environ.get(REQUIRE_CHROMIUM):
+        pytest.fail(f"{why}, and {REQUIRE_CHROMIUM} is set: the report page must be tested here")
+    pytest.skip(why)
+
+
+def test_a_missing_chromium_skips_for_a_developer_and_fails_where_ci_requires_it(monkeypatch: pytest.MonkeyPatch,
+                                                                                 tmp_path: Path) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "CHROMIUM", str(tmp_path / "no-chromium"))
+    monkeypatch.delenv(REQUIRE_CHROMIUM, raising=False)
+    with pytest.raises(pytest.skip.Exception, match="chromium is not installed"):
+        _chromium()
+    monkeypatch.setenv(REQUIRE_CHROMIUM, "1")
+    with pytest.raises(pytest.fail.Exception, match=f"{REQUIRE_CHROMIUM} is set"):
+        _chromium()
+
+
+def test_ci_stops_when_chromium_cannot_be_installed(tmp_path: Path) -> None:
+    """The chromium block of .ci/run, with no chromium on the PATH and an apt-get that fails."""
+    script = (Path(__file__).resolve().parent.parent / ".ci" / "run").read_text()
+    block = script[script.index("# chromium: begin"):script.index("# chromium: end")]
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "apt-get").write_text("#!/bin/sh\nexit 100\n")
+    (bin_dir / "apt-get").chmod(0o755)
+    env = {"PATH": f"{bin_dir}:/usr/bin/nonexistent", "HOME": str(tmp_path)}
+    done = subprocess.run(["/bin/bash", "-c", "set -euo pipefail\n" + block + "echo reached"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "reached" not in done.stdout
+    assert "ci: chromium could not be installed" in done.stderr
+    (bin_dir / "chromium").write_text("#!/bin/sh\nexit 0\n")  # with a browser there, CI requires the test
+    (bin_dir / "chromium").chmod(0o755)
+    done = subprocess.run(["/bin/bash", "-c", "set -euo pipefail\n" + block + 'echo "required=$PPPROPS_REQUIRE_CHROMIUM"'],
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == "required=1" and REQUIRE_CHROMIUM == "PPPROPS_REQUIRE_CHROMIUM"
+
+
 def test_index_html_renders_tables_and_images_in_chromium(grid: Path, tmp_path: Path) -> None:
+    browser = _chromium()
     out = write_report(grid, tmp_path / "report")
     url = (out / "index.html").as_uri()
-    dom = subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'ud1'}", "--virtual-time-budget=10000",
+    dom = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'ud1'}", "--virtual-time-budget=10000",
                           "--dump-dom", url], capture_output=True, text=True, timeout=120)  # fmt: skip
     assert dom.returncode == 0, dom.stderr[-2000:]
     body = re.search(r"<body[^>]*>", dom.stdout)
@@ -134,7 +178,7 @@ def test_index_html_renders_tables_and_images_in_chromium(grid: Path, tmp_path: 
     assert f"{float(rows['pp']['best_mean']):.2f} (" in dom.stdout  # the numbers are in the rendered table
 
     shot = tmp_path / "shot.png"
-    run = subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'ud2'}", "--virtual-time-budget=10000",
+    run = subprocess.run([browser, *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'ud2'}", "--virtual-time-budget=10000",
                           "--hide-scrollbars", "--window-size=1280,2400", f"--screenshot={shot}", url],
                          capture_output=True, text=True, timeout=120)  # fmt: skip
     assert run.returncode == 0 and shot.exists(), run.stderr[-2000:]

@@ -142,7 +142,10 @@ def _endpoint(e: dict[str, Any]) -> str:
 
 
 def format_summary(s: dict[str, Any]) -> str:
-    """The text ``ppprops show`` prints for ``run_summary``'s object."""
+    """The text ``ppprops show`` (and the end of ``ppprops run``) prints for ``run_summary``'s object.
+
+    A search whose candidates were mostly fallbacks (more than half; all of them: "the LLM
+    contributed nothing") gets a ``WARNING`` line right under the counts, with the reasons."""
     if s.get("training") is not None:
         return format_rl_summary(s)
     lines = [
@@ -156,6 +159,14 @@ def format_summary(s: dict[str, Any]) -> str:
     if ep:
         lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "
                      "final evaluation")
+    searched = c["candidates"] - c.get("warmup", 0) - c.get("by_source", {}).get("reeval", 0)
+    fallbacks = c.get("fallback", 0)
+    if searched and fallbacks * 2 > searched:  # the LLM contributed nothing, or little: say so first
+        why = ", ".join(f"{k} x{v}" for k, v in c.get("fallback_reasons", {}).items()) or "no reason recorded"
+        head = (f"every one of the {searched} search candidates was a fallback: the LLM contributed nothing"
+                if fallbacks == searched else
+                f"{fallbacks} of the {searched} search candidates were fallbacks: the LLM contributed little")
+        lines.append(f"WARNING  {head} ({why}; the best policy plus noise was evaluated instead)")
     if c["answer_failures"]:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
     if c.get("answers_from_reasoning"):
@@ -169,6 +180,10 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"endpoint adapted at LLM iteration {a['iteration']}: {a['change']}")
     if c.get("answer_failures", {}).get("length"):
         lines.append("answers  cut off at the token limit: raise --max-tokens (or lower --reasoning-effort)")
+    if c.get("answer_failures", {}).get("context_full"):
+        lines.append("answers  cut off because the server's context was full (not --max-tokens): start the server with a "
+                     "larger context (llama.cpp -c/--ctx-size, Ollama num_ctx; the embedded model: --context-size) or "
+                     "send a smaller prompt (--top-k, --param-digits)")
     if c.get("fallback_reasons"):
         lines.append("fallback " + ", ".join(f"{k} x{v}" for k, v in c["fallback_reasons"].items()))
     if c.get("numerical_faults"):

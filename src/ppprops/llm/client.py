@@ -24,12 +24,20 @@ the model as if it were an answer.
   When the endpoint turns out to reason (a reasoning field, reasoning markup, reasoning tokens)
   the default token budget grows to leave room for it. Each change is carried on the exchange
   that caused it (``Exchange.adaptation``), which the store records in the run.
+- **Timeouts fitted to the budget**: the per-request timeout is ``--timeout`` or, when the
+  token budget at the slowest generation speed seen so far needs longer, that time twice over
+  (an adaptation like the others); before any answer the embedded model gets a prior from slow
+  CPU speeds. A request that times out waits twice as long on its next try.
+- **A full context**: an answer cut off (``finish_reason`` ``length``) with fewer completion
+  tokens than the budget sent, or whose prompt and answer fill the known context, is marked
+  ``Exchange.context_full``: the server's context, not ``max_tokens``, stopped it.
 """
 
 from __future__ import annotations
 
 import email.utils
 import json
+import math
 import random
 import re
 import time
@@ -67,6 +75,8 @@ class Exchange:
     finish_reason: str | None = None  # the choice's: stop | length | content_filter | ...
     reasoning_tokens: int | None = None  # usage.completion_tokens_details.reasoning_tokens, when reported
     adaptation: str | None = None  # a change to later requests this exchange caused (recorded in the run)
+    # finish_reason length, but the server's context filled, not the answer budget (``context_full``)
+    context_full: bool = False
 
 
 class LLMUnavailable(LLMError):
@@ -136,17 +146,52 @@ CHAT_TEMPERATURE = 1.0  # the chat form's default sampling temperature (--temper
 REASONING_ROOM = {"minimal": 1024, "low": 4096, "medium": 8192, "high": 16384}
 REASONING_ROOM_UNSET = 8192
 SCHEMA_MISSES = 2  # --structured auto drops the JSON schema after this many unusable answers in a row under it
+# Per-request timeout fitted to the budget: TIMEOUT_MARGIN times the time the whole budget takes
+# at the slowest speed seen (completion tokens per second of latency), rounded up to TIMEOUT_STEP_S;
+# never below --timeout. Before any answer, the embedded model is assumed to read the prompt at
+# EMBEDDED_PRIOR[0] and write at EMBEDDED_PRIOR[1] tokens/s (busy CPU cores: dependencies.md
+# measured 1.7-13.5 tokens/s of generation under load; one thread at load 1-2 read a 7,323-token
+# Humanoid-Joints document at 180 tokens/s and wrote 16 tokens/s), with CHARS_PER_TOKEN characters
+# a prompt token (Gemma spends a token per digit: that document was 7,933 characters).
+TIMEOUT_MARGIN = 2.0
+TIMEOUT_STEP_S = 10.0
+# Only answers that took at least this share of the timeout measure the speed: in a quick answer
+# the fixed costs (connection, prompt) hide it, and a quick endpoint needs no longer timeout.
+TIMED_SHARE = 0.1
+EMBEDDED_PRIOR = (50.0, 5.0)
+CHARS_PER_TOKEN = 1.0
+# The document form's stop sequence on endpoints without the continuation grammar: the list it
+# continues ends at its first "]" (``wire.parse.read_continuation``); servers do not return the
+# stop sequence itself.
+DOCUMENT_STOP = ("]",)
 
 
-def default_max_tokens(D: int, reasoning_effort: str | None = None, *, reasoning: bool = False) -> int:
+# Tokens added to the answer budget of a chat request to an endpoint other than the embedded
+# model: instruction-tuned chat models often explain before they answer (issue 23: at 24 + 8 D
+# tokens, Qwen2.5-Coder-1.5B was cut off in 2 of 14 answers, SmolLM2-135M in 30 of 45 without a
+# schema), and each cut answer costs a correction request. The embedded model's grammar leaves
+# it no room to explain, and its document form continues a list, so neither gets it.
+EXPLANATION_ROOM = 512
+
+
+def default_max_tokens(D: int, reasoning_effort: str | None = None, *, reasoning: bool = False,
+                       explanation: bool = False, labels: bool = False) -> int:
     """Default token budget of one answer.
 
     Room for D numbers plus the JSON frame: some tokenizers (Gemma's) spend one token per digit,
-    so "-12.99, " can take 7 tokens; 8 per number leaves a margin. With ``reasoning_effort`` set
-    (other than ``none``), or ``reasoning`` (the endpoint was seen to reason), ``REASONING_ROOM``
-    more, since reasoning tokens count against the same limit.
+    so "-12.99, " can take 7 tokens; 8 per number leaves a margin. With ``labels`` (the document
+    form's continuation ``0:v,1:v,...]``, ``wire.document``) each value also carries its index
+    and a colon, a token per character on Gemma (a Humanoid-Joints answer, D=459, was cut off
+    after 423 values at 24 + 8 D = 3,696 tokens): the budget is then at least ``24 + sum over j
+    of (digits of j + 7)`` (the same 104 as before on CartPole, 4,504 at D=459). With
+    ``explanation`` (a chat request to an endpoint other than the embedded model)
+    ``EXPLANATION_ROOM`` more, for a short explanation before the answer. With
+    ``reasoning_effort`` set (other than ``none``), or ``reasoning`` (the endpoint was seen to
+    reason), ``REASONING_ROOM`` more, since reasoning tokens count against the same limit.
     """
-    answer = 24 + 8 * D
+    answer = 24 + 8 * D + (EXPLANATION_ROOM if explanation else 0)
+    if labels:
+        answer = max(answer, 24 + sum(len(str(j)) + 7 for j in range(D)))
     if reasoning_effort in REASONING_ROOM:
         return answer + REASONING_ROOM[reasoning_effort]
     return answer + (REASONING_ROOM_UNSET if reasoning else 0)
@@ -172,6 +217,7 @@ _PARAM_NAMES: dict[str, tuple[str, ...]] = {
     "reasoning_effort": ("reasoning_effort",),
     "response_format": ("response_format", "json_schema", "response_schema"),
     "grammar": ("grammar",),
+    "stop": ("stop",),
 }
 _REFUSES = re.compile(
     r"unknown|unsupported|not supported|unrecogni[sz]ed|not permitted|extra (?:inputs|fields)|cannot find field"
@@ -200,19 +246,26 @@ class RequestShape:
     run's ``LLMConfig`` and changes only through ``adapt`` (a refused parameter) and ``learn``
     (a usable answer): ``ChatClient`` drives it live, and the audit replays it on the recorded
     exchanges to know what each recorded request must hold (``privacy.reconstruct``).
+
+    It also holds the per-request timeout (``timeout``), which is not a request field but is
+    learnt the same way: from the generation speed of the answers so far (``learn``).
     """
 
     def __init__(self, config: LLMConfig, *, model: str, grammar_ok: bool) -> None:
         self.config = config
         self.model = model
+        self.grammar_ok = grammar_ok  # the embedded llama.cpp server: grammars, a known context size
         self.structured = config.structured
         if self.structured == "auto":
             self.structured = "grammar" if grammar_ok else "json_schema"
         self.dropped: set[str] = set()  # request parameters this endpoint refused
         self.token_param = "max_tokens"  # or max_completion_tokens, when the endpoint asks for it
         self.reasoning_seen = False
+        self.rate: float | None = None  # the slowest answer so far, completion tokens per second of latency
+        self.fitted_timeout_s: float | None = None  # the timeout fitted to ``rate`` and the budget
         self._adapted: set[str] = set()
         self._schema_misses = 0
+        self._sent: frozenset[str] = frozenset()  # the parameters of the last request built
 
     @classmethod
     def for_config(cls, config: LLMConfig) -> RequestShape:
@@ -225,9 +278,44 @@ class RequestShape:
         assert config.model is not None
         return cls(config, model=config.model, grammar_ok=False)
 
-    def max_tokens(self, D: int) -> int:
-        """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens``."""
-        return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen)
+    @property
+    def context_size(self) -> int | None:
+        """The server's context in tokens when this client knows it (the embedded server, started
+        with ``--context-size``), else None."""
+        return self.config.context_size if self.grammar_ok else None
+
+    def max_tokens(self, D: int, *, document: bool = False) -> int:
+        """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens`` (with room
+        for an explanation in a chat request to an endpoint other than the embedded model; a
+        ``document`` continuation gets none, and room for its index labels)."""
+        return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen,
+                                                            explanation=not document and not self.grammar_ok,
+                                                            labels=document)
+
+    def timeout(self, D: int, *, prompt_chars: int, document: bool = False) -> float:
+        """Seconds to wait for one answer: ``--timeout``, or longer where the budget needs it.
+
+        Once answers have been seen, ``fitted_timeout_s`` (``learn``): ``TIMEOUT_MARGIN`` times the
+        budget at the slowest speed seen. Before that, for the embedded model only, a prior from
+        ``EMBEDDED_PRIOR``: the prompt (``prompt_chars``, about ``CHARS_PER_TOKEN`` a token) and
+        the whole budget at slow-CPU speeds, so a high-dimensional task's first answer is not cut
+        off by a timeout meant for a remote server."""
+        wait = self.config.timeout_s
+        if self.fitted_timeout_s is not None:
+            return max(wait, self.fitted_timeout_s)
+        if self.grammar_ok:
+            prefill, generation = EMBEDDED_PRIOR
+            prior = prompt_chars / CHARS_PER_TOKEN / prefill + self.max_tokens(D, document=document) / generation
+            wait = max(wait, _round_up(TIMEOUT_MARGIN * prior))
+        return wait
+
+    def _grammar_on(self) -> bool:
+        """Whether a document request carries its continuation grammar: under ``--structured
+        grammar``, and under ``auto`` until the endpoint refuses it (a server that does not know
+        the field refuses or ignores it; llama.cpp's enforces it)."""
+        if "grammar" in self.dropped:
+            return False
+        return self.structured == "grammar" or self.config.structured == "auto"
 
     def fields(self, D: int, seed: int | None) -> dict[str, Any]:
         """The request body's fields other than ``messages``, in the order sent."""
@@ -247,6 +335,7 @@ class RequestShape:
             }
         elif self.structured == "grammar":
             body["grammar"] = params_grammar(D)
+        self._sent = frozenset(body) - {"model"}
         return body
 
     def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
@@ -258,19 +347,24 @@ class RequestShape:
                         temperature: float | None = None) -> dict[str, Any]:
         """The fields of a completions request (the document form, ``wire.document``) other than
         ``prompt``, in the order sent. ``grammar`` (GBNF, from ``wire.document.continuation_grammar``)
-        is sent when the endpoint takes llama.cpp grammars (``--structured grammar``, or ``auto``
-        with the embedded model) and has not refused it; there is no JSON answer to constrain, so
-        a JSON schema is never sent, nor ``reasoning_effort``. ``temperature`` (the proposer's,
-        per request: ``wire.document.document_temperature``) wins over ``--temperature``."""
+        is sent under ``--structured grammar``, and under ``auto`` until the endpoint refuses it;
+        there is no JSON answer to constrain, so a JSON schema is never sent, nor
+        ``reasoning_effort``. ``temperature`` (the proposer's, per request:
+        ``wire.document.document_temperature``) wins over ``--temperature``. To any endpoint but the
+        embedded one, ``stop`` is ``["]"]`` (``DOCUMENT_STOP``): a base model that is not held by a
+        grammar writes on past the list until the token limit, and that answer is never used."""
         body: dict[str, Any] = {"model": self.model}
         if "temperature" not in self.dropped:
             body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
         if self.token_param not in self.dropped:
-            body[self.token_param] = self.max_tokens(D)
+            body[self.token_param] = self.max_tokens(D, document=True)
         if seed is not None and "seed" not in self.dropped:
             body["seed"] = seed
-        if grammar is not None and self.structured == "grammar":
+        if grammar is not None and self._grammar_on():
             body["grammar"] = grammar
+        if not self.grammar_ok and "stop" not in self.dropped:
+            body["stop"] = list(DOCUMENT_STOP)
+        self._sent = frozenset(body) - {"model"}
         return body
 
     def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
@@ -280,15 +374,11 @@ class RequestShape:
         return {"model": fields.pop("model"), "prompt": prompt, **fields}
 
     def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
-        """After a refusal (``ADAPTABLE_KINDS``): (the change made, or None; a hint for the error
-        text when no change is possible)."""
+        """After a refusal (``ADAPTABLE_KINDS``) of the last request built: (the change made, or
+        None; a hint for the error text when no change is possible)."""
         if not _REFUSES.search(err.message):
             return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
-        sent = {"seed", "temperature", self.token_param} - self.dropped  # what the last request carried
-        if self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
-            sent.add("reasoning_effort")
-        if self.structured in ("json_schema", "grammar"):
-            sent.add("response_format" if self.structured == "json_schema" else "grammar")
+        sent = set(self._sent)  # what the last request carried
         named = [err.param] if err.param in _PARAM_NAMES else []
         if not named:
             low = err.message.lower()
@@ -316,32 +406,56 @@ class RequestShape:
                 return f"sent {other} instead of {param}"
             self.dropped.add(param)
             return f"dropped {param}"
-        if param in ("response_format", "grammar"):
+        if param == "response_format":
             self.structured = "none"
-            return "dropped the JSON schema (plain answers)" if param == "response_format" else "dropped the grammar"
+            return "dropped the JSON schema (plain answers)"
+        if param == "grammar":
+            self.dropped.add(param)
+            if self.structured == "grammar":
+                self.structured = "none"
+            return "dropped the grammar"
         self.dropped.add(param)
         return f"dropped {param}"
 
     def learn(self, content: str | None, reasoning: str | None, *, D: int, finish_reason: str | None = None,
-              reasoning_tokens: int | None = None, document: bool = False) -> list[str]:
-        """After a usable answer: room for reasoning once the endpoint is seen to reason, and
+              reasoning_tokens: int | None = None, document: bool = False, latency_s: float | None = None,
+              completion_tokens: int | None = None) -> list[str]:
+        """After a usable answer: room for reasoning once the endpoint is seen to reason;
         (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under
-        it (a ``document`` continuation is never under a JSON schema, so it does not count).
-        Returns the changes made, in words."""
+        it (a ``document`` continuation is never under a JSON schema, so it does not count); and a
+        longer timeout when ``TIMEOUT_MARGIN`` times the budget at the slowest speed seen so far
+        (``completion_tokens`` in ``latency_s`` seconds, prompt time included; only answers that
+        took ``TIMED_SHARE`` of the timeout or more) is past the current one. Returns the changes
+        made, in words."""
         notes = []
         saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
-            before = self.max_tokens(D)
+            before = self.max_tokens(D, document=document)
             self.reasoning_seen = True
-            if self.max_tokens(D) != before:
-                notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D)}: the endpoint returns reasoning")
+            if self.max_tokens(D, document=document) != before:
+                notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D, document=document)}: "
+                             "the endpoint returns reasoning")
         if not document and self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
             usable = read_answer(content, reasoning, D, finish_reason=finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
                 self.structured = "none"
                 notes.append(f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable")
+        now = max(self.config.timeout_s, self.fitted_timeout_s or 0.0)
+        if completion_tokens and latency_s and latency_s >= TIMED_SHARE * now:
+            rate = completion_tokens / latency_s
+            self.rate = rate if self.rate is None else min(self.rate, rate)
+            budget = self.max_tokens(D, document=document)
+            if TIMEOUT_MARGIN * budget / self.rate > now:
+                need = self.fitted_timeout_s = _round_up(TIMEOUT_MARGIN * budget / self.rate)
+                notes.append(f"timeout set to {need:g} s (--timeout {self.config.timeout_s:g}): answers came at "
+                             f"{self.rate:.1f} tokens/s and up to {budget} tokens are asked for")
         return notes
+
+
+def _round_up(seconds: float) -> float:
+    """``seconds`` rounded up to a whole ``TIMEOUT_STEP_S``."""
+    return float(math.ceil(seconds / TIMEOUT_STEP_S) * TIMEOUT_STEP_S)
 
 
 class ChatClient:
@@ -418,11 +532,17 @@ class ChatClient:
         failures: list[Exchange] = []
         transient = 0
         retry = 0
+        stretch = 1.0  # each timed-out try of this request waits twice as long the next time
         while True:
             body = build()
-            ex, retry_after, err = self._attempt(body, D=D, retry=retry)
+            document = "prompt" in body
+            prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
+            wait = stretch * self.shape.timeout(D, prompt_chars=prompt_chars, document=document)
+            ex, retry_after, err = self._attempt(body, D=D, retry=retry, timeout_s=wait)
             if ex.ok:
-                return replace(self._after_answer(ex, D, document="prompt" in body), failures=tuple(failures))
+                return replace(self._after_answer(ex, D, document=document), failures=tuple(failures))
+            if ex.error_kind == "timeout":
+                stretch *= 2.0
             if err is not None and ex.error_kind in ADAPTABLE_KINDS:
                 change, hint = self.shape.adapt(err)
                 if change is not None:
@@ -455,16 +575,20 @@ class ChatClient:
     def _after_answer(self, ex: Exchange, D: int, *, document: bool = False) -> Exchange:
         """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
         notes = self.shape.learn(ex.content, ex.reasoning, D=D, finish_reason=ex.finish_reason,
-                                 reasoning_tokens=ex.reasoning_tokens, document=document)
+                                 reasoning_tokens=ex.reasoning_tokens, document=document, latency_s=ex.latency_s,
+                                 completion_tokens=ex.completion_tokens)
         if not notes:
             return ex
         self.adaptations += notes
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(self, body: dict[str, Any], *, D: int, retry: int) -> tuple[Exchange, float | None, ServerError | None]:
-        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, never
-        raising for endpoint faults: (exchange, Retry-After seconds, what the server said when it refused)."""
+    def _attempt(self, body: dict[str, Any], *, D: int, retry: int,
+                 timeout_s: float | None = None) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, waiting at
+        most ``timeout_s`` (default ``--timeout``) for the answer, never raising for endpoint
+        faults: (exchange, Retry-After seconds, what the server said when it refused)."""
+        wait = self.config.timeout_s if timeout_s is None else timeout_s
         import openai
 
         document = "prompt" in body
@@ -490,11 +614,11 @@ class ChatClient:
 
         try:
             api = self._client.completions if document else self._client.chat.completions
-            raw = api.with_raw_response.create(**sdk_args, extra_body=extra)
+            raw = api.with_raw_response.create(**sdk_args, extra_body=extra, timeout=wait)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {self.config.timeout_s:g} s from {url}"), None, None
+            return failed("timeout", f"timeout: no answer within {wait:g} s from {url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
             return failed(kind, f"{kind}: {_cause(e)} at {url}"), None, None
@@ -536,19 +660,24 @@ class ChatClient:
                           text), None, None
         usage = completion.usage
         details = getattr(usage, "completion_tokens_details", None) if usage else None
+        prompt_tokens = usage.prompt_tokens if usage else None
+        completion_tokens = usage.completion_tokens if usage else None
+        full = finish == "length" and context_full(body.get(self.shape.token_param), prompt_tokens, completion_tokens,
+                                                   self.shape.context_size)
         return Exchange(
             request=request,
             response=text,
             content=content,
             reasoning=reasoning,
             prompt_chars=prompt_chars,
-            prompt_tokens=usage.prompt_tokens if usage else None,
-            completion_tokens=usage.completion_tokens if usage else None,
+            prompt_tokens=prompt_tokens,
+            completion_tokens=completion_tokens,
             latency_s=latency,
             ok=True,
             retry=retry,
             finish_reason=finish,
             reasoning_tokens=getattr(details, "reasoning_tokens", None),
+            context_full=full,
         ), None, None
 
     def close(self) -> None:
@@ -560,6 +689,19 @@ class ChatClient:
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
 _SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed"})
+
+
+def context_full(max_tokens: Any, prompt_tokens: int | None, completion_tokens: int | None,
+                 context_size: int | None = None) -> bool:
+    """Whether an answer that ended with ``finish_reason`` ``length`` was stopped by the
+    server's context rather than by the answer budget: it holds fewer completion tokens than
+    ``max_tokens`` (the budget sent, or None when none was), or prompt and answer together reach
+    ``context_size`` (when the client knows the server's context). Unknown token counts: False."""
+    if not isinstance(completion_tokens, int):
+        return False
+    if isinstance(max_tokens, int) and not isinstance(max_tokens, bool) and completion_tokens < max_tokens:
+        return True
+    return context_size is not None and isinstance(prompt_tokens, int) and prompt_tokens + completion_tokens >= context_size
 
 
 def server_error(status: int | None, text: str | None) -> ServerError:

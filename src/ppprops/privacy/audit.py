@@ -62,7 +62,7 @@ from .transcript import Request, message_text, parse_request
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``).
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
-                         "response_format", "grammar"})
+                         "response_format", "grammar", "stop"})
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
                "token counts, and the provider's own answers")
 

@@ -282,7 +282,8 @@ class ClientReplay:
         if row.get("ok"):
             finish, tokens = response_facts(row.get("response"))
             notes = self.shape.learn(row.get("content"), row.get("reasoning"), D=self.D, finish_reason=finish,
-                                     reasoning_tokens=tokens, document=document)
+                                     reasoning_tokens=tokens, document=document, latency_s=row.get("latency_s"),
+                                     completion_tokens=row.get("completion_tokens"))
             if notes:
                 self.changes.append("; ".join(notes))
         elif row.get("error_kind") in _STATUS:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,9 @@ FALLBACK_SIGMA = 0.05  # of the box width
 HINTS = {
     "length": "answers were cut off at the token limit: raise --max-tokens or lower --reasoning-effort",
     "reasoning_only": "answers held only reasoning: raise --max-tokens or lower --reasoning-effort",
+    "context_full": "the server's context is full (prompt and answer filled it; --max-tokens cannot help): start the "
+                    "server with a larger context (llama.cpp -c/--ctx-size, Ollama num_ctx; the embedded model: "
+                    "--context-size) or send a smaller prompt (--top-k, --param-digits)",
     "repeats_history": "answers repeated policies from the history",
 }
 
@@ -181,6 +185,8 @@ class LLMProposer:
             if self.on_answer is not None:
                 self.on_answer(ex)
             result = self.form.judge(ex.content, ex.reasoning, self.ctx, shown, finish_reason=ex.finish_reason)
+            if result.error == "length" and ex.context_full:  # the server's context filled up, not the answer budget
+                result = replace(result, error="context_full")
             self.chat.judged(ex, parse_error=result.error, answer_source=result.source if result.ok else "content")
             if result.values is not None:
                 with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box

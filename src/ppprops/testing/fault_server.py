@@ -1,4 +1,5 @@
-"""A fault-injecting OpenAI-compatible chat-completions server, for tests and the soak benchmark.
+"""A fault-injecting OpenAI-compatible server (chat completions, and completions for the document
+form), for tests and the soak benchmark.
 
 It listens on 127.0.0.1 only. Each request either passes (to an upstream server, or answered
 with a valid random vector of the requested length) or, with probability ``fault_rate``, gets
@@ -16,14 +17,22 @@ bad answers (HTTP 200, well-formed envelope)
     ``several_vectors``, ``reasoning_only`` (empty content, the vector in ``reasoning_content``),
     ``refusal``
 
+Both endpoints take the same faults: ``/chat/completions`` (``messages``) answers in a chat
+completion, ``/completions`` (``prompt``, the document form of ``ppprops.wire.document``) in a
+text completion whose text continues the document's open list; its bad answers are the same
+kinds written as such a continuation (``garble_document``).
+
 Requests that get no fault are answered by a persona (``personas``, drawn per request; see
 ``ppprops.testing.personas``: vLLM, Ollama and llama.cpp serving gpt-oss, harmony markup, R1
-think tags, DeepSeek, OpenAI reasoning models, Gemini, ...), or passed upstream, or answered
-with a plain random vector. ``answers()`` lists the new vectors the personas meant to propose.
-``v1_only`` answers 404 for any path but ``/v1/chat/completions``, as Ollama does.
+think tags, DeepSeek, OpenAI reasoning models, Gemini, chatty chat models, a full context, a
+slow CPU server, ...; on ``/completions`` the personas of ``DOCUMENT_PERSONAS``, such as a base
+model that writes on past the list), or passed upstream, or answered with a plain random vector.
+``answers()`` lists the new vectors the personas meant to propose. ``v1_only`` answers 404 for
+any path but ``/v1/chat/completions`` and ``/v1/completions``, as Ollama does.
 
 The vector length D is read from the request: the JSON schema's ``minItems``, the llama.cpp
-grammar's repetition count, or the prompt's "with D numbers" / "exactly D ... numbers".
+grammar's repetition count (or the labels of the document form's continuation grammar), the
+prompt's "with D numbers" / "exactly D ... numbers", or the last history entry of a document.
 Decisions come from one seeded generator in arrival order, so a serial client sees the same
 fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
 ``max_seconds`` seconds. ``GET /stats`` returns the counts.
@@ -53,7 +62,11 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from .personas import PERSONAS, Reply, read_turn
+from ..wire.transcript import history_entries
+from .personas import DOCUMENT_PERSONAS, PERSONAS, QUIRK_PERSONAS, Reply, labelled_list, read_turn, text_completion
+
+CHAT_PERSONAS = {**PERSONAS, **QUIRK_PERSONAS}
+KNOWN_PERSONAS = tuple(dict.fromkeys([*CHAT_PERSONAS, *DOCUMENT_PERSONAS]))
 
 TRANSPORT_KINDS = ("delay", "timeout", "http_429", "http_500", "http_503", "drop", "reset", "bad_json", "error_body")
 ANSWER_KINDS = (
@@ -78,7 +91,7 @@ class FaultConfig:
     value_range: float = 3.0  # synthetic answers draw uniform(-value_range, value_range)
     default_dim: int | None = None  # D when the request does not tell
     personas: tuple[str, ...] = ()  # answer healthy requests as one of these (drawn per request); () = plain vectors
-    v1_only: bool = False  # 404 for any path but /v1/chat/completions
+    v1_only: bool = False  # 404 for any path but /v1/chat/completions and /v1/completions
     error_body_code: int = 502  # the code inside an "error_body" fault
 
     def validate(self) -> None:
@@ -94,9 +107,9 @@ class FaultConfig:
         unknown = [k for k in self.kinds if k not in ALL_KINDS]
         if unknown or not self.kinds:
             raise ValueError(f"unknown fault kinds {unknown}; choose from {', '.join(ALL_KINDS)}")
-        bad = [p for p in self.personas if p not in PERSONAS]
+        bad = [p for p in self.personas if p not in KNOWN_PERSONAS]
         if bad:
-            raise ValueError(f"unknown personas {bad}; choose from {', '.join(PERSONAS)}")
+            raise ValueError(f"unknown personas {bad}; choose from {', '.join(KNOWN_PERSONAS)}")
         if self.personas and self.upstream is not None:
             raise ValueError("personas answer by themselves; they do not go with an upstream")
         if self.upstream is not None and not self.upstream.startswith("http://"):
@@ -138,7 +151,7 @@ class _State:
     def answered(self, n: int, persona: str, reply: Reply) -> None:
         """Log a reply; ``persona`` may also be the name of the bad-answer fault that made it."""
         with self.lock:
-            if persona in PERSONAS:
+            if persona in KNOWN_PERSONAS:
                 self.personas[persona] += 1
             if reply.answer is not None:
                 self.answers.append((n, persona, list(reply.answer)))
@@ -156,11 +169,14 @@ class _State:
 
 
 _SCHEMA_DIM = re.compile(r"\{(\d+)\}")
+_GRAMMAR_LABEL = re.compile(r'"(?:,)?(\d+):"')
 _PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?numbers")
 
 
 def requested_dim(body: dict[str, Any], default: int | None = None) -> int | None:
-    """D from the JSON schema, the grammar, or the prompt text (in that order)."""
+    """D from the JSON schema, the grammar (the chat form's repetition count, or the labels of the
+    document form's continuation grammar), the prompt text, or the last entry of a document (in
+    that order)."""
     try:
         schema = body["response_format"]["json_schema"]["schema"]
         return int(schema["properties"]["params"]["minItems"])
@@ -168,8 +184,15 @@ def requested_dim(body: dict[str, Any], default: int | None = None) -> int | Non
         pass
     grammar = body.get("grammar")
     if isinstance(grammar, str):
+        labels = _GRAMMAR_LABEL.findall(grammar)
+        if labels:
+            return max(int(x) for x in labels) + 1
         m = _SCHEMA_DIM.search(grammar)
         return int(m.group(1)) + 1 if m else 1
+    prompt = body.get("prompt")
+    if isinstance(prompt, str):
+        entries = history_entries(prompt, "document")
+        return len(entries[-1].params) if entries else default
     for msg in reversed(body.get("messages") or []):
         content = msg.get("content") if isinstance(msg, dict) else None
         if isinstance(content, str):
@@ -222,6 +245,38 @@ def garble(kind: str, D: int, rng: random.Random, span: float) -> tuple[str | No
     if kind == "refusal":
         return "I'm sorry, but I can't help with choosing these parameters.", None
     raise ValueError(f"not an answer fault: {kind}")
+
+
+def garble_document(kind: str, D: int, rng: random.Random, span: float) -> str:
+    """The continuation text of a bad answer of the given kind, for the document form's open list
+    (``0:v,1:v,...]``). Kinds with no such form of their own are written as their nearest one:
+    ``reasoning_only`` as a ``<think>`` block and nothing else, ``several_vectors`` as the list and a
+    second entry after it (the first list is the answer: usable)."""
+    good = labelled_list(_vector(rng, D, span))
+    if kind == "empty":
+        return ""
+    if kind == "truncated":
+        return good[: max(4, len(good) // 2)].rstrip("]")
+    if kind == "wrong_length":
+        n = D + rng.choice([-1, 1, 3]) if D > 1 else 2
+        return labelled_list(_vector(rng, max(1, n), span))
+    if kind in ("nan", "inf", "huge"):
+        vals: list[Any] = _vector(rng, D, span)
+        vals[rng.randrange(D)] = {"nan": "nan", "inf": rng.choice(["inf", "-inf"]), "huge": "1e308"}[kind]
+        return labelled_list(vals)
+    if kind == "prose":
+        return "the pole angle weights should grow]"
+    if kind == "several_vectors":
+        return good + "\n\nreturn: 1.00\nparams: [" + labelled_list(_vector(rng, D, span))
+    if kind == "reasoning_only":
+        return "<think>the best entry is the last one; change a few of its values</think>"
+    if kind == "refusal":
+        return "I'm sorry, but I can't help with that.]"
+    raise ValueError(f"not an answer fault: {kind}")
+
+
+# Bad document answers a client can still use: the list they start with.
+USABLE_BAD_DOCUMENT_ANSWERS = ("huge", "several_vectors")
 
 
 def _completion(content: str | None, reasoning: str | None, model: str, n: int) -> dict[str, Any]:
@@ -298,12 +353,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         st = self.state
         cfg = st.config
         path = self.path.split("?")[0].rstrip("/")
-        if cfg.v1_only and path != "/v1/chat/completions":
+        if cfg.v1_only and path not in ("/v1/chat/completions", "/v1/completions"):
             self._send(404, b"404 page not found", content_type="text/plain")  # Go's default, as Ollama answers
             return
-        if path not in ("/v1/chat/completions", "/chat/completions"):
+        if path not in ("/v1/chat/completions", "/chat/completions", "/v1/completions", "/completions"):
             self._error(404, f"no route {self.path}")
             return
+        document = not path.endswith("/chat/completions")
         n, kind, rng, persona = st.draw()
         if cfg.max_requests is not None and n > cfg.max_requests:
             self._error(503, "the fault server's request budget is spent")
@@ -316,15 +372,20 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         except ValueError:
             self._error(400, "request body is not a JSON object")
             return
+        if document != isinstance(body.get("prompt"), str):
+            what = "a prompt string" if document else "messages"
+            self._error(400, f"{path} takes {what}")
+            return
         model = str(body.get("model") or "fault-synthetic")
         try:
-            self._answer(body, raw, model, n, kind, rng, persona)
+            self._answer(body, raw, model, n, kind, rng, persona, path=path)
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up first (it timed out): nothing to do
 
     def _answer(self, body: dict[str, Any], raw: bytes, model: str, n: int, kind: str | None, rng: random.Random,
-                persona: str = "plain") -> None:
+                persona: str = "plain", *, path: str = "/v1/chat/completions") -> None:
         st, cfg = self.state, self.state.config
+        document = not path.endswith("/chat/completions")
         if kind == "timeout":
             st.stop.wait(cfg.timeout_s)
             self._hang_up()
@@ -348,6 +409,19 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if kind == "delay":
             st.stop.wait(rng.uniform(0.0, cfg.delay_max_s))
         D = requested_dim(body, cfg.default_dim)
+        if kind in ANSWER_KINDS and document:
+            if D is None:
+                self._error(400, "cannot tell the vector length D from the request")
+                return
+            continuation = garble_document(kind, D, rng, cfg.value_range)
+            vector = None
+            if kind in USABLE_BAD_DOCUMENT_ANSWERS:
+                first = continuation.split("]")[0]
+                vector = [float(item.split(":")[1]) for item in first.split(",")]
+            reply = text_completion(_bare_turn(model, n), continuation, answer=vector)
+            st.answered(n, kind, reply)
+            self._send(200, reply.body)
+            return
         if kind in ANSWER_KINDS:
             if D is None:
                 self._error(400, "cannot tell the vector length D from the request")
@@ -364,20 +438,24 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         # pass (or "drop": a valid answer cut off mid-body): the upstream's answer, or a random vector
         drop = kind == "drop"
         if cfg.upstream is not None:
-            status, data = self._forward(raw)
+            status, data = self._forward(raw, path)
             self._send(status, data, partial=drop)
             return
         if D is None:
             self._error(400, "cannot tell the vector length D from the request")
             return
         turn = read_turn(body, D, _vector(rng, D, cfg.value_range), rng, n)
-        reply = PERSONAS[persona](turn)
+        if document:
+            reply = DOCUMENT_PERSONAS.get(persona, DOCUMENT_PERSONAS["plain"])(turn)
+        else:
+            reply = CHAT_PERSONAS.get(persona, PERSONAS["plain"])(turn)
         st.answered(n, persona, reply if not drop else Reply(reply.status, reply.body))  # a dropped answer proposes nothing
         self._send(reply.status, reply.body, partial=drop, content_type=reply.content_type)
 
-    def _forward(self, raw: bytes) -> tuple[int, bytes]:
+    def _forward(self, raw: bytes, path: str) -> tuple[int, bytes]:
         assert self.state.config.upstream is not None
-        url = self.state.config.upstream.rstrip("/") + "/chat/completions"
+        url = self.state.config.upstream.rstrip("/") + ("/chat/completions" if path.endswith("/chat/completions")
+                                                        else "/completions")
         req = urllib.request.Request(url, data=raw, method="POST", headers={"Content-Type": "application/json"})
         auth = self.headers.get("Authorization")
         if auth:
@@ -389,6 +467,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             return e.code, e.read()
         except (urllib.error.URLError, OSError) as e:
             return 502, json.dumps({"error": {"message": f"upstream unreachable: {e}", "code": 502}}).encode()
+
+
+def _bare_turn(model: str, n: int) -> Any:
+    """The little of a request that ``personas.text_completion`` reads (model, request number)."""
+    from .personas import Turn
+
+    return Turn(body={}, D=0, answer=[], rng=random.Random(0), n=n, model=model, document=True)
 
 
 class _QuietServer(http.server.ThreadingHTTPServer):
@@ -489,8 +574,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dim", type=int, default=None, help="D when a request does not tell")
     p.add_argument("--max-requests", type=int, default=None)
     p.add_argument("--max-seconds", type=float, default=600.0)
-    p.add_argument("--personas", default="", help=f"all | comma-separated, from {', '.join(PERSONAS)}")
-    p.add_argument("--v1-only", action="store_true", help="404 for any path but /v1/chat/completions")
+    p.add_argument("--personas", default="",
+                   help=f"all (those of personas.PERSONAS) | comma-separated, from {', '.join(KNOWN_PERSONAS)}")
+    p.add_argument("--v1-only", action="store_true", help="404 for any path but /v1/chat/completions and /v1/completions")
     p.add_argument("--error-body-code", type=int, default=502, help="code inside an injected error_body fault")
     p.add_argument("--answers-file", type=str, default=None, help="write the proposed vectors here as JSON when stopping")
     a = p.parse_args(argv)

@@ -1,6 +1,7 @@
 """Server-and-model personas for the fault server: answers in the shapes real endpoints produce.
 
-Each persona answers one chat-completions request the way a given server and model are publicly
+Each persona answers one chat-completions request (``PERSONAS``, and ``QUIRK_PERSONAS`` for single
+quirks) or one completions request of the document form (``DOCUMENT_PERSONAS``) the way a given server and model are publicly
 documented or reported to answer it: where the reasoning goes (a ``reasoning`` or
 ``reasoning_content`` field, ``<think>`` tags, a lone ``</think>``, gpt-oss harmony markup),
 what happens when ``max_tokens`` runs out while reasoning (``finish_reason: "length"``), and
@@ -24,7 +25,12 @@ from typing import Any
 
 from ..wire.transcript import history_entries
 
-REASONING_TOKENS = 300  # what a persona's reasoning costs out of the token budget
+# What a persona's reasoning costs out of the token budget: more than a chat request's default
+# budget before the client makes room for reasoning (24 + 8 D + 512 on CartPole: 616).
+REASONING_TOKENS = 1000
+EXPLANATION_TOKENS = 200  # what the chatty persona's explanation costs (four characters a token)
+CONTEXT_TOKENS = 4096  # the context of the context_full personas' server
+SLOW_TOKENS_PER_S = 1000.0  # the generation speed of the slow CPU personas (they sleep for it)
 
 
 @dataclass(frozen=True)
@@ -52,6 +58,7 @@ class Turn:
     corrected: bool = False  # the conversation already holds a correction
     model: str = "fault-synthetic"
     extra: dict[str, Any] = field(default_factory=dict)
+    document: bool = False  # a completions request of the document form (``prompt``, no messages)
 
     @property
     def budget(self) -> int | None:
@@ -70,9 +77,13 @@ class Turn:
 
 
 def read_turn(body: dict[str, Any], D: int, answer: list[float], rng: random.Random, n: int) -> Turn:
-    """The Turn of request number ``n``: its chat ``body``, the vector length ``D``, the ``answer`` to
-    propose, and what the first message shows (the best history entry of length D, the indexed form,
-    whether a correction was already made)."""
+    """The Turn of request number ``n``: its chat (or completions) ``body``, the vector length ``D``,
+    the ``answer`` to propose, and what the first message (or the document) shows (the best history
+    entry of length D, the indexed form, whether a correction was already made)."""
+    if isinstance(body.get("prompt"), str):  # the document form: history lowest return first, best last
+        entries = [e for e in history_entries(body["prompt"], "document") if len(e.params) == D]
+        return Turn(body=body, D=D, answer=answer, rng=rng, n=n, best=entries[-1].params if entries else None,
+                    model=str(body.get("model") or "fault-synthetic"), document=True)
     messages = [m for m in body.get("messages") or [] if isinstance(m, dict)]
     prompt = str(messages[0].get("content") or "") if messages else ""
     entries = [e for e in history_entries(prompt) if len(e.params) == D]
@@ -124,6 +135,8 @@ def completion(turn: Turn, content: str | None, *, message: dict[str, Any] | Non
     msg.update(message or {})
     visible = len(content or "") + sum(len(v) for v in (message or {}).values() if isinstance(v, str))
     tokens = visible // 4 + 1 + (reasoning_tokens or 0)
+    if finish == "length" and turn.budget is not None:
+        tokens = turn.budget  # cut off at the token limit: the whole budget was spent
     usage: dict[str, Any] = {"prompt_tokens": 0, "completion_tokens": tokens, "total_tokens": tokens}
     if reasoning_tokens is not None:
         usage["completion_tokens_details"] = {"reasoning_tokens": reasoning_tokens}
@@ -136,6 +149,27 @@ def completion(turn: Turn, content: str | None, *, message: dict[str, Any] | Non
         "usage": usage,
     }
     return Reply(200, json.dumps(doc).encode(), answer=answer)
+
+
+def text_completion(turn: Turn, text: str, *, finish: str = "stop", answer: list[float] | None = None,
+                    prompt_tokens: int = 0, completion_tokens: int | None = None) -> Reply:
+    """A 200 completions body (``object: text_completion``) whose one choice continues the
+    document with ``text``; the usage counts four characters a token, or ``completion_tokens``."""
+    tokens = len(text) // 4 + 1 if completion_tokens is None else completion_tokens
+    doc = {
+        "id": f"cmpl-persona-{turn.n}",
+        "object": "text_completion",
+        "created": int(time.time()),
+        "model": turn.model,
+        "choices": [{"index": 0, "text": text, "logprobs": None, "finish_reason": finish}],
+        "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": tokens, "total_tokens": prompt_tokens + tokens},
+    }
+    return Reply(200, json.dumps(doc).encode(), answer=answer)
+
+
+def labelled_list(values: list[Any]) -> str:
+    """The continuation of the document form's open list: ``0:v0,1:v1,...`` and the closing ``]``."""
+    return ",".join(f"{i}:{v}" for i, v in enumerate(values)) + "]"
 
 
 def error(status: int, doc: Any) -> Reply:
@@ -340,6 +374,75 @@ def repeats_history_once(turn: Turn) -> Reply:
     return completion(turn, params_json(turn.answer), answer=turn.answer)
 
 
+def chatty_explainer(turn: Turn) -> Reply:
+    """An instruction-tuned chat model that explains before it answers (about ``EXPLANATION_TOKENS``);
+    cut off at the token limit when the budget cannot hold both; a JSON schema holds it to the object."""
+    # Instruction-tuned chat models (Qwen2.5-Coder-1.5B-Instruct, SmolLM2-135M-Instruct behind
+    # llama.cpp, issue 23) write a paragraph on the history before the answer object unless a JSON
+    # schema holds them to it; at 24 + 8 D tokens that cut off 2 of 14 and 30 of 45 answers.
+    ans = params_json(turn.answer)
+    if turn.schema:
+        return completion(turn, ans, answer=turn.answer)
+    words = ("Looking at the history, the best policy puts most weight on the pole angle and its velocity. "
+             "Returns rise as those weights grow, while the cart position weights matter less. ")
+    explanation = (words * (EXPLANATION_TOKENS * 4 // len(words) + 1))[: EXPLANATION_TOKENS * 4]
+    budget = turn.budget
+    if budget is not None and budget < EXPLANATION_TOKENS + len(ans) // 4 + 1:
+        return completion(turn, explanation[: budget * 4], finish="length")
+    return completion(turn, explanation + "\n\nMy proposal:\n" + ans, answer=turn.answer)
+
+
+def bullet_list_once(turn: Turn) -> Reply:
+    """A small chat model that first answers with a bullet list of only 4 of the D numbers; the
+    answer object once corrected."""
+    # SmolLM2-135M-Instruct without a schema (issue 23): a bullet list holding 4 of the 10 numbers.
+    if not turn.corrected:
+        items = "\n".join(f"- {v}" for v in turn.answer[:4])
+        return completion(turn, f"Here are the new parameters:\n{items}")
+    return completion(turn, params_json(turn.answer), answer=turn.answer)
+
+
+def llamacpp_forced_think(turn: Turn) -> Reply:
+    """llama.cpp with a chat template that forces ``<think>`` open: everything, the answer object
+    included, in ``reasoning_content``; content empty; a JSON schema is not enforced."""
+    # llama-server --jinja with a template that opens <think> in the prompt (dependencies.md,
+    # 2026-12-01): the reasoning parser files the whole answer under reasoning_content, and the
+    # json_schema grammar is not applied to it.
+    ans = params_json(turn.answer)
+    return completion(turn, "", message={"reasoning_content": r1_thought(turn) + "So my answer is " + ans},
+                      answer=turn.answer)
+
+
+def context_full(turn: Turn) -> Reply:
+    """A server whose context (``CONTEXT_TOKENS``) is full: the answer stops with finish_reason
+    "length" before the budget is spent, prompt and answer together filling the context."""
+    # llama.cpp when prompt + answer reach its context size (dependencies.md, 2026-12-01):
+    # finish_reason "length", total tokens equal to the context, whatever max_tokens was.
+    written = min(20, max(1, (turn.budget or 40) // 2))
+    prompt_tokens = CONTEXT_TOKENS - written
+    if turn.document:
+        return text_completion(turn, ",".join(f"{i}:{v}" for i, v in enumerate(turn.answer[:2])), finish="length",
+                               prompt_tokens=prompt_tokens, completion_tokens=written)
+    doc = json.loads(completion(turn, params_json(turn.answer)[:40], finish="length").body)
+    doc["usage"] = {"prompt_tokens": prompt_tokens, "completion_tokens": written, "total_tokens": CONTEXT_TOKENS}
+    return Reply(200, json.dumps(doc).encode())
+
+
+def slow_cpu_reasoner(turn: Turn) -> Reply:
+    """A reasoning model on a CPU llama.cpp server: ``SLOW_TOKENS_PER_S`` tokens a second (it
+    sleeps for them), ``REASONING_TOKENS`` of reasoning in ``reasoning_content`` before the answer;
+    cut off at the token limit when the budget cannot hold them."""
+    # llama-server on CPU cores with a reasoning model (issue 23): 7 tokens/s against a budget of
+    # 8,296 tokens is about 20 minutes, past a 300 s timeout; here everything is 1000 times faster.
+    ans = params_json(turn.answer)
+    if short_of_budget(turn, ans):
+        time.sleep((turn.budget or 0) / SLOW_TOKENS_PER_S)
+        return completion(turn, "", message={"reasoning_content": cut(analysis(turn))}, finish="length")
+    time.sleep((REASONING_TOKENS + len(ans) // 4 + 1) / SLOW_TOKENS_PER_S)
+    return completion(turn, ans, message={"reasoning_content": analysis(turn)}, reasoning_tokens=REASONING_TOKENS,
+                      answer=turn.answer)
+
+
 PERSONAS: dict[str, Callable[[Turn], Reply]] = {
     "plain": plain,
     "vllm_gpt_oss": vllm_gpt_oss,
@@ -356,4 +459,67 @@ PERSONAS: dict[str, Callable[[Turn], Reply]] = {
     "restates_history": restates_history,
     "unicode_minus": unicode_minus,
     "repeats_history_once": repeats_history_once,
+}
+# Chat personas for single quirks, named one by one and never drawn by "all" (``PERSONAS``): a full
+# context never gives a usable answer, the slow server sleeps, and adding them to ``PERSONAS``
+# would change the sequence a seeded server draws from it.
+QUIRK_PERSONAS: dict[str, Callable[[Turn], Reply]] = {
+    "chatty_explainer": chatty_explainer,
+    "bullet_list_once": bullet_list_once,
+    "llamacpp_forced_think": llamacpp_forced_think,
+    "context_full": context_full,
+    "slow_cpu_reasoner": slow_cpu_reasoner,
+}
+
+
+# -- the document form (the completions endpoint) -----------------------------------------------------
+def document_plain(turn: Turn) -> Reply:
+    """A base model held to the open list (a grammar, or a well-behaved model): the D values and ``]``."""
+    return text_completion(turn, labelled_list(turn.answer), answer=turn.answer)
+
+
+def base_model_runs_on(turn: Turn) -> Reply:
+    """A base model that closes the list and then writes more document (another entry, and another)
+    until the token limit. A ``stop`` sequence ends it there (the stop text is not returned, as
+    llama.cpp, vLLM and OpenAI do); a ``grammar`` ends it at ``]``. Neither: cut off, "length"."""
+    # Gemma 3 270M behind a remote llama-server, continuing the document without a grammar
+    # (issue 23, twice 18 of 18 iterations): after the list it writes "return: ...", "params: [...",
+    # and so on until max_tokens, so every answer ended with finish_reason "length".
+    listed = labelled_list(turn.answer)
+    more = "".join(f"\n\nreturn: {100 + 10 * k:.2f}\nparams: [" + labelled_list([round(turn.rng.uniform(-3, 3), 2)
+                                                                                    for _ in range(turn.D)])
+                   for k in range(50))
+    text = listed + more
+    if isinstance(turn.body.get("grammar"), str):
+        return text_completion(turn, listed, answer=turn.answer)
+    stops = turn.body.get("stop")
+    stops = [stops] if isinstance(stops, str) else [x for x in stops or [] if isinstance(x, str) and x]
+    cuts = [text.find(x) for x in stops if x in text]
+    if cuts:
+        return text_completion(turn, text[: min(cuts)], answer=turn.answer)
+    budget = turn.budget
+    if budget is not None and len(text) // 4 >= budget:
+        return text_completion(turn, text[: budget * 4], finish="length", completion_tokens=budget)
+    return text_completion(turn, text, answer=turn.answer)
+
+
+def strict_completions(turn: Turn) -> Reply:
+    """A completions endpoint that does not know llama.cpp's ``grammar``: HTTP 400 naming it; else
+    ``base_model_runs_on`` (``stop`` honoured)."""
+    # OpenAI's API answers a field it does not know with HTTP 400, "Unrecognized request argument
+    # supplied: <name>" (invalid_request_error, param null), as quoted in openai/openai-python#1166
+    # and BerriAI/litellm#1233.
+    if "grammar" in turn.body:
+        return error(400, {"error": {"message": "Unrecognized request argument supplied: grammar",
+                                     "type": "invalid_request_error", "param": None, "code": None}})
+    return base_model_runs_on(turn)
+
+
+# A persona named here answers completions requests; any other answers them as ``document_plain``
+# (and a persona named only here answers chat requests as ``plain``).
+DOCUMENT_PERSONAS: dict[str, Callable[[Turn], Reply]] = {
+    "plain": document_plain,
+    "base_model_runs_on": base_model_runs_on,
+    "context_full": context_full,
+    "strict_completions": strict_completions,
 }

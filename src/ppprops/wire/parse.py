@@ -12,7 +12,11 @@ Where the proposal comes from (one rule, for every server and model):
 3. If the final text is not empty it is the only source: the requested answer object
    ``{"params": [...]}`` wins over any other form in it (a restated ``params[i]: v`` list or a
    quoted history list); without one, a bare JSON list, ``parameters``/``theta`` keys,
-   ``params[i]: value`` lines or a bracketed list are read.
+   ``params[i]: value`` lines or a bracketed list are read, and failing those a list written
+   without brackets: one value per line (bullets, numbered lines, bare numbers, labelled values
+   such as ``theta_3: 1.5`` or ``W[0][1] = 1.5``, table rows whose last cell is the value) or a
+   line of numbers separated by commas or spaces. A list of the wrong size, in any of these
+   layouts, is ``wrong_length``, never ``no_numbers``.
 4. Only when the final text is empty is reasoning (the content's own and the server's separate
    ``reasoning_content``/``reasoning`` field) read, and then only for an explicit final answer:
    the last ``{"params": [...]}`` object in it, or else the last list of D numbers that follows
@@ -20,7 +24,8 @@ Where the proposal comes from (one rule, for every server and model):
 
 A continuation of the document form (``wire.document``) is read by ``read_continuation``: the
 document ends inside an open list, so the answer is ``[`` plus the continuation up to its first
-``]``; whatever follows is the model writing more document and is never read. The values' index
+``]`` (or up to where it stopped, when the request's stop sequence ``]`` ended it); whatever
+follows is the model writing more document and is never read. The values' index
 labels (``0:1.5,1:-2``) are dropped and must count 0, 1, 2, ... Rule 1 holds for it too, and the
 numbers go through the same reader as a final text.
 
@@ -57,9 +62,11 @@ _REFUSAL = re.compile(r"\b(i can(?:no|')t|i cannot|i'm sorry|i am sorry|unable t
 _CUE = re.compile(r"\b(answer|propos\w*|final|output|submit|respond|go with|choose|my pick)\b", re.IGNORECASE)
 _OPEN_TAIL = re.compile(r"\[([^\[\]]*)$")
 
+# "context_full" is not the parser's: the client tells it apart from "length" by the token counts
+# (``llm.client.context_full``), and the proposer records it in its place.
 ERROR_KINDS = (
-    "empty", "reasoning_only", "length", "refusal", "no_numbers", "truncated", "wrong_length", "non_finite",
-    "several_vectors", "labels",
+    "empty", "reasoning_only", "length", "context_full", "refusal", "no_numbers", "truncated", "wrong_length",
+    "non_finite", "several_vectors", "labels",
 )
 
 
@@ -147,13 +154,24 @@ def _to_floats(items: list[object]) -> list[float] | None:
     return out
 
 
+_INDEX = re.compile(r"\[\s*\d{1,4}\s*\]")
+
+
+def _index_at(text: str, i: int) -> bool:
+    """True when the ``[`` at ``i`` opens an index (``W[0]``, ``b[2]``, ``x_[1]``): one integer in
+    brackets right after a name or another index."""
+    return i > 0 and (text[i - 1].isalnum() or text[i - 1] in "_]") and _INDEX.match(text, i) is not None
+
+
 def _json_values(text: str) -> list[tuple[int, object]]:
     """(offset, value) of every JSON object or list that decodes at some position of the text."""
     found: list[tuple[int, object]] = []
     dec = json.JSONDecoder()
     i = 0
     while i < len(text):
-        if text[i] in "[{":
+        if text[i] == "[" and _index_at(text, i):
+            i += 1  # an index, as in W[0][1] or b[2], not a list
+        elif text[i] in "[{":
             try:
                 obj, end = dec.raw_decode(text, i)
             except ValueError:
@@ -207,12 +225,70 @@ def _indexed_vector(text: str) -> list[float] | None:
 def _bracket_vectors(text: str) -> list[tuple[int, list[float]]]:
     out: list[tuple[int, list[float]]] = []
     for m in _BRACKETS.finditer(text):
+        if _index_at(text, m.start()):
+            continue  # an index, as in W[0][1] or b[2], not a list
         body = m.group(1)
         nums = re.findall(_NUM, body, flags=re.IGNORECASE)
         rest = re.sub(_NUM, "", body, flags=re.IGNORECASE)
         if nums and re.fullmatch(r"[\s,;]*", rest):
             out.append((m.start(), [float(v) for v in nums]))
     return out
+
+
+# One value per line: "- 1.5", "* 1.5", "3. 1.5", "(3) 1.5", "1.5,", "p3 = 1.5", "theta_3: 1.5",
+# "W[0][1] = 1.5"; after a bullet or an item number, any short label: "- pole angle weight: 1.5".
+_LABEL = r"\**(?:params?|parameters?|theta|\u03b8|weights?|w|p|x|b)?[ _]?(?:\[?\d{1,4}\]?){1,2}\**"
+_ITEM_LINE = re.compile(
+    r"^\s*(?:(?:[-*+\u2022\u2023\u25e6]\s+|\(?\d{1,4}[.)]\s+|\(\d{1,4}\)\s*)(?:[^:=\n]{1,60}[:=]\s*)?"
+    r"|(?:" + _LABEL + r"\s*[:=]\s*)?)"
+    r"\**(" + _NUM + r")\**\s*[,;]?\s*$",
+    re.IGNORECASE,
+)
+_TABLE_ROW = re.compile(r"^\s*\|(.*)\|\s*$")
+_TABLE_RULE = re.compile(r"^[\s|:+-]*$")
+# A line of two or more numbers and separators only, after a short label without digits:
+# "1.5, -2, 0.3", "1.5 -2 0.3", "My proposal: 1.5, -2, 0.3".
+_NUMBER_LINE = re.compile(r"^\s*(?:[^:=\d\n]{0,60}[:=]\s*)?(?:" + _NUM + r")(?:\s*[,;]?\s*(?:" + _NUM + r"))+\s*[,;.]?\s*$", re.IGNORECASE)
+
+
+def _line_value(line: str) -> float | None:
+    """The one value of a list line (bullet, numbered item, bare number, labelled value, table
+    row whose last cell is a number), or None when the line is not one."""
+    row = _TABLE_ROW.match(line)
+    if row:
+        cells = [c.strip().strip("*") for c in row.group(1).split("|")]
+        if cells and re.fullmatch(_NUM, cells[-1], flags=re.IGNORECASE):
+            return float(cells[-1])
+        return None
+    m = _ITEM_LINE.match(line)
+    return float(m.group(1)) if m else None
+
+
+def _line_lists(text: str) -> list[list[float]]:
+    """Vectors written without brackets: runs of two or more lines that hold one value each
+    (bullets, numbered lines, one number per line, table rows; blank lines, a table's header and
+    rule lines may sit between them), and lines of two or more numbers separated by commas or
+    spaces. Each run, and each such line, is one vector."""
+    found: list[list[float]] = []
+    run: list[float] = []
+
+    def close() -> None:
+        if len(run) >= 2:
+            found.append(list(run))
+        run.clear()
+
+    for line in text.splitlines():
+        if not line.strip() or (run and _TABLE_RULE.fullmatch(line)):
+            continue
+        value = _line_value(line)
+        if value is not None:
+            run.append(value)
+            continue
+        close()
+        if _NUMBER_LINE.match(line):
+            found.append([float(v) for v in re.findall(_NUM, line.split(":")[-1].split("=")[-1], flags=re.IGNORECASE)])
+    close()
+    return found
 
 
 def _distinct(vectors: list[list[float]]) -> list[list[float]]:
@@ -253,6 +329,8 @@ def _parse_final(body: str, D: int) -> ParseResult:
         if tail and re.search(_NUM, tail.group(1), flags=re.IGNORECASE):
             n = len(re.findall(_NUM, tail.group(1), flags=re.IGNORECASE))
             return _fail("truncated", f"the answer stopped after {n} of {D} numbers, before the closing bracket")
+        vectors = _line_lists(body)
+    if not vectors:
         if _REFUSAL.search(body):
             return _fail("refusal", "the answer declined to propose parameters")
         return _fail("no_numbers", "no parameter vector was found in the answer")
@@ -305,7 +383,9 @@ def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_re
     """The proposal in the continuation of a document that ends with ``opening`` (an open list).
 
     The answer is ``opening`` + the text up to and including its first ``]``; text after that
-    is ignored. An answer cut off at the token limit is never used (``length``); an empty
+    is ignored. A continuation that ended by itself (``finish_reason`` ``stop``) without a ``]``
+    stopped at the request's stop sequence ``]``, which servers do not return: it is read as
+    closed there. An answer cut off at the token limit is never used (``length``); an empty
     continuation is ``empty``; one that never closes the list is ``truncated``. Never raises.
     """
     if finish_reason == "length":
@@ -316,6 +396,8 @@ def read_continuation(text: str | None, D: int, *, opening: str = "[", finish_re
     if not body.strip():
         return _fail("empty", "the answer was empty")
     close = body.find("]")
+    if close < 0 and finish_reason == "stop":
+        body, close = body + "]", len(body)  # stopped at the stop sequence "]"
     head = body if close < 0 else body[: close + 1]
     head, bad = _unlabel(head)
     if bad:
