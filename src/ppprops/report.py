@@ -155,10 +155,6 @@ def format_summary(s: dict[str, Any]) -> str:
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())
     lines.append(f"evals    {c['candidates']} ({sources}); {c['llm_calls']} LLM calls")
-    ep = c.get("episodes")
-    if ep:
-        lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "
-                     "final evaluation")
     searched = c["candidates"] - c.get("warmup", 0) - c.get("by_source", {}).get("reeval", 0)
     fallbacks = c.get("fallback", 0)
     if searched and fallbacks * 2 > searched:  # the LLM contributed nothing, or little: say so first
@@ -167,6 +163,10 @@ def format_summary(s: dict[str, Any]) -> str:
                 if fallbacks == searched else
                 f"{fallbacks} of the {searched} search candidates were fallbacks: the LLM contributed little")
         lines.append(f"WARNING  {head} ({why}; the best policy plus noise was evaluated instead)")
+    ep = c.get("episodes")
+    if ep:
+        lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "
+                     "final evaluation")
     if c["answer_failures"]:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
     if c.get("answers_from_reasoning"):
