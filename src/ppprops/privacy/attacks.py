@@ -34,11 +34,12 @@ from .. import seeding
 from ..errors import ConfigError
 from ..plugins import load_plugins
 from ..proposers.llm import FALLBACK_SIGMA
+from . import simfit
 from .knowledge import PublicFacts
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
 from .runseed import RANGE_STATED as _RANGE
 from .runseed import find_run_seed, replay_scale
-from .simfit import DEFAULT_LIMITS, SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a
+from .simfit import SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a
 from .tokens import token_value
 from .transcript import Request
 from .view import Estimate, Shown, View, same_marker, view_of
@@ -318,7 +319,7 @@ def run_attacks(requests: Sequence[Request], task: str | Task, box: tuple[float,
     """
     load_plugins()
     v = view_of(requests, task, box)
-    v.memo["sim_limits"] = limits or DEFAULT_LIMITS
+    v.memo["sim_limits"] = limits or simfit.DEFAULT_LIMITS
     out = []
     unknown = not facts_known(v)
     for name, f in ATTACKS.items():

@@ -53,10 +53,11 @@ from ..wire.document import continuation_grammar, document_target, document_temp
 from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
 from ..wire.turns import judge_answer
 from . import reconstruct as rc
+from . import simfit
 from .exposure import Assessment, assess
 from .knowledge import facts_for
 from .runseed import find_run_seed
-from .simfit import DEFAULT_LIMITS, SimLimits
+from .simfit import SimLimits
 from .simulator import env_is_public
 from .tokens import renders, token_value
 from .transcript import Request, message_text, parse_request
@@ -218,7 +219,7 @@ class _Auditor:
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
                  limits: SimLimits | None = None, simulate: bool = True) -> None:
-        self.limits = limits or DEFAULT_LIMITS
+        self.limits = limits or simfit.DEFAULT_LIMITS
         self.simulate = simulate
         self.config = config
         self.mech: Mechanisms = config.mechanisms
@@ -752,12 +753,6 @@ class _Auditor:
                 secret = f"the best shown policy's {x.target}"
             self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
                          by_design=x.paper)
-        exposed = {(x.attack, x.target) for x in found.exposures}
-        for o in found.simulated:  # a simulator fit that beats the prior guess without reaching 1%: a channel
-            if (o.attack, o.target) in exposed or o.error is None or o.prior_error is None or o.error >= o.prior_error:
-                continue
-            self.finding("channel", "simulator_fit", f"{o.attack} estimates {o.target} within {100 * o.error:.3g}% (the prior "
-                         f"guess: {100 * o.prior_error:.3g}%) by simulating the public env", "transcript")
         self.report.not_run = found.not_run
         self.report.estimates = found.estimates
         if found.note:

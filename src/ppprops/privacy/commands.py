@@ -45,10 +45,10 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
     pr.add_argument("--offline", action="store_true",
                     help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")
     pr.add_argument("--json", action="store_true", help="print one JSON list of per-run analyses")
-    _sim_options(pr, audit=False)
+    _sim_options(pr)
 
 
-def _sim_options(p: argparse.ArgumentParser, audit: bool = True) -> None:
+def _sim_options(p: argparse.ArgumentParser) -> None:
     from .simfit import DEFAULT_LIMITS
 
     d = DEFAULT_LIMITS
@@ -57,8 +57,7 @@ def _sim_options(p: argparse.ArgumentParser, audit: bool = True) -> None:
                         f"the real env gets N/{d.vector_steps // d.env_steps})")
     p.add_argument("--sim-seconds", type=float, default=d.seconds, metavar="S",
                    help=f"wall-clock guard of each simulator attack (default {d.seconds:g})")
-    if audit:
-        p.add_argument("--no-simulate", action="store_true", help="skip the simulator attacks (listed as not run)")
+    p.add_argument("--no-simulate", action="store_true", help="skip the simulator attacks (listed as not run)")
 
 
 def _limits(a: argparse.Namespace) -> SimLimits:
@@ -115,7 +114,7 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
         dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
                           final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline)
-    text, analyses = privacy_report(dirs, _limits(a), log=lambda s: print(s, file=sys.stderr))
+    text, analyses = privacy_report(dirs, _limits(a), log=lambda s: print(s, file=sys.stderr), simulate=not a.no_simulate)
     write_report(out, text, analyses, "ppprops " + " ".join(shlex.quote(x) for x in sys.argv[1:]))
     print(json.dumps([x.to_json() for x in analyses]) if a.json else text)
     if not a.json:

@@ -22,10 +22,11 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import ConfigError
 from ..store import open_store
+from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
 from .exposure import EXPOSED_WITHIN, shown_candidate
-from .simfit import DEFAULT_LIMITS, SimLimits
+from .simfit import SimLimits
 from .transcript import load_requests
 
 SCHEMES = ("pp", "pp-hardened")
@@ -71,11 +72,12 @@ def _rel(est: float | np.ndarray, true: float | np.ndarray) -> Any:
 RAW_ROW = "raw return (sim-exact)"  # the best shown policy's raw return as the exact simulator fit decodes it
 
 
-def analyse_run(run_dir: Path, limits: SimLimits | None = None) -> RunAnalysis:
+def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: bool = True) -> RunAnalysis:
     """Attacks on one run's transcript, scored against its key file; plus its search result.
 
     The attacks run once, inside the run's audit (simulator attacks within ``limits``); their
-    estimates are scored here. Raises StoreError / KeyFileError for an unreadable run or key file.
+    estimates are scored here; ``simulate=False`` leaves the simulator attacks out. Raises
+    StoreError / KeyFileError for an unreadable run or key file.
     """
     run_dir = Path(run_dir)
     with open_store(run_dir) as store:
@@ -94,11 +96,11 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None) -> RunAnalysis:
         final_mean=fe.mean if fe is not None and fe.returns else None, llm_calls=len(calls),
         fallbacks=sum(c.source == "fallback" for c in cands), audit="",
     )
-    report = audit_run(run_dir, limits=limits)
+    report = audit_run(run_dir, limits=limits, simulate=simulate)
     out.audit = report.verdict()
     requests = load_requests(run_dir)
     out.model = _model_of(run_dir) if requests else ""
-    estimates = report.estimates or run_attacks(requests, task, config.box, limits=limits)
+    estimates = report.estimates or run_attacks(requests, task, config.box, limits=limits, simulate=simulate)
     for est in estimates:
         if est.not_run:
             out.not_run[est.attack] = est.not_run
@@ -192,7 +194,7 @@ def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) 
         groups.setdefault((r.task, r.method), []).append(r)
     cols = sorted(groups, key=lambda k: (k[0], SCHEMES.index(k[1]) if k[1] in SCHEMES else 9, k[1]))
     head = "| attack | secret | " + " | ".join(f"{t} {m}" for t, m in cols) + " |"
-    lim = limits or DEFAULT_LIMITS
+    lim = limits or simfit.DEFAULT_LIMITS
     lines = [
         "Recovery error of the secret: error factor - 1, i.e. exp(|ln(estimate / true)|) - 1 (1% = within 1%, 100% = off by 2x",
         "either way). For c: the median over runs. For a: the median over every coordinate the attack estimated, all runs pooled.",
@@ -243,16 +245,17 @@ def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) 
 
 
 def privacy_report(run_dirs: Sequence[Path], limits: SimLimits | None = None,
-                   log: Callable[[str], None] | None = None) -> tuple[str, list[RunAnalysis]]:
-    """Analyse every run in ``run_dirs`` (``analyse_run``, simulator attacks within ``limits``) and
-    format the report: (Markdown text, analyses). ``log`` hears one line per run analysed.
+                   log: Callable[[str], None] | None = None, *, simulate: bool = True) -> tuple[str, list[RunAnalysis]]:
+    """Analyse every run in ``run_dirs`` (``analyse_run``, simulator attacks within ``limits``, or
+    none with ``simulate=False``) and format the report: (Markdown text, analyses). ``log`` hears
+    one line per run analysed.
 
     Raises StoreError / KeyFileError for a directory that is not a run or has no usable key file.
     """
     analyses = []
     for d in run_dirs:
         t0 = time.time()
-        analyses.append(analyse_run(d, limits))
+        analyses.append(analyse_run(d, limits, simulate=simulate))
         if log is not None:
             log(f"{d}: analysed in {time.time() - t0:.0f} s")
     return format_report(analyses, limits), analyses

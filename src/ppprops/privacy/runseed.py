@@ -102,24 +102,36 @@ def warmup_box(v: View) -> tuple[float, float]:
 
 
 def _scales_consistently(W: np.ndarray, tol: np.ndarray, draws: np.ndarray, need: int) -> bool:
-    """Whether ``need`` shown warm-up entries are draws times one positive scale per coordinate
-    (interval arithmetic on the printed precision: every entry narrows each scale's interval)."""
+    """Whether ``need`` shown warm-up entries are draws times one positive scale per coordinate."""
+    return len(_assign(W, tol, draws)[0]) >= need
+
+
+def _assign(W: np.ndarray, tol: np.ndarray, draws: np.ndarray) -> tuple[dict[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Shown warm-up entry -> the draw it is, under one positive scale per coordinate (interval
+    arithmetic on the printed precision: each entry matched to exactly one draw narrows every
+    scale's interval; entries that fit several draws are retried once the intervals are narrower).
+    Returns the assignment and the scale intervals (low, high), each shape (D,)."""
     lo_q = np.zeros(W.shape[1])
     hi_q = np.full(W.shape[1], np.inf)
-    used = 0
-    for i, w in enumerate(W):
-        fits = []
-        for r in draws:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                a = np.where(np.abs(r) > 0, (w - tol[i]) / r, -np.inf)
-                b = np.where(np.abs(r) > 0, (w + tol[i]) / r, np.inf)
-            lo_i, hi_i = np.maximum(np.minimum(a, b), lo_q), np.minimum(np.maximum(a, b), hi_q)
-            if np.all(lo_i <= hi_i) and np.all(hi_i > 0):
-                fits.append((lo_i, hi_i))
-        if len(fits) == 1:
-            lo_q, hi_q = fits[0]
-            used += 1
-    return used >= need
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A = np.where(np.abs(draws)[None] > 0, (W - tol)[:, None, :] / draws[None], -np.inf)  # (entries, draws, D)
+        B = np.where(np.abs(draws)[None] > 0, (W + tol)[:, None, :] / draws[None], np.inf)
+    low_all, high_all = np.minimum(A, B), np.maximum(A, B)
+    out: dict[int, int] = {}
+    for _ in range(3):
+        changed = False
+        for i in range(len(W)):
+            if i in out:
+                continue
+            lo_i, hi_i = np.maximum(low_all[i], lo_q), np.minimum(high_all[i], hi_q)
+            fits = np.flatnonzero(np.all(lo_i <= hi_i, axis=1) & np.all(hi_i > 0, axis=1))
+            if len(fits) == 1:
+                out[i] = int(fits[0])
+                lo_q, hi_q = lo_i[fits[0]], hi_i[fits[0]]
+                changed = True
+        if not changed:
+            break
+    return out, (lo_q, hi_q)
 
 
 def replay_warmup(v: View, seed: int) -> tuple[dict[int, int], np.ndarray | None, np.ndarray | None]:
@@ -152,20 +164,16 @@ def replay_warmup(v: View, seed: int) -> tuple[dict[int, int], np.ndarray | None
 def replay_scale(v: View, seed: int) -> tuple[np.ndarray | None, str]:
     """a_j of the paper's warm-up replayed from run seed ``seed``: shape (D,), or None with why.
 
-    Each shown warm-up entry is matched to the one raw draw with its signs; a = least squares of
-    shown over raw, accepted when it rescales every matched draw onto its entry within the
-    printed precision (2% slack). An encoded warm-up gives a = 1: its draws are what is shown.
+    Each shown warm-up entry is matched to the one raw draw it is under one positive scale per
+    coordinate (``_assign``); a = least squares of shown over raw, accepted when it rescales every
+    matched draw onto its entry within the printed precision (2% slack). An encoded warm-up gives
+    a = 1: its draws are what is shown.
     """
     lo, hi = v.box
     W = np.array([e.params for e in v.warmup])
     tol = np.array([e.tols for e in v.warmup])
     raw = np.array([seeding.rng(seed, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])
-    pairs = []
-    for i, w in enumerate(W):
-        live = np.abs(w) > tol[i]
-        match = [m for m in range(len(raw)) if np.all(np.sign(raw[m][live]) == np.sign(w[live]))]
-        if len(match) == 1:
-            pairs.append((i, match[0]))
+    pairs = sorted(_assign(W, tol, raw)[0].items())
     if len(pairs) < min(3, len(W)):
         return None, "the replay does not match the warm-up"
     num = sum(W[i] * raw[m] for i, m in pairs)

@@ -30,6 +30,8 @@ shown for the first time in iteration i's prompt is the one proposed in iteratio
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import re
 from collections.abc import Callable
@@ -50,8 +52,9 @@ MARGINAL_EPISODES = 8  # episodes per shown policy in the marginal fit (attacker
 MARGINAL_SEED = 20261201  # the attacker's own stream of reset seeds for the marginal fit
 SEARCH_SEED = 7  # CMA-ES sampling stream (fixed: the attack is deterministic)
 P_GRID = 17  # exponents tried per side of the hardened prior in the closed-form reward fit
-STALL = 30  # CMA-ES generations without a 0.1% better fit before it counts as converged
-MAX_RESTARTS = 4  # CMA-ES restarts (doubling the population) after a fit that does not reproduce the returns
+POPSIZE = 16  # smallest CMA-ES population
+STALL = 40  # CMA-ES generations without a 0.01% better fit before it counts as converged
+MAX_RESTARTS = 6  # CMA-ES restarts (doubling the population) after a fit that does not reproduce the returns
 
 
 @dataclass(frozen=True)
@@ -61,8 +64,8 @@ class SimLimits:
     ``seconds`` of wall clock (a guard; the step budget is what keeps the result deterministic).
     """
 
-    vector_steps: int = 120_000_000
-    env_steps: int = 300_000
+    vector_steps: int = 10_000_000
+    env_steps: int = 100_000
     seconds: float = 60.0
 
     def budget(self, kind: str) -> Budget:
@@ -76,7 +79,7 @@ class SimLimits:
 
 
 DEFAULT_LIMITS = SimLimits()
-QUICK_LIMITS = SimLimits(vector_steps=20_000_000, env_steps=50_000, seconds=15.0)  # the verdict printed after every run
+QUICK_LIMITS = SimLimits(vector_steps=5_000_000, env_steps=20_000, seconds=10.0)  # the verdict printed after every run
 
 
 # -- what the prompt says about the encodings ------------------------------------------------------
@@ -445,10 +448,18 @@ Objective = Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], RewardFit
 
 
 def _objective(space: Space, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes: int,
-               prior: RewardPrior) -> Objective:
-    """Loss of each hypothesis (rows of Z): the reward misfit plus the misfit of every raw
-    diagnostic the simulator reproduces; returns (loss, reward fit, raw returns (H, n, E))."""
+               prior: RewardPrior, trace: list[tuple[NDArray[np.float64], NDArray[np.float64], RewardFit]] | None = None) -> Objective:
+    """Loss of each hypothesis (rows of Z); returns (loss, reward fit, raw returns (H, n, E)).
+
+    With known initial states (``episodes`` 1, exact): the reward misfit plus the misfit of every
+    raw diagnostic the simulator reproduces. Over the public initial-state distribution
+    (``episodes`` > 1): a negative log-likelihood, Gaussian in the printed returns (profile
+    variance) and in numeric diagnostics, and the simulated frequency of each printed text
+    diagnostic; every hypothesis evaluated is appended to ``trace`` as (z, loss, reward fit).
+    """
     n = len(d.y)
+    marginal = episodes > 1
+    floor = float(np.mean(d.tol)) ** 2
 
     def run(Z: NDArray[np.float64]) -> tuple[NDArray[np.float64], RewardFit, NDArray[np.float64]]:
         H = len(Z)
@@ -461,7 +472,7 @@ def _objective(space: Space, d: Data, sim: Simulator, seeds: NDArray[np.int64], 
         out = sim.rollout(th, sd.tolist())
         R = out.returns.reshape(H, n, episodes)
         fit = fit_rewards(R, d.y, space.scheme, prior)
-        loss = fit.misfit.copy()
+        loss = 0.5 * n * np.log(fit.rms**2 + floor) if marginal else fit.misfit.copy()
         for name, printed in d.num.items():
             if name not in out.diagnostics or out.diagnostics[name].dtype == object:
                 continue
@@ -469,8 +480,11 @@ def _objective(space: Space, d: Data, sim: Simulator, seeds: NDArray[np.int64], 
             ok = np.isfinite(printed)
             if ok.sum() < 2:
                 continue
-            scale = float(np.std(printed[ok])) + 1e-3
-            loss = loss + np.sqrt(np.mean((sim_v[:, ok] - printed[ok]) ** 2, axis=1)) / scale
+            msq = np.mean((sim_v[:, ok] - printed[ok]) ** 2, axis=1)
+            if marginal:
+                loss = loss + 0.5 * ok.sum() * np.log(msq + 1e-6)
+            else:
+                loss = loss + np.sqrt(msq) / (float(np.std(printed[ok])) + 1e-3)
         for name, printed in d.cat.items():
             if name not in out.diagnostics or out.diagnostics[name].dtype != object:
                 continue
@@ -478,8 +492,14 @@ def _objective(space: Space, d: Data, sim: Simulator, seeds: NDArray[np.int64], 
             ok = np.array([x is not None for x in printed])
             if not ok.any():
                 continue
-            freq = np.mean(sim_c == printed[None, :, None], axis=2)  # share of episodes that end as printed
-            loss = loss + np.mean(1.0 - freq[:, ok], axis=1)
+            hits = np.sum(sim_c == printed[None, :, None], axis=2)  # episodes that end as printed
+            if marginal:
+                loss = loss - np.sum(np.log((hits[:, ok] + 0.5) / (episodes + 1.0)), axis=1)
+            else:
+                loss = loss + np.mean(1.0 - hits[:, ok] / episodes, axis=1)
+        loss = np.where(np.isfinite(fit.rms), loss, np.inf)
+        if trace is not None:
+            trace.append((Z.copy(), loss.copy(), fit))
         return loss, fit, R
 
     return run
@@ -523,7 +543,7 @@ def _cma(run: Objective, space: Space, x0: NDArray[np.float64], sigma0: float, *
         f = np.where(np.isfinite(f), f, np.inf)
         order = np.argsort(f, kind="stable")
         if f[order[0]] < best_f:
-            stall = 0 if not math.isfinite(best_f) or f[order[0]] < best_f * (1 - 1e-3) else stall + 1
+            stall = 0 if not math.isfinite(best_f) or f[order[0]] < best_f * (1 - 1e-4) else stall + 1
             best_f, best_z = float(f[order[0]]), low + X[order[0]] * scale
         else:
             stall += 1
@@ -552,9 +572,13 @@ def search(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes:
     rng = np.random.default_rng(SEARCH_SEED)
     best: tuple[float, Space, NDArray[np.float64]] | None = None
     stopped = ""
-    for scheme in schemes:
+    traces: dict[Scheme, list[tuple[NDArray[np.float64], NDArray[np.float64], RewardFit]]] = {}
+    total = sim.budget.steps
+    for k, scheme in enumerate(schemes):  # the budget is shared out between the schemes tried
+        sim.budget.steps = sim.budget.used + (total - sim.budget.used) // (len(schemes) - k)
         space = Space(scheme, v.D, v.box)
-        run = _objective(space, d, sim, seeds, episodes, prior)
+        trace = traces.setdefault(scheme, []) if not exact else None
+        run = _objective(space, d, sim, seeds, episodes, prior, trace)
         low, high = space.bounds()
         fixed = scheme.params == "scale" and np.isfinite(d.raw).all(axis=1).sum() >= 1 and _scale_from_raw(d) is not None
         target = _exact_level(d, scheme)
@@ -568,27 +592,53 @@ def search(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes:
             f0, _, _ = run(z0[None])
             cand = (float(f0[0]), space, z0)
         else:
-            x0 = _start(v, space)
-            pop = max(16, 4 + int(3 * math.log(space.dim)) * 2)
+            x0, sigma = _start(v, space), 0.3
+            pop = max(POPSIZE, 4 + int(3 * math.log(space.dim)) * 2)
             for attempt in range(MAX_RESTARTS + 1):
-                z, f, why = _cma(run, space, x0, 0.3 if attempt == 0 else 0.4, popsize=pop, rng=rng)
+                z, f, why = _cma(run, space, x0, sigma, popsize=pop, rng=rng, max_gens=400 if sigma > 0.1 else 60)
+                improved = cand is None or f < cand[0] * (1 - 1e-3)
                 if cand is None or f < cand[0]:
                     cand = (f, space, z)
                 if why:
-                    stopped = why
+                    stopped = why if k == len(schemes) - 1 else ""
                     break
                 if good(f):
                     break
-                pop *= 2
-                x0 = low + rng.uniform(size=space.dim) * (high - low)
+                if improved and attempt < MAX_RESTARTS:  # converged somewhere new: look closer around the best first
+                    x0, sigma = cand[2], 0.05
+                else:  # nothing better nearby: elsewhere, with a larger population
+                    pop *= 2
+                    x0, sigma = low + rng.uniform(size=space.dim) * (high - low), 0.4
         if cand is not None and math.isfinite(cand[0]) and (best is None or cand[0] < best[0]):
             best = cand
-        if stopped:
-            break
+    sim.budget.steps = total
     if best is None:
         raise OverBudget(stopped or "no hypothesis could be simulated")
     f_best, space, z_best = best
-    return _finish(v, d, sim, seeds, episodes, space, z_best, f_best, exact, stopped, prior)
+    averaged = _posterior_mean(traces.get(space.scheme, []), space) if not exact else None
+    return _finish(v, d, sim, seeds, episodes, space, z_best if averaged is None else averaged[0], f_best, exact, stopped, prior,
+                   None if averaged is None else averaged[1])
+
+
+def _posterior_mean(trace: list[tuple[NDArray[np.float64], NDArray[np.float64], RewardFit]],
+                    space: Space) -> tuple[NDArray[np.float64], tuple[float, float, float]] | None:
+    """The likelihood-weighted mean of every hypothesis the search evaluated (weights exp(-loss),
+    the loss a negative log-likelihood): z, and (ln c, s, ln p) averaged, so the estimate does not
+    hinge on the single best of many noisy fits."""
+    if not trace:
+        return None
+    Z = np.concatenate([t[0] for t in trace])
+    L = np.concatenate([t[1] for t in trace])
+    c = np.concatenate([t[2].c for t in trace])
+    s = np.concatenate([t[2].s for t in trace])
+    p = np.concatenate([t[2].p for t in trace])
+    ok = np.isfinite(L) & (c > 0) & (p > 0)
+    if not ok.any():
+        return None
+    w = np.exp(-(L[ok] - L[ok].min()))
+    w /= w.sum()
+    z = w @ Z[ok]
+    return z, (float(np.exp(w @ np.log(c[ok]))), float(w @ s[ok]), float(np.exp(w @ np.log(p[ok]))))
 
 
 def _scale_from_raw(d: Data) -> NDArray[np.float64] | None:
@@ -623,8 +673,9 @@ def _exact_level(d: Data, scheme: Scheme) -> float:
 
 
 def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes: int, space: Space, z: NDArray[np.float64],
-            f: float, exact: bool, stopped: str, prior: RewardPrior) -> Fit:
-    """The secrets and raw values of the best hypothesis, with the exponent refined further."""
+            f: float, exact: bool, stopped: str, prior: RewardPrior, reward: tuple[float, float, float] | None = None) -> Fit:
+    """The secrets and raw values of hypothesis ``z``, with the exponent refined further (or the
+    reward map ``reward`` = (c, s, p) when given: the marginal fit's average)."""
     theta = space.decode(z[None], d.E)
     known = np.isfinite(d.raw).all(axis=1)
     if known.any():
@@ -639,18 +690,70 @@ def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes
     if replayed is not None:
         a = replayed
     m = z[v.D:] if space.offsets else None
-    level = _exact_level(d, space.scheme)
-    return Fit(space.scheme, a, m, float(fit.c[0]), float(fit.s[0]), float(fit.p[0]), f, float(fit.rms[0]), theta[0],
-               R[0].mean(axis=1), bool(exact and f <= level), sim.budget.used, list(d.entries), stopped)
+    c, s, p = (float(fit.c[0]), float(fit.s[0]), float(fit.p[0])) if reward is None else reward
+    reproduced = exact and _reproduces(d, out, R[0, :, 0], c, s, p, space.scheme)
+    return Fit(space.scheme, a, m, c, s, p, f, float(fit.rms[0]), theta[0], R[0].mean(axis=1), reproduced,
+               sim.budget.used, list(d.entries), stopped)
+
+
+def _reproduces(d: Data, out: Any, R: NDArray[np.float64], c: float, s: float, p: float, scheme: Scheme) -> bool:
+    """Every printed return within its precision of c (w_p(R) - w_p(s)), widened by the largest
+    effect of the dither (half a step of the return grid through the warp's slope), and every
+    printed diagnostic the simulator also produces equal to the simulated one."""
+    pred = c * (_w(R, p) - _w(s, p)) if scheme.rewards != "scale" else c * R
+    slack = 2.0 * d.tol + 1e-9 * np.abs(d.y)  # the least-squares map may miss a printed return by more than its rounding
+    if scheme.dither:
+        slack = slack + 0.5 * scheme.dither * c * p * np.maximum(np.abs(R), 0.5) ** (p - 1)
+    if not np.all(np.abs(pred - d.y) <= slack):
+        return False
+    for name, printed in d.num.items():
+        sim_v = out.diagnostics.get(name)
+        if sim_v is not None and sim_v.dtype != object:
+            ok = np.isfinite(printed)
+            tol = np.array([token_value(str(x))[1] if token_value(str(x)) else 0.0 for x in printed[ok]])  # type: ignore[index]
+            if np.any(np.abs(sim_v.astype(float)[ok] - printed[ok]) > tol + 1e-6):
+                return False
+    for name, printed in d.cat.items():
+        sim_c = out.diagnostics.get(name)
+        if sim_c is not None and sim_c.dtype == object:
+            ok = np.array([x is not None for x in printed])
+            if np.any(sim_c[ok] != printed[ok]):
+                return False
+    return True
 
 
 # -- the attacks --------------------------------------------------------------------------------------
+_CACHE: dict[str, Fit | str] = {}  # fits by what they read (see _fingerprint): a transcript audited twice fits once
+_CACHE_SIZE = 64
+
+
+def _fingerprint(v: View, mode: str) -> str:
+    """Everything a fit reads: the shown entries, the provider's answers, the first request (its
+    wording and sampling seed), the task's env and declaration, the box and the limits."""
+    task = v.task
+    decl = json.dumps(task.spec.to_json(), sort_keys=True, default=str) if task is not None and task.spec is not None else ""
+    parts = [mode, v.facts.task, decl, repr(v.box), repr(v.memo.get("sim_limits")),
+             v.requests[0].text if v.requests else "", repr(v.requests[0].seed if v.requests else None)]
+    parts += [repr((tuple(e.params), tuple(e.tols), e.ret, e.ret_tol, sorted(e.diagnostics.items()), e.first_call, e.components))
+              for e in v.entries]
+    parts += [repr((r.iteration, r.attempt, r.form, r.answer)) for r in v.requests]
+    return hashlib.sha256("\x00".join(parts).encode()).hexdigest()
+
+
 def _fit(v: View, mode: str) -> Fit | str:
-    """The fit of ``mode`` ("exact" or "marginal"), memoised in the view; a string: why it did not run."""
+    """The fit of ``mode`` ("exact" or "marginal"), memoised in the view and, by what it reads, in
+    this process; a string: why it did not run."""
     key = f"sim-{mode}"
     if key in v.memo:
         return v.memo[key]  # type: ignore[return-value]
-    v.memo[key] = result = _run_fit(v, mode)
+    digest = _fingerprint(v, mode)
+    result = _CACHE.get(digest)
+    if result is None:
+        result = _run_fit(v, mode)
+        if len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[digest] = result
+    v.memo[key] = result
     return result
 
 
@@ -669,7 +772,7 @@ def _run_fit(v: View, mode: str) -> Fit | str:
         return "the prompt shows raw values (nothing to fit)"
     if len(v.entries) < 3:
         return f"only {len(v.entries)} shown entries"
-    limits: SimLimits = v.memo.get("sim_limits", DEFAULT_LIMITS)  # type: ignore[assignment]
+    limits: SimLimits = v.memo.get("sim_limits") or DEFAULT_LIMITS  # type: ignore[assignment]
     probe = Budget(1, 1.0)
     sim, why = simulator_for(task, probe)
     if sim is None:
@@ -752,6 +855,7 @@ def _estimate(v: View, mode: str, target: str) -> Estimate:
     guesses = _raw_guesses(v, fit)
     if target == "c":
         extras = {"s": fit.s, "p": fit.p} if fit.scheme.rewards != "scale" else {}
+        extras["misfit"] = fit.misfit  # how well the fit explains the printed returns (exposure.raw_exposures reads it)
         return Estimate(name, "c", fit.c, detail, extras=extras, raw=guesses)
     a = fit.a.copy()
     return Estimate(name, "a", a, detail, raw=guesses,
