@@ -335,7 +335,9 @@ class RewardPrior:
 
 
 def _spread(y: NDArray[np.float64], scheme: Scheme) -> float:
-    return (float(np.std(y)) if scheme.rewards != "scale" else float(np.sqrt(np.mean(y**2)))) + 1e-12
+    """The printed returns' spread, the unit of the misfit (the same for every scheme, so fits compare)."""
+    sd = float(np.std(y))
+    return (sd if sd > 0 else float(np.sqrt(np.mean(y**2)))) + 1e-12
 
 
 def _fit_p(X: NDArray[np.float64], y: NDArray[np.float64], p: NDArray[np.float64], scheme: Scheme,
@@ -784,6 +786,9 @@ def _run_fit(v: View, mode: str) -> Fit | str:
             d, seeds, how = known_seeds(v, sim)
             if d is None or seeds is None:
                 return how
+            if len(schemes) > 1:  # the document form names no encoding: the warm-up that matched does
+                encoded = np.isnan(d.raw).all()
+                schemes = [x for x in schemes if (x.params == "scale") != encoded] or schemes
             fit = search(v, d, sim, seeds, 1, schemes, exact=True, prior=prior)
         else:
             d = observed(v)
