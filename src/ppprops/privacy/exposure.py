@@ -30,9 +30,6 @@ if TYPE_CHECKING:
     from ..tasks.base import Task
 
 EXPOSED_WITHIN = 0.01  # an attack that recovers a secret (or a raw value) within 1% fails the audit
-# A simulator fit's raw values count only when it explains the transcript: its RMS residual within 1%
-# of the printed returns' spread (a decoding that does not reproduce them says nothing about them).
-EXPLAINS_WITHIN = 0.01
 PRIOR = 1.0  # the prior guess of c and a_j (the geometric mean of both schemes' distributions)
 
 # Channels that PP-ProPS as the paper defines it keeps (unscaled diagnostics, integer returns and
@@ -121,9 +118,8 @@ def shown_candidate(g: RawGuess, cands: Sequence[Candidate]) -> Candidate | None
 
 def raw_exposures(est: Estimate, cands: Sequence[Candidate], box: tuple[float, float]) -> list[Exposure]:
     """The raw values an attack decodes for the best shown policy (highest printed return), scored
-    against the store: its raw return within 1%, its raw parameters within 1% of the box width.
-    Only from a fit that explains the printed returns (``EXPLAINS_WITHIN``)."""
-    if not est.raw or not est.extras.get("misfit", math.inf) <= EXPLAINS_WITHIN:
+    against the store: its raw return within 1%, its raw parameters within 1% of the box width."""
+    if not est.raw:
         return []
     best = max(est.raw, key=lambda g: g.ret)
     c = shown_candidate(best, cands)

@@ -742,7 +742,7 @@ def _fingerprint(v: View, mode: str) -> str:
     return hashlib.sha256("\x00".join(parts).encode()).hexdigest()
 
 
-def _fit(v: View, mode: str) -> Fit | str:
+def fit_view(v: View, mode: str) -> Fit | str:
     """The fit of ``mode`` ("exact" or "marginal"), memoised in the view and, by what it reads, in
     this process; a string: why it did not run."""
     key = f"sim-{mode}"
@@ -853,7 +853,7 @@ def sim_marginal_a(v: View) -> Estimate:
 
 def _estimate(v: View, mode: str, target: str) -> Estimate:
     name = f"sim-{mode}" + ("-a" if target == "a" else "")
-    fit = _fit(v, mode)
+    fit = fit_view(v, mode)
     if isinstance(fit, str):
         return Estimate(name, target, None, fit, not_run=fit)
     detail = _detail(fit, mode)
