@@ -19,6 +19,9 @@ Parameter scales a: ``warmup-range`` (uniform warm-up from the public box: max |
 against the warm-up's signs; the warm-up drawn from it is then replayed, raw, and divided into
 the shown values) and ``fallback-spread`` (fallback candidates: the best policy plus noise of a
 public width, replayed from the run seed or measured by its spread).
+Simulator attacks (``privacy.simfit``; they also build the task's env when it is public, within a
+bound): ``sim-exact`` / ``sim-exact-a`` (initial states known: c, a and the raw values) and
+``sim-marginal`` / ``sim-marginal-a`` (over the public initial-state distribution).
 """
 
 from __future__ import annotations

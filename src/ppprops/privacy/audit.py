@@ -21,13 +21,17 @@ accounted for:
   encoded is a leak, both a counted coincidence, neither unverified. Fields a preset sends raw
   by design (vanilla, df, R2PO's critic evidence) are leaks marked "by design".
 
-Then every transcript-only attack of ``privacy.attacks`` runs on the requests: one that recovers
-a hidden secret within 1% (scored against the key file, or the store for pure scales) makes the
-run **exposed**, marked when the channel is one the paper's scheme keeps. Known side channels
-without such a recovery are reported as **channels** (warnings).
+Then every attack of ``privacy.attacks`` runs on the requests (the simulator attacks, which also
+build the task's env when it is public, within ``simfit.SimLimits``, stated in the report): one
+that recovers a hidden secret within 1% (scored against the key file, or the store for pure
+scales), or the best shown policy's raw return or parameters within 1%, makes the run
+**exposed**, marked when the channel is one the paper's scheme keeps. Known side channels without
+such a recovery are reported as **channels** (warnings); attacks that could not run are listed
+with why. Under a preset that encodes parameters, a name of the user's own env (module, class,
+file, folder) in any request is an **identifier** finding.
 
-Exit code: 0 when nothing leaked, everything was accounted for and nothing is exposed; 1 with
-the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
+Exit code: 0 when nothing leaked, no identifier was sent, everything was accounted for and nothing
+is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
 checked (named in every report).
 """
 from __future__ import annotations
@@ -736,6 +740,8 @@ class _Auditor:
         return self.report
 
     def exposure(self) -> None:
+        """Run and score every attack (``exposure.assess``): exposures, attacks not run, the
+        public-dynamics line and the run seed read off the transcript."""
         if not self.requests or not (self.mech.encode_params or self.mech.scale_rewards):
             return
         if self.simulate:

@@ -23,6 +23,7 @@ SEED_SEARCH = 1 << 16  # run seeds tried against the request's sampling seed
 SEED_SEARCH_BLIND = 2048  # run seeds tried against the warm-up when no sampling seed was sent
 WARMUP_REPLAY = 32  # warm-up samples replayed per seed
 BLIND_SAMPLES = 12  # warm-up samples per seed compared when searching blind (warm-ups are rarely longer)
+ASSIGN_NODES = 20_000  # steps of the search that matches warm-up entries to draws under one scale
 RANGE_STATED = re.compile(r"(?:must lie in|drawn uniformly from) \[([^\],]+), ([^\]]+)\]")
 
 
@@ -108,30 +109,48 @@ def _scales_consistently(W: np.ndarray, tol: np.ndarray, draws: np.ndarray, need
 
 def _assign(W: np.ndarray, tol: np.ndarray, draws: np.ndarray) -> tuple[dict[int, int], tuple[np.ndarray, np.ndarray]]:
     """Shown warm-up entry -> the draw it is, under one positive scale per coordinate (interval
-    arithmetic on the printed precision: each entry matched to exactly one draw narrows every
-    scale's interval; entries that fit several draws are retried once the intervals are narrower).
-    Returns the assignment and the scale intervals (low, high), each shape (D,)."""
-    lo_q = np.zeros(W.shape[1])
-    hi_q = np.full(W.shape[1], np.inf)
+    arithmetic on the printed precision: each entry matched to a draw narrows every scale's
+    interval). A depth-first search over the draws each entry could be (fewest first, each draw
+    used once, at most ``ASSIGN_NODES`` steps); an entry that fits no draw is left out. Returns the
+    largest consistent assignment and the scale intervals (low, high), each shape (D,)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         A = np.where(np.abs(draws)[None] > 0, (W - tol)[:, None, :] / draws[None], -np.inf)  # (entries, draws, D)
         B = np.where(np.abs(draws)[None] > 0, (W + tol)[:, None, :] / draws[None], np.inf)
     low_all, high_all = np.minimum(A, B), np.maximum(A, B)
-    out: dict[int, int] = {}
-    for _ in range(3):
-        changed = False
-        for i in range(len(W)):
-            if i in out:
-                continue
-            lo_i, hi_i = np.maximum(low_all[i], lo_q), np.minimum(high_all[i], hi_q)
-            fits = np.flatnonzero(np.all(lo_i <= hi_i, axis=1) & np.all(hi_i > 0, axis=1))
-            if len(fits) == 1:
-                out[i] = int(fits[0])
-                lo_q, hi_q = lo_i[fits[0]], hi_i[fits[0]]
-                changed = True
-        if not changed:
-            break
-    return out, (lo_q, hi_q)
+    start = (np.zeros(W.shape[1]), np.full(W.shape[1], np.inf))
+
+    def fits(i: int, lo_q: np.ndarray, hi_q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lo_i, hi_i = np.maximum(low_all[i], lo_q), np.minimum(high_all[i], hi_q)
+        ok = np.all(lo_i <= hi_i, axis=1) & np.all(hi_i > 0, axis=1)
+        return np.flatnonzero(ok), lo_i, hi_i
+
+    order = sorted(range(len(W)), key=lambda i: len(fits(i, *start)[0]))
+    best: tuple[dict[int, int], tuple[np.ndarray, np.ndarray]] = ({}, start)
+    nodes = 0
+
+    def dfs(pos: int, lo_q: np.ndarray, hi_q: np.ndarray, current: dict[int, int]) -> bool:
+        nonlocal best, nodes
+        nodes += 1
+        if len(current) > len(best[0]):
+            best = (dict(current), (lo_q, hi_q))
+        if pos == len(order):
+            return True
+        if nodes > ASSIGN_NODES:
+            return False
+        i = order[pos]
+        cand, lo_i, hi_i = fits(i, lo_q, hi_q)
+        cand = [m for m in cand if m not in current.values()]
+        if not cand:
+            return dfs(pos + 1, lo_q, hi_q, current)
+        for m in cand:
+            current[i] = int(m)
+            if dfs(pos + 1, lo_i[m], hi_i[m], current):
+                return True
+            del current[i]
+        return False
+
+    dfs(0, *start, {})
+    return best
 
 
 def replay_warmup(v: View, seed: int) -> tuple[dict[int, int], np.ndarray | None, np.ndarray | None]:
@@ -165,20 +184,23 @@ def replay_scale(v: View, seed: int) -> tuple[np.ndarray | None, str]:
     """a_j of the paper's warm-up replayed from run seed ``seed``: shape (D,), or None with why.
 
     Each shown warm-up entry is matched to the one raw draw it is under one positive scale per
-    coordinate (``_assign``); a = least squares of shown over raw, accepted when it rescales every
-    matched draw onto its entry within the printed precision (2% slack). An encoded warm-up gives
+    coordinate (``_assign``); a_j = the middle of the interval of scales every match allows at the
+    printed precision (least squares of shown over raw where that interval is open), accepted when
+    it rescales every matched draw onto its entry within the printed precision (2% slack). An encoded warm-up gives
     a = 1: its draws are what is shown.
     """
     lo, hi = v.box
     W = np.array([e.params for e in v.warmup])
     tol = np.array([e.tols for e in v.warmup])
     raw = np.array([seeding.rng(seed, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])
-    pairs = sorted(_assign(W, tol, raw)[0].items())
+    found, (lo_q, hi_q) = _assign(W, tol, raw)
+    pairs = sorted(found.items())
     if len(pairs) < min(3, len(W)):
         return None, "the replay does not match the warm-up"
     num = sum(W[i] * raw[m] for i, m in pairs)
     den = sum(raw[m] ** 2 for _, m in pairs)
-    a = num / den
+    # the middle of the scales every matched entry allows (at the printed precision), else least squares
+    a = np.where(np.isfinite(hi_q) & (lo_q > 0), (lo_q + hi_q) / 2, num / den)
     resid = max(float(np.max(np.abs(W[i] - a * raw[m]) - 2 * tol[i] - 0.02 * np.abs(W[i]))) for i, m in pairs)
     if resid <= 0 and np.all(a > 0):
         return a, f"{len(pairs)} warm-up entries replayed"
