@@ -138,12 +138,12 @@ def _assign(W: np.ndarray, tol: np.ndarray, draws: np.ndarray) -> tuple[dict[int
         if nodes > ASSIGN_NODES:
             return False
         i = order[pos]
-        cand, lo_i, hi_i = fits(i, lo_q, hi_q)
-        cand = [m for m in cand if m not in current.values()]
+        found, lo_i, hi_i = fits(i, lo_q, hi_q)
+        cand = [int(m) for m in found if m not in current.values()]
         if not cand:
             return dfs(pos + 1, lo_q, hi_q, current)
         for m in cand:
-            current[i] = int(m)
+            current[i] = m
             if dfs(pos + 1, lo_i[m], hi_i[m], current):
                 return True
             del current[i]
