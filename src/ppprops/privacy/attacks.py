@@ -310,16 +310,19 @@ def register_attack(name: str, target: str, attack: Callable[[View], Estimate]) 
 
 
 def run_attacks(requests: Sequence[Request], task: str | Task, box: tuple[float, float], *,
-                limits: SimLimits | None = None, simulate: bool = True) -> list[Estimate]:
+                limits: SimLimits | None = None, simulate: bool | None = None) -> list[Estimate]:
     """Every registered attack on one transcript (the recorded request bodies), in registry order.
 
-    ``task``: the task's name, or the Task (its public declaration; the simulator attacks build
-    its env from it when the env is public, and look a name up with ``tasks.get_task``).
-    ``limits`` bounds each simulator attack (default ``simfit.DEFAULT_LIMITS``); ``simulate=False``
-    skips them (each then reports "not run"). Loads the ``ppprops.plugins`` entry points first
-    (once per process), so the attacks of installed plugins run too. Raises ConfigError when a
-    plugin fails to load.
+    ``task``: the task's name, or the Task (its public declaration, from which the simulator
+    attacks build its env when the env is public). ``limits`` bounds each simulator attack
+    (default ``simfit.DEFAULT_LIMITS``). ``simulate``: run the simulator attacks (default: when
+    ``task`` is a Task, as the audit and the report pass it; with a bare name they report "not
+    run", so callers that only read the transcript stay fast). Loads the ``ppprops.plugins``
+    entry points first (once per process), so the attacks of installed plugins run too. Raises
+    ConfigError when a plugin fails to load.
     """
+    if simulate is None:
+        simulate = not isinstance(task, str)
     load_plugins()
     v = view_of(requests, task, box)
     v.memo["sim_limits"] = limits or simfit.DEFAULT_LIMITS
