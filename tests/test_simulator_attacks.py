@@ -13,6 +13,8 @@ budgets (``SMALL``), so the whole file takes seconds.
 from __future__ import annotations
 
 import dataclasses
+import json
+import sqlite3
 import sys
 import textwrap
 from collections.abc import Iterator
@@ -186,18 +188,30 @@ def point_robot(tmp_path: Path) -> Iterator[str]:
 
 
 def test_finding_5_a_module_or_class_name_of_the_users_env_in_a_prompt_is_flagged(tmp_path: Path, point_robot: str) -> None:
-    """The prompt names the task by its task name, here the module and class of the user's env."""
+    """Before the prompt named tasks neutrally, it named them by the task name: here the module and
+    class of the user's env. Once it names them neutrally the audit finds nothing, and a name
+    planted in a recorded request is still flagged."""
     task = get_task(point_robot)
     assert not env_is_public(task)
     out = tmp_path / "run"
     with offline_llm():
         start(make_config(point_robot, "pp", warmup=3, iterations=1, final_episodes=0), out)
-    assert "point_robot" in load_requests(out)[0].text
     r = audit_run(out)
+    assert "sim-exact" in dict(r.not_run) and "private" in dict(r.not_run)["sim-exact"]
+    if "point_robot" not in load_requests(out)[0].text:  # a neutral name: nothing to flag; plant one
+        assert not r.identifiers, r.format()
+        with sqlite3.connect(out / "run.sqlite") as db:
+            call_id, body = db.execute("SELECT id, request FROM llm_calls ORDER BY id LIMIT 1").fetchone()
+            doc = json.loads(body)
+            if "messages" in doc:
+                doc["messages"][0]["content"] += "\n(point_robot.PointRobot)"
+            else:
+                doc["prompt"] = "(point_robot.PointRobot)\n" + doc["prompt"]
+            db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
+        r = audit_run(out)
     names = {f.detail.split("'")[1] for f in r.identifiers}
     assert {"point_robot", "PointRobot"} <= names, r.format()
     assert r.verdict().startswith("IDENTIFIERS") and r.exit_code() == 1
-    assert dict(r.not_run)["sim-exact"].startswith("the env of task point_robot:PointRobot is private")
 
 
 def _candidates(run: Path) -> list:  # type: ignore[type-arg]

@@ -95,6 +95,8 @@ def env_is_public(task: Task) -> bool:
     """
     spec = getattr(task, "spec", None)
     declared = getattr(spec, "public_env", None) if spec is not None else None
+    if callable(declared):  # TaskSpec.public_env() where task files declare it
+        declared = declared()
     if isinstance(declared, bool):
         return declared
     env = getattr(spec, "env", None) if spec is not None else None
