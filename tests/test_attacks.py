@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from ppprops.cli import main
 from ppprops.client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.report import analyse_run, privacy_report
+from ppprops.privacy.simfit import SimLimits
 from ppprops.privacy.simulate import offline_llm
 from ppprops.privacy.transcript import load_requests
 from ppprops.runner import start
@@ -46,7 +48,7 @@ def simulate(root: Path, task: str, method: str, seed: int, iterations: int = 10
 def _errors(run: Path, task: str, method: str, seed: int) -> dict[str, float]:
     s = seeded_secrets(method, task, seed)
     out = {}
-    for e in run_attacks(load_requests(run), task, (-6.0, 6.0)):
+    for e in run_attacks(load_requests(run), task, (-6.0, 6.0), simulate=False):
         if not e.applicable:
             continue
         v = np.asarray(e.value, dtype=np.float64)
@@ -80,9 +82,10 @@ def test_paper_secrets_fall_on_acrobot(runs: dict[tuple[str, str, int], Path]) -
     assert "seed-replay" not in err
 
 
-def test_hardened_secrets_hold_against_every_attack(runs: dict[tuple[str, str, int], Path]) -> None:
-    """Per attack, the median error over runs is no better than the prior guess (c = a_j = 1)."""
-    analyses = [analyse_run(runs["CartPole", "pp-hardened", s]) for s in range(6)]
+def test_hardened_secrets_hold_against_every_transcript_attack(runs: dict[tuple[str, str, int], Path]) -> None:
+    """Per attack that reads the transcript alone (no simulator: those are tests/test_simulator_attacks.py),
+    the median error over runs is no better than the prior guess (c = a_j = 1)."""
+    analyses = [analyse_run(runs["CartPole", "pp-hardened", s], simulate=False) for s in range(6)]
     prior_c = float(np.median([a.errors["prior (c)"] for a in analyses]))
     prior_a = float(np.median([a.errors["prior (a)"] for a in analyses]))
     for name in ("diagnostic", "lattice", "known-cap"):
@@ -102,20 +105,24 @@ def test_the_attacks_only_read_the_transcript(runs: dict[tuple[str, str, int], P
     requests = load_requests(run)
     blind = [dict(r.__dict__) for r in requests]
     assert all("secrets" not in json.dumps({k: str(v) for k, v in b.items()}) for b in blind)
-    first = {e.attack: e.value for e in run_attacks(requests, "CartPole", (-6.0, 6.0))}
-    again = {e.attack: e.value for e in run_attacks(load_requests(run), "CartPole", (-6.0, 6.0))}
+    first = {e.attack: e.value for e in run_attacks(requests, "CartPole", (-6.0, 6.0), simulate=False)}
+    again = {e.attack: e.value for e in run_attacks(load_requests(run), "CartPole", (-6.0, 6.0), simulate=False)}
     assert math.isclose(float(first["diagnostic"]), float(again["diagnostic"]))  # type: ignore[arg-type]
 
 
 def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path], tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
-    text, analyses = privacy_report([runs["CartPole", "pp", 0], runs["CartPole", "pp-hardened", 0]])
+    small = SimLimits(vector_steps=1_000_000, env_steps=5_000, seconds=120.0)
+    text, analyses = privacy_report([runs["CartPole", "pp", 0], runs["CartPole", "pp-hardened", 0]], small)
     assert "| CartPole pp | CartPole pp-hardened |" in text
-    for row in ("diagnostic", "lattice", "known-cap", "warmup-range", "stated-range", "clip-edge", "seed-replay", "prior (c)"):
+    for row in ("diagnostic", "lattice", "known-cap", "warmup-range", "stated-range", "clip-edge", "seed-replay", "sim-exact",
+                "sim-exact-a", "sim-marginal", "sim-marginal-a", "raw return (sim-exact)", "prior (c)"):
         assert f"| {row} |" in text
+    assert re.search(r"\| diagnostic \| c \| [^|]*% \(1/1\) \| [^|]*% \(0/1\) \|", text)  # k/n: runs within 1%
+    assert "Simulator attacks are bounded by 1e+06 simulated steps" in text
     assert "| CartPole | pp-hardened | 1 | 10 + 10 |" in text
     root = runs["CartPole", "pp", 0].parent
-    assert main(["privacy-report", "--runs", str(root)]) == 0
+    assert main(["privacy-report", "--runs", str(root), "--no-simulate"]) == 0
     assert "| Acrobot pp |" in capsys.readouterr().out
     assert (root / "privacy-report.md").exists() and len(json.loads((root / "privacy-report.json").read_text())) == len(runs)
     assert main(["privacy-report", "--runs", str(tmp_path)]) == 2  # no runs there: one line, exit 2

@@ -72,9 +72,10 @@ def _adaptations(run: Path) -> list[str]:
 
 
 def assert_accounted_for(r: AuditReport) -> None:
-    """No raw value sent, nothing unaccounted for, and any exposure is a channel of the paper's scheme."""
+    """No raw value sent, nothing unaccounted for, and any exposure is a channel of the paper's scheme
+    (or a simulator fit of the public env, which no encoding closes)."""
     assert not r.leaks and not r.unverified, r.format()
-    assert all(f.by_design for f in r.exposed), r.format()
+    assert all(f.by_design or f.kind.startswith("sim-") for f in r.exposed), r.format()
     assert r.verdict().startswith(("CLEAN", "EXPOSED")), r.verdict()
 
 

@@ -19,14 +19,17 @@ Parameter scales a: ``warmup-range`` (uniform warm-up from the public box: max |
 against the warm-up's signs; the warm-up drawn from it is then replayed, raw, and divided into
 the shown values) and ``fallback-spread`` (fallback candidates: the best policy plus noise of a
 public width, replayed from the run seed or measured by its spread).
+Simulator attacks (``privacy.simfit``; they also build the task's env when it is public, within a
+bound): ``sim-exact`` / ``sim-exact-a`` (initial states known: c, a and the raw values) and
+``sim-marginal`` / ``sim-marginal-a`` (over the public initial-state distribution).
 """
 
 from __future__ import annotations
 
-import functools
-import re
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,15 +37,19 @@ from .. import seeding
 from ..errors import ConfigError
 from ..plugins import load_plugins
 from ..proposers.llm import FALLBACK_SIGMA
+from . import simfit
+from .knowledge import PublicFacts
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
+from .runseed import RANGE_STATED as _RANGE
+from .runseed import find_run_seed, replay_scale
+from .simfit import SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a
 from .tokens import token_value
 from .transcript import Request
 from .view import Estimate, Shown, View, same_marker, view_of
 
-SEED_SEARCH = 1 << 16  # run seeds tried against the request's sampling seed
-SEED_SEARCH_BLIND = 2048  # run seeds tried when no sampling seed was sent (matched on signs)
-WARMUP_REPLAY = 32  # warm-up samples replayed per seed
-BLIND_SAMPLES = 12  # warm-up samples per seed compared when searching blind (warm-ups are rarely longer)
+if TYPE_CHECKING:
+    from ..tasks.base import Task
+
 
 
 # -- reward scale ----------------------------------------------------------------------------
@@ -146,9 +153,6 @@ def warmup_range(v: View) -> Estimate:
     return Estimate("warmup-range", "a", a, f"{n} warm-up entries, unbiased range estimate")
 
 
-_RANGE = re.compile(r"(?:must lie in|drawn uniformly from) \[([^\],]+), ([^\]]+)\]")
-
-
 def stated_range(v: View) -> Estimate:
     """a_j from a range the prompt states for the shown coordinates, against the public box."""
     for r in v.requests:
@@ -190,80 +194,17 @@ def clip_edge(v: View) -> Estimate:
     return Estimate("clip-edge", "a", a, f"{found} of {v.D} coordinates sit at a repeated edge")
 
 
-def find_run_seed(v: View) -> tuple[int | None, str]:
-    """The run seed, if the transcript gives it away: from the request's sampling seed when that was
-    derived from the run seed (``seeding.llm_seed``, before issue 16), else by trying small seeds
-    against the sign pattern of the warm-up (drawn from the run seed under the paper's warm-up)."""
-    if "run_seed" not in v.memo:
-        v.memo["run_seed"] = _find_run_seed(v)
-    return v.memo["run_seed"]  # type: ignore[return-value]
-
-
-@functools.cache
-def _seed_field_table() -> dict[int, int]:
-    """``llm_seed(s, 0, 0) -> s`` for every run seed searched (built once per process)."""
-    return {seeding.llm_seed(s, 0, 0): s for s in range(SEED_SEARCH)}
-
-
-@functools.cache
-def _warmup_draws(D: int, lo: float, hi: float) -> np.ndarray:
-    """The first BLIND_SAMPLES warm-up draws of every run seed searched blind, shape (seeds, samples, D)."""
-    return np.array([[seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=D) for m in range(BLIND_SAMPLES)]
-                     for s in range(SEED_SEARCH_BLIND)])
-
-
-def _find_run_seed(v: View) -> tuple[int | None, str]:
-    first = v.requests[0] if v.requests else None
-    if first is not None and first.seed is not None:
-        if (first.iteration, first.attempt) == (0, 0):
-            found = _seed_field_table().get(first.seed)
-        else:
-            found = next((s for s in range(SEED_SEARCH) if seeding.llm_seed(s, first.iteration, first.attempt) == first.seed), None)
-        if found is not None:
-            return found, f"run seed {found} recovered from the request's sampling seed"
-    if not v.warmup:
-        return None, "no warm-up entries"
-    lo, hi = v.box
-    W = np.array([e.params for e in v.warmup])[:3]
-    tol = np.array([e.tols for e in v.warmup])[:3]
-    signs = np.sign(_warmup_draws(v.D, lo, hi))  # (seeds, samples, D)
-    ok = np.ones(SEED_SEARCH_BLIND, dtype=bool)
-    for i, w in enumerate(W):
-        live = np.abs(w) > tol[i]
-        ok &= np.any(np.all(signs[:, :, live] == np.sign(w[live]), axis=2), axis=1)
-    hits = np.flatnonzero(ok)
-    if len(hits):
-        s = int(hits[0])
-        return s, f"run seed {s} found by trying seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs"
-    return None, f"tried run seeds 0..{SEED_SEARCH_BLIND - 1} on the warm-up's signs: none matches"
-
-
 def seed_replay(v: View) -> Estimate:
     """Find the run seed (from the request's sampling seed, else by trying small seeds), replay the warm-up."""
     if not v.warmup:
         return Estimate("seed-replay", "a", None, "no warm-up entries")
-    lo, hi = v.box
     seed, how = find_run_seed(v)
     if seed is None:
         return Estimate("seed-replay", "a", None, how)
-    W = np.array([e.params for e in v.warmup])
-    tol = np.array([e.tols for e in v.warmup])
-    raw = np.array([seeding.rng(seed, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])
-    pairs = []
-    for i, w in enumerate(W):
-        live = np.abs(w) > tol[i]
-        match = [m for m in range(len(raw)) if np.all(np.sign(raw[m][live]) == np.sign(w[live]))]
-        if len(match) == 1:
-            pairs.append((i, match[0]))
-    if len(pairs) < min(3, len(W)):
-        return Estimate("seed-replay", "a", None, f"{how}; the replay does not match the warm-up")
-    num = sum(W[i] * raw[m] for i, m in pairs)
-    den = sum(raw[m] ** 2 for _, m in pairs)
-    a = num / den
-    resid = max(float(np.max(np.abs(W[i] - a * raw[m]) - 2 * tol[i] - 0.02 * np.abs(W[i]))) for i, m in pairs)
-    if resid <= 0 and np.all(a > 0):
-        return Estimate("seed-replay", "a", a, f"{how}; {len(pairs)} warm-up entries replayed")
-    return Estimate("seed-replay", "a", None, f"{how}; the replay does not scale onto the warm-up")
+    a, why = replay_scale(v, seed)
+    if a is None:
+        return Estimate("seed-replay", "a", None, f"{how}; {why}")
+    return Estimate("seed-replay", "a", a, f"{how}; {why}")
 
 
 def fallback_spread(v: View) -> Estimate:
@@ -332,12 +273,20 @@ ATTACKS: dict[str, Callable[[View], Estimate]] = {
     "clip-edge": clip_edge,
     "seed-replay": seed_replay,
     "fallback-spread": fallback_spread,
+    "sim-exact": sim_exact,
+    "sim-exact-a": sim_exact_a,
+    "sim-marginal": sim_marginal,
+    "sim-marginal-a": sim_marginal_a,
 }
 # The secret each attack estimates: "c" (the reward scale) or "a" (the parameter scales a_j).
 TARGET: dict[str, str] = {
-    **dict.fromkeys(("diagnostic", "lattice", "warped-lattice", "known-cap", "additivity", "survive-length", "saturated-ctrl"), "c"),
-    **dict.fromkeys(("warmup-range", "stated-range", "clip-edge", "seed-replay", "fallback-spread"), "a"),
+    **dict.fromkeys(("diagnostic", "lattice", "warped-lattice", "known-cap", "additivity", "survive-length", "saturated-ctrl",
+                     "sim-exact", "sim-marginal"), "c"),
+    **dict.fromkeys(("warmup-range", "stated-range", "clip-edge", "seed-replay", "fallback-spread", "sim-exact-a",
+                     "sim-marginal-a"), "a"),
 }
+# Attacks that simulate the task's env (bounded by ``simfit.SimLimits``); the others read the transcript alone.
+SIMULATOR_ATTACKS = frozenset({"sim-exact", "sim-exact-a", "sim-marginal", "sim-marginal-a"})
 assert TARGET.keys() == ATTACKS.keys()
 
 
@@ -360,12 +309,52 @@ def register_attack(name: str, target: str, attack: Callable[[View], Estimate]) 
     TARGET[name] = target
 
 
-def run_attacks(requests: Sequence[Request], task: str, box: tuple[float, float]) -> list[Estimate]:
+def run_attacks(requests: Sequence[Request], task: str | Task, box: tuple[float, float], *,
+                limits: SimLimits | None = None, simulate: bool | None = None) -> list[Estimate]:
     """Every registered attack on one transcript (the recorded request bodies), in registry order.
 
-    Loads the ``ppprops.plugins`` entry points first (once per process), so the attacks of
-    installed plugins run too. Raises ConfigError when a plugin fails to load.
+    ``task``: the task's name, or the Task (its public declaration, from which the simulator
+    attacks build its env when the env is public). ``limits`` bounds each simulator attack
+    (default ``simfit.DEFAULT_LIMITS``). ``simulate``: run the simulator attacks (default: when
+    ``task`` is a Task, as the audit and the report pass it; with a bare name they report "not
+    run", so callers that only read the transcript stay fast). Loads the ``ppprops.plugins``
+    entry points first (once per process), so the attacks of installed plugins run too. Raises
+    ConfigError when a plugin fails to load.
     """
+    if simulate is None:
+        simulate = not isinstance(task, str)
     load_plugins()
     v = view_of(requests, task, box)
-    return [f(v) for f in ATTACKS.values()]
+    v.memo["sim_limits"] = limits or simfit.DEFAULT_LIMITS
+    out = []
+    unknown = not facts_known(v)
+    for name, f in ATTACKS.items():
+        if name in SIMULATOR_ATTACKS and not simulate:
+            out.append(Estimate(name, TARGET[name], None, "simulator attacks were not asked for",
+                                not_run="simulator attacks were not asked for"))
+            continue
+        est = f(v)
+        if unknown and name in NEEDS_FACT and est.value is None and not est.not_run:
+            est = replace(est, not_run=f"fact unknown: {NEEDS_FACT[name]} (no privacy facts are declared for task {v.facts.task})")
+        out.append(est)
+    return out
+
+
+# The public fact each attack's premise needs (knowledge.PublicFacts); for a task that declares none,
+# these attacks report "not run: fact unknown" instead of "found nothing".
+NEEDS_FACT = {
+    "lattice": "whether its returns are integers",
+    "warped-lattice": "whether its returns are integers, and their range",
+    "known-cap": "the public caps of its returns",
+    "additivity": "whether its reward components add up to the return",
+    "survive-length": "a component with a public per-step value",
+    "saturated-ctrl": "the control cost of a saturated controller",
+}
+
+
+def facts_known(v: View) -> bool:
+    """Whether the task has declared privacy facts (``knowledge.facts_for``); the paper's tasks do.
+
+    Adapter until task files declare them (issue 20): then ``facts_for(Task)`` says which are unknown.
+    """
+    return v.facts != PublicFacts(v.facts.task)

@@ -21,13 +21,17 @@ accounted for:
   encoded is a leak, both a counted coincidence, neither unverified. Fields a preset sends raw
   by design (vanilla, df, R2PO's critic evidence) are leaks marked "by design".
 
-Then every transcript-only attack of ``privacy.attacks`` runs on the requests: one that recovers
-a hidden secret within 1% (scored against the key file, or the store for pure scales) makes the
-run **exposed**, marked when the channel is one the paper's scheme keeps. Known side channels
-without such a recovery are reported as **channels** (warnings).
+Then every attack of ``privacy.attacks`` runs on the requests (the simulator attacks, which also
+build the task's env when it is public, within ``simfit.SimLimits``, stated in the report): one
+that recovers a hidden secret within 1% (scored against the key file, or the store for pure
+scales), or the best shown policy's raw return or parameters within 1%, makes the run
+**exposed**, marked when the channel is one the paper's scheme keeps. Known side channels without
+such a recovery are reported as **channels** (warnings); attacks that could not run are listed
+with why. Under a preset that encodes parameters, a name of the user's own env (module, class,
+file, folder) in any request is an **identifier** finding.
 
-Exit code: 0 when nothing leaked, everything was accounted for and nothing is exposed; 1 with
-the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
+Exit code: 0 when nothing leaked, no identifier was sent, everything was accounted for and nothing
+is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
 checked (named in every report).
 """
 from __future__ import annotations
@@ -35,6 +39,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,10 +59,15 @@ from ..wire.forms import FORMS
 from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
 from ..wire.turns import judge_answer
 from . import reconstruct as rc
-from .exposure import exposures
+from . import simfit
+from .exposure import Assessment, assess
 from .knowledge import facts_for
+from .runseed import find_run_seed
+from .simfit import SimLimits
+from .simulator import env_is_public
 from .tokens import renders, token_value
 from .transcript import Request, message_text, parse_request
+from .view import Estimate, view_of
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``).
@@ -71,7 +81,7 @@ NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow epis
 class Finding:
     """One kind of problem in one field, with where it was seen (first few places) and how often."""
 
-    severity: str  # leak | unverified | exposed | channel
+    severity: str  # leak | identifier | unverified | exposed | channel
     kind: str
     detail: str
     by_design: bool = False
@@ -109,6 +119,10 @@ class AuditReport:
     coincidences: int = 0
     findings: list[Finding] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    not_run: list[tuple[str, str]] = field(default_factory=list)  # (attack, why it could not run)
+    sim_bound: str = ""  # the time bound of the simulator attacks, in words
+    public_dynamics: str = ""  # the line naming a task whose env the provider can simulate
+    estimates: list[Estimate] = field(default_factory=list, repr=False)  # every attack's estimate (not in the JSON)
 
     def _of(self, severity: str) -> list[Finding]:
         return [f for f in self.findings if f.severity == severity]
@@ -129,35 +143,43 @@ class AuditReport:
         return self._of("channel")
 
     @property
+    def identifiers(self) -> list[Finding]:
+        """Findings where a name of the user's own env (module, class, file, folder) was sent."""
+        return self._of("identifier")
+
+    @property
     def exposed(self) -> list[Finding]:
         """Transcript-only attacks that recovered a secret (``c`` or some ``a_j``) within 1%."""
         return self._of("exposed")
 
     @property
     def clean(self) -> bool:
-        """True with no leak, nothing unverified and nothing exposed (channels allowed)."""
-        return not self.leaks and not self.unverified and not self.exposed
+        """True with no leak, no identifier, nothing unverified and nothing exposed (channels allowed)."""
+        return not self.leaks and not self.identifiers and not self.unverified and not self.exposed
 
     def exit_code(self, strict: bool = False) -> int:
         """``ppprops audit``'s exit code: 0 when clean (and, with ``strict``, no channel), else 1."""
         return 0 if self.clean and not (strict and self.channels) else 1
 
     def verdict(self, strict: bool = False) -> str:
-        """One line naming the worst outcome: LEAK, UNVERIFIED, EXPOSED, CHANNELS (``strict`` only) or CLEAN."""
+        """One line naming the worst outcome: LEAK, IDENTIFIERS, UNVERIFIED, EXPOSED, CHANNELS (``strict`` only) or CLEAN."""
         if self.leaks:
             design = all(f.by_design for f in self.leaks)
             kinds = ", ".join(sorted({f.kind for f in self.leaks}))
             why = f" (by design of preset {self.method})" if design else ""
             return f"LEAK: raw values were sent{why}: {kinds}"
+        if self.identifiers:
+            names = ", ".join(sorted({f.detail.split("'")[1] for f in self.identifiers if "'" in f.detail}))
+            return f"IDENTIFIERS: names of the task's own env (module, class, file or folder) reached the provider: {names}"
         if self.unverified:
             return (f"UNVERIFIED: {sum(f.count for f in self.unverified)} place(s) in the requests hold something the client's "
                     "code does not produce from encoded values")
         if self.exposed:
-            what = ", ".join(f"{f.kind} ({f.detail.split(':')[0]})" for f in self.exposed)
+            what = ", ".join(dict.fromkeys(f"{f.kind} ({f.detail.split(':')[0]})" for f in self.exposed))
             paper = all(f.by_design for f in self.exposed)
             why = (" These are channels PP-ProPS keeps as the paper defines it (pp-hardened closes them)."
                    if paper and self.method == "pp" else "")
-            return f"EXPOSED: no raw value was sent, but transcript-only attacks recover secrets within 1%: {what}.{why}"
+            return f"EXPOSED: no raw value was sent, but attacks on the transcript recover secrets or raw values within 1%: {what}.{why}"
         n = len(self.channels)
         tail = f"; {n} known channel(s) remain (warnings)" if n else ""
         if strict and n:
@@ -169,7 +191,9 @@ class AuditReport:
         return {"run_dir": self.run_dir, "method": self.method, "mechanisms": self.mechanisms, "requests": self.requests,
                 "entries": self.entries, "checked": self.checked, "coincidences": self.coincidences,
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
-                "findings": [f.to_json() for f in self.findings]}
+                "findings": [f.to_json() for f in self.findings], "notes": self.notes,
+                "not_run": [{"attack": a, "why": w} for a, w in self.not_run], "simulator_bound": self.sim_bound,
+                "public_dynamics": self.public_dynamics}
 
     def format(self, strict: bool = False) -> str:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
@@ -181,6 +205,13 @@ class AuditReport:
             f"verdict: {self.verdict(strict)}",
             f"not checked: {NOT_CHECKED}",
         ]
+        if self.public_dynamics:
+            lines.append(f"public dynamics: {self.public_dynamics}")
+        if self.sim_bound:
+            lines.append(f"simulator attacks: bounded by {self.sim_bound}")
+        if self.not_run:
+            lines.append("attacks not run: " + "; ".join(f"{a} ({w})" for a, w in self.not_run))
+        lines += [f"note: {n}" for n in self.notes]
         for f in self.findings:
             design = " (paper's scheme)" if f.severity == "exposed" else " (by design)"
             tag = f"{f.severity}{design if f.by_design else ''}"
@@ -192,7 +223,10 @@ class AuditReport:
 class _Auditor:
     def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
-                 endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = ()) -> None:
+                 endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
+                 limits: SimLimits | None = None, simulate: bool = True) -> None:
+        self.limits = limits or simfit.DEFAULT_LIMITS
+        self.simulate = simulate
         self.config = config
         self.mech: Mechanisms = config.mechanisms
         self.task = config.make_task()
@@ -710,21 +744,129 @@ class _Auditor:
                          f"exchanges lead to ({len(self.adaptations)} recorded, {len(self.replay.changes)} replayed)",
                          "llm_adaptations")
         self.channels()
+        self.identifiers()
         self.exposure()
-        order = {"leak": 0, "unverified": 1, "exposed": 2, "channel": 3}
+        order = {"leak": 0, "identifier": 1, "unverified": 2, "exposed": 3, "channel": 4}
         self.report.findings.sort(key=lambda f: order.get(f.severity, 3))
         return self.report
 
     def exposure(self) -> None:
+        """Run and score every attack (``exposure.assess``): exposures, attacks not run, the
+        public-dynamics line and the run seed read off the transcript."""
         if not self.requests or not (self.mech.encode_params or self.mech.scale_rewards):
             return
-        found, note = exposures(self.requests, self.task.name, self.config.box, self.mech, self.cands, self.secrets)
-        for x in found:
-            secret = "c" if x.target == "c" else f"a_j on {x.coords} of {self.task.D} coordinates"
+        if self.simulate:
+            self.report.sim_bound = self.limits.describe()
+        found = assess(self.requests, self.task, self.config.box, self.mech, self.cands, self.secrets, limits=self.limits,
+                       simulate=self.simulate)
+        for x in found.exposures:
+            if x.target == "c":
+                secret = "c"
+            elif x.target == "a":
+                secret = f"a_j on {x.coords} of {self.task.D} coordinates"
+            elif x.target == "raw params":
+                secret = "the best shown policy's raw parameters (largest error as a share of the box width)"
+            else:
+                secret = f"the best shown policy's {x.target}"
             self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
                          by_design=x.paper)
-        if note:
-            self.report.notes.append(note)
+        self.report.not_run = found.not_run
+        self.report.estimates = found.estimates
+        if found.note:
+            self.report.notes.append(found.note)
+        self.report.public_dynamics = self._public_dynamics(found)
+        self._seed_channel(found)
+
+    def _public_dynamics(self, found: Assessment) -> str:
+        """The line for a task whose env the provider can build: what the simulator fits got here."""
+        if not self.mech.encode_params or not env_is_public(self.task):
+            return ""
+        got = []
+        for x in found.exposures:
+            if x.attack.startswith("sim-"):
+                got.append(f"{x.attack}: {x.target} within {100 * x.error:.2g}%")
+        for o in found.simulated:
+            if o.error is not None and not any(g.startswith(f"{o.attack}: {o.target} ") for g in got):
+                got.append(f"{o.attack}: {o.target} within {100 * o.error:.3g}% (prior {100 * (o.prior_error or 0):.3g}%)")
+        ran = "; here " + ", ".join(got) if got else ""
+        return (f"task {self.task.name} runs the public env {self.task.env_id}, so the provider can simulate it: the encodings "
+                f"protect the secrets only as far as the shown history leaves them undetermined, whatever the preset "
+                f"(docs/threat-model.md, 'What the encoding cannot hide'){ran}")
+
+    def _seed_channel(self, found: Assessment) -> None:
+        """The run seed read off the transcript (any preset that encodes parameters): it replays the warm-up
+        draws and gives every episode's initial state."""
+        if not self.mech.encode_params or not self.requests:
+            return
+        v = view_of(self.requests, self.task, self.config.box)
+        seed, how = find_run_seed(v)
+        if seed is not None:
+            self.finding("channel", "run_seed", f"the run seed is read off the transcript ({how}): it gives every episode's "
+                         "initial state (seeding.episode_seeds) and the warm-up draws", "transcript")
+
+    # -- the user's own names --------------------------------------------------------------------
+    def identifiers(self) -> None:
+        """Names of the task's own env (its module, class, file and folder names, from the stored
+        declaration) must not reach a prompt under a preset that encodes parameters."""
+        if not self.mech.encode_params or env_is_public(self.task):
+            return
+        names = env_identifiers(self.task)
+        if not names:
+            return
+        for req in self.requests:
+            text = req.body or req.text
+            for name in names:
+                if re.search(rf"(?<![A-Za-z0-9_]){re.escape(name)}(?![A-Za-z0-9_])", text):
+                    self.finding("identifier", "identifier", f"the name '{name}' of the task's own env ({names[name]})",
+                                 req.where)
+
+
+IGNORED_NAMES = frozenset({"env", "envs", "environment", "environments", "gym", "gymnasium", "src", "lib", "main",
+                           "__main__", "site-packages", "python", "test", "tests", "make", "ppprops", "home", "user",
+                           "users", "tmp", "robot", "policy", "task"})
+
+
+def env_identifiers(task: Any) -> dict[str, str]:
+    """name -> what it is: the module path and each of its parts, the class or factory name, the
+    imported modules, the folders (and their last two path components) of the task's env, from its
+    stored declaration (``EnvRecipe``: id, entry_point, imports, paths). Names shorter than three
+    characters and generic words (``IGNORED_NAMES``) are left out."""
+    spec = getattr(task, "spec", None)
+    env = getattr(spec, "env", None)
+    found: dict[str, str] = {}
+
+    def add(name: str, what: str) -> None:
+        name = name.strip()
+        if len(name) >= 3 and name.lower() not in IGNORED_NAMES and name not in found:
+            found[name] = what
+
+    def module(ref: str, what: str) -> None:
+        mod, sep, attr = ref.partition(":")
+        if sep:
+            add(mod, f"{what} module")
+            for part in mod.split("."):
+                add(part, f"{what} module")
+            for part in attr.split("."):
+                add(part, f"{what} name")
+        else:
+            add(ref, f"{what} module")
+            for part in ref.split("."):
+                add(part, f"{what} module")
+
+    ids = [getattr(env, "id", None) or task.env_id]
+    for ref in ids:
+        if ref and ":" in ref:
+            module(ref, "env id")
+    if env is not None:
+        if env.entry_point:
+            module(str(env.entry_point), "entry point")
+        for m in env.imports:
+            module(str(m), "imported")
+        for path in env.paths:
+            parts = Path(str(path)).parts
+            for part in parts[-2:]:
+                add(part, "folder")
+    return found
 
 
 def _numbers(value: object, out: list[str]) -> None:
@@ -764,12 +906,14 @@ def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
     return RunConfig.from_json(stored)
 
 
-def audit_run(run_dir: Path) -> AuditReport:
+def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool = True) -> AuditReport:
     """Audit every recorded outgoing request of a run against the raw values in its store.
 
     Every field of every request body is read; attacks on the transcript are scored against the
     key file when it is in the run directory (else against the store, for pure scales). A key file
-    that does not load is treated as absent.
+    that does not load is treated as absent. The simulator attacks run within ``limits`` (default
+    ``simfit.DEFAULT_LIMITS``, stated in the report); ``simulate=False`` leaves them out (listed
+    as not run).
 
     Raises:
         StoreError: ``run_dir`` is not a directory, holds no readable store, or is not a prompted
@@ -792,4 +936,4 @@ def audit_run(run_dir: Path) -> AuditReport:
         except KeyFileError:
             secrets = None
     return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                   adaptations=adaptations).run()
+                   adaptations=adaptations, limits=limits, simulate=simulate).run()

@@ -13,8 +13,12 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
+
+if TYPE_CHECKING:
+    from .simfit import SimLimits
 
 
 def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser]) -> None:  # type: ignore[type-arg]
@@ -26,6 +30,7 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
     au.add_argument("dir", type=Path, help="a run directory")
     au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
     au.add_argument("--json", action="store_true", help="one JSON object with every finding on stdout")
+    _sim_options(au)
 
     pr = sub.add_parser("privacy-report", help="attacks x scheme (pp, pp-hardened) and their search results")
     pr.add_argument("--runs", type=Path, default=None, metavar="DIR",
@@ -40,6 +45,28 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
     pr.add_argument("--offline", action="store_true",
                     help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")
     pr.add_argument("--json", action="store_true", help="print one JSON list of per-run analyses")
+    _sim_options(pr)
+
+
+def _sim_options(p: argparse.ArgumentParser) -> None:
+    from .simfit import DEFAULT_LIMITS
+
+    d = DEFAULT_LIMITS
+    p.add_argument("--sim-steps", type=int, default=d.vector_steps, metavar="N",
+                   help=f"simulated steps each simulator attack may use with a vectorised simulator (default {d.vector_steps:.3g}; "
+                        f"the real env gets N/{d.vector_steps // d.env_steps})")
+    p.add_argument("--sim-seconds", type=float, default=d.seconds, metavar="S",
+                   help=f"wall-clock guard of each simulator attack (default {d.seconds:g})")
+    p.add_argument("--no-simulate", action="store_true", help="skip the simulator attacks (listed as not run)")
+
+
+def _limits(a: argparse.Namespace) -> SimLimits:
+    from .simfit import DEFAULT_LIMITS, SimLimits
+
+    if a.sim_steps < 1 or a.sim_seconds <= 0:
+        raise ConfigError("--sim-steps must be >= 1 and --sim-seconds > 0")
+    ratio = DEFAULT_LIMITS.vector_steps // DEFAULT_LIMITS.env_steps
+    return SimLimits(vector_steps=a.sim_steps, env_steps=max(1, a.sim_steps // ratio), seconds=a.sim_seconds)
 
 
 def cmd_audit(a: argparse.Namespace) -> int:
@@ -53,7 +80,7 @@ def cmd_audit(a: argparse.Namespace) -> int:
     """
     from .audit import audit_run
 
-    report = audit_run(a.dir)
+    report = audit_run(a.dir, limits=_limits(a), simulate=not a.no_simulate)
     print(json.dumps(report.to_json(a.strict)) if a.json else report.format(a.strict))
     return report.exit_code(a.strict)
 
@@ -87,7 +114,7 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
         dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
                           final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline)
-    text, analyses = privacy_report(dirs)
+    text, analyses = privacy_report(dirs, _limits(a), log=lambda s: print(s, file=sys.stderr), simulate=not a.no_simulate)
     write_report(out, text, analyses, "ppprops " + " ".join(shlex.quote(x) for x in sys.argv[1:]))
     print(json.dumps([x.to_json() for x in analyses]) if a.json else text)
     if not a.json:
@@ -101,9 +128,10 @@ PRIVACY_HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"audit": cmd
 def self_audit_line(run_dir: Path) -> str:
     """The verdict a finished run prints about its own transcript (never any value, never the key)."""
     from .audit import audit_run
+    from .simfit import QUICK_LIMITS
 
     try:
-        report = audit_run(run_dir)
+        report = audit_run(run_dir, limits=QUICK_LIMITS)
     except Exception as e:  # the run itself succeeded; a failing check must not turn that into an error
         return f"privacy audit: could not check this run ({e.__class__.__name__}: {e}); try ppprops audit {run_dir}"
     if report.requests == 0:

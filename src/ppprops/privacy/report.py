@@ -22,8 +22,11 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import ConfigError
 from ..store import open_store
+from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
+from .exposure import EXPOSED_WITHIN, shown_candidate
+from .simfit import SimLimits
 from .transcript import load_requests
 
 SCHEMES = ("pp", "pp-hardened")
@@ -53,6 +56,8 @@ class RunAnalysis:
     details: dict[str, str] = field(default_factory=dict)
     coverage: dict[str, float] = field(default_factory=dict)  # share of the D coordinates an a-attack estimated
     coord_errors: dict[str, list[float]] = field(default_factory=dict)  # a-attacks: one error per scored coordinate
+    not_run: dict[str, str] = field(default_factory=dict)  # attack -> why it could not run on this run
+    within: dict[str, bool] = field(default_factory=dict)  # attack -> recovered its secret within 1% on this run
 
     def to_json(self) -> dict[str, Any]:
         """The JSON form written to ``privacy-report.json``."""
@@ -64,8 +69,16 @@ def _rel(est: float | np.ndarray, true: float | np.ndarray) -> Any:
     return np.expm1(np.abs(np.log(np.asarray(est, dtype=np.float64) / true)))
 
 
-def analyse_run(run_dir: Path) -> RunAnalysis:
-    """Attacks on one run's transcript, scored against its key file; plus its search result."""
+RAW_ROW = "raw return (sim-exact)"  # the best shown policy's raw return as the exact simulator fit decodes it
+
+
+def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: bool = True) -> RunAnalysis:
+    """Attacks on one run's transcript, scored against its key file; plus its search result.
+
+    The attacks run once, inside the run's audit (simulator attacks within ``limits``); their
+    estimates are scored here; ``simulate=False`` leaves the simulator attacks out. Raises
+    StoreError / KeyFileError for an unreadable run or key file.
+    """
     run_dir = Path(run_dir)
     with open_store(run_dir) as store:
         config = search_config(store.config(), run_dir)
@@ -81,11 +94,22 @@ def analyse_run(run_dir: Path) -> RunAnalysis:
         run_dir=str(run_dir), task=task.name, method=config.method, seed=config.seed, warmup=config.warmup,
         iterations=config.iterations, best_return=max((c.ret for c in cands), default=math.nan),
         final_mean=fe.mean if fe is not None and fe.returns else None, llm_calls=len(calls),
-        fallbacks=sum(c.source == "fallback" for c in cands), audit=audit_run(run_dir).verdict(),
+        fallbacks=sum(c.source == "fallback" for c in cands), audit="",
     )
+    report = audit_run(run_dir, limits=limits, simulate=simulate)
+    out.audit = report.verdict()
     requests = load_requests(run_dir)
     out.model = _model_of(run_dir) if requests else ""
-    for est in run_attacks(requests, task.name, config.box):
+    estimates = report.estimates or run_attacks(requests, task, config.box, limits=limits, simulate=simulate)
+    for est in estimates:
+        if est.not_run:
+            out.not_run[est.attack] = est.not_run
+        if est.attack == "sim-exact" and est.raw and m.encode_params:
+            best = max(est.raw, key=lambda g: g.ret)
+            c = shown_candidate(best, cands)
+            if c is not None and c.ret != 0 and math.isfinite(best.raw_ret):
+                out.errors[RAW_ROW] = float(abs(best.raw_ret - c.ret) / abs(c.ret))
+                out.applicable[RAW_ROW] = True
         if est.target == "c":
             value = float(est.value) if est.applicable and est.value is not None else PRIOR
             out.errors[est.attack] = float(_rel(value, true_c))
@@ -99,6 +123,11 @@ def analyse_run(run_dir: Path) -> RunAnalysis:
             out.coverage[est.attack] = float(known.mean())
         out.applicable[est.attack] = est.applicable
         out.details[est.attack] = est.detail
+        if est.applicable:
+            scored = out.coord_errors[est.attack] if est.target == "a" else [out.errors[est.attack]]
+            out.within[est.attack] = bool(np.median(scored) <= EXPOSED_WITHIN)
+    if RAW_ROW in out.errors:
+        out.within[RAW_ROW] = out.errors[RAW_ROW] <= EXPOSED_WITHIN
     out.errors["prior (c)"] = float(_rel(PRIOR, true_c))
     out.coord_errors["prior (a)"] = [float(x) for x in _rel(np.full(task.D, PRIOR), true_a)]
     out.errors["prior (a)"] = float(np.median(out.coord_errors["prior (a)"]))
@@ -147,41 +176,55 @@ def run_matrix(
     return dirs
 
 
-def _fmt_err(values: list[float], applicable: list[bool], coverage: list[float] | None = None) -> str:
-    med = float(np.median(values))
-    pct = f"{100 * med:.2g}%" if med < 1e-3 else f"{100 * med:.3g}%" if med < 1 else f"{100 * med:.0f}%"
+def _fmt_err(values: list[float], within: list[bool], coverage: list[float] | None = None, not_run: int = 0,
+             applicable: list[bool] | None = None) -> str:
+    med = float(np.median(values)) if values else math.nan
+    pct = "-" if not values else f"{100 * med:.2g}%" if med < 1e-3 else f"{100 * med:.3g}%" if med < 1 else f"{100 * med:.0f}%"
     cov = ""
-    if coverage and any(applicable) and min(coverage) < 1.0:
+    if coverage and applicable and any(applicable) and min(coverage) < 1.0:
         cov = f", {100 * float(np.mean([c for c, a in zip(coverage, applicable, strict=True) if a])):.0f}% of coords"
-    return f"{pct} ({sum(applicable)}/{len(applicable)}{cov})"
+    nr = f", {not_run} not run" if not_run else ""
+    return f"{pct} ({sum(within)}/{len(within)}{cov}{nr})"
 
 
-def format_report(runs: Sequence[RunAnalysis]) -> str:
+def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) -> str:
     """The report as Markdown: one row per attack (and the prior guesses), one column per (task, scheme); then the search results."""
     groups: dict[tuple[str, str], list[RunAnalysis]] = {}
     for r in runs:
         groups.setdefault((r.task, r.method), []).append(r)
     cols = sorted(groups, key=lambda k: (k[0], SCHEMES.index(k[1]) if k[1] in SCHEMES else 9, k[1]))
     head = "| attack | secret | " + " | ".join(f"{t} {m}" for t, m in cols) + " |"
+    lim = limits or simfit.DEFAULT_LIMITS
     lines = [
         "Recovery error of the secret: error factor - 1, i.e. exp(|ln(estimate / true)|) - 1 (1% = within 1%, 100% = off by 2x",
         "either way). For c: the median over runs. For a: the median over every coordinate the attack estimated, all runs pooled.",
-        "(k/n): runs in which the attack produced an estimate; in the others it falls back to the prior guess 1",
-        "(the geometric mean of the secret's distribution in both schemes). 'prior' rows: that guess alone.",
+        "(k/n): runs in which the attack recovered the secret within 1% (for a: the median over the coordinates it estimated);",
+        "an attack that found nothing counts as the prior guess 1 (the geometric mean of the secret's distribution in both",
+        "schemes), also in the median; 'not run': runs where it could not run (the reason is in privacy-report.json).",
+        "'prior' rows: that guess alone. 'raw return (sim-exact)': relative error of the best shown policy's raw return as the",
+        f"exact simulator fit decodes it. Simulator attacks are bounded by {lim.describe()}.",
         "",
         head,
         "|" + "---|" * (len(cols) + 2),
     ]
     rows = [(name, TARGET[name]) for name in ATTACKS]
-    rows += [("prior (c)", "c"), ("prior (a)", "a")]
+    rows += [(RAW_ROW, "r"), ("prior (c)", "c"), ("prior (a)", "a")]
     for name, target in rows:
         cells = []
         for key in cols:
             rs = groups[key]
             # c: one value per run; a: every scored coordinate of every run, pooled (D times more draws)
-            errs = [x for r in rs for x in r.coord_errors[name]] if name in rs[0].coord_errors else [r.errors[name] for r in rs]
-            apps = [r.applicable.get(name, True) for r in rs]
-            cells.append(_fmt_err(errs, apps, [r.coverage[name] for r in rs] if name in rs[0].coverage else None))
+            scored = [r for r in rs if name in r.errors]
+            if name in rs[0].coord_errors:
+                errs = [x for r in scored for x in r.coord_errors.get(name, [])]
+            else:
+                errs = [r.errors[name] for r in scored]
+            prior_row = name.startswith("prior")
+            within = [r.within.get(name, False) if not prior_row else bool(r.errors[name] <= EXPOSED_WITHIN) for r in rs]
+            nr = sum(name in r.not_run for r in rs)
+            cov = [r.coverage[name] for r in rs] if name in rs[0].coverage else None
+            apps = [r.applicable.get(name, False) for r in rs]
+            cells.append(_fmt_err(errs, within, cov, nr, apps))
         lines.append(f"| {name} | {target} | " + " | ".join(cells) + " |")
     models = ", ".join(sorted({r.model for r in runs if r.model})) or "-"
     lines += ["", f"Search results (best return found during the search; final evaluation of that policy on fresh episodes); "
@@ -201,13 +244,21 @@ def format_report(runs: Sequence[RunAnalysis]) -> str:
     return "\n".join(lines)
 
 
-def privacy_report(run_dirs: Sequence[Path]) -> tuple[str, list[RunAnalysis]]:
-    """Analyse every run in ``run_dirs`` (``analyse_run``) and format the report: (Markdown text, analyses).
+def privacy_report(run_dirs: Sequence[Path], limits: SimLimits | None = None,
+                   log: Callable[[str], None] | None = None, *, simulate: bool = True) -> tuple[str, list[RunAnalysis]]:
+    """Analyse every run in ``run_dirs`` (``analyse_run``, simulator attacks within ``limits``, or
+    none with ``simulate=False``) and format the report: (Markdown text, analyses). ``log`` hears
+    one line per run analysed.
 
     Raises StoreError / KeyFileError for a directory that is not a run or has no usable key file.
     """
-    analyses = [analyse_run(d) for d in run_dirs]
-    return format_report(analyses), analyses
+    analyses = []
+    for d in run_dirs:
+        t0 = time.time()
+        analyses.append(analyse_run(d, limits, simulate=simulate))
+        if log is not None:
+            log(f"{d}: analysed in {time.time() - t0:.0f} s")
+    return format_report(analyses, limits), analyses
 
 
 def write_report(out: Path, text: str, analyses: Sequence[RunAnalysis], command: str) -> None:

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .knowledge import PublicFacts, facts_for
 from .tokens import token_value
 from .transcript import Request
+
+if TYPE_CHECKING:
+    from ..tasks.base import Task
 
 
 @dataclass(frozen=True)
@@ -36,6 +40,22 @@ class View:
     box: tuple[float, float]
     D: int
     memo: dict[str, object] = field(default_factory=dict, compare=False, hash=False)  # results attacks share
+    # the task's public declaration (env id, observation, recorder), so simulator attacks can build
+    # its env when that env is public; None when only the name is known
+    task: Task | None = field(default=None, compare=False)
+
+
+@dataclass(frozen=True)
+class RawGuess:
+    """An attack's reading of the raw values behind one shown entry: the entry as printed
+    (``params`` encoded, shape (D,), with their printed ``tols``; ``ret`` the printed encoded
+    return) and the raw return (reward units) and raw parameters the attack decodes for it."""
+
+    params: tuple[float, ...]
+    tols: tuple[float, ...]
+    ret: float
+    raw_ret: float
+    raw_params: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -49,6 +69,10 @@ class Estimate:
     value: float | np.ndarray | None  # None: the attack found nothing; a: NaN where not estimated
     detail: str = ""
     extras: dict[str, float] = field(default_factory=dict)  # other secrets it estimated (s, p)
+    # why the attack could not run at all (env private, a fact unknown, initial states unknown, over
+    # its time bound); empty when it ran (then value None means it ran and found nothing)
+    not_run: str = ""
+    raw: tuple[RawGuess, ...] = ()  # raw values it decodes for shown entries (simulator attacks)
 
     @property
     def applicable(self) -> bool:
@@ -58,10 +82,12 @@ class Estimate:
         return bool(np.any(np.isfinite(np.atleast_1d(self.value))))
 
 
-def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) -> View:
+def view_of(requests: Sequence[Request], task: str | Task, box: tuple[float, float]) -> View:
     """The provider's view of one transcript: the distinct history entries shown (parsed from the
-    request bodies), the warm-up entries, and the task's public facts.
+    request bodies), the warm-up entries, and the task's public facts. ``task``: its name, or the
+    Task itself (its public declaration: what a simulator attack needs to build a public env).
     """
+    name = task if isinstance(task, str) else task.name
     seen: dict[tuple[tuple[str, ...], str], Shown] = {}
     first: list[Shown] = []
     D = 0
@@ -79,7 +105,8 @@ def view_of(requests: Sequence[Request], task: str, box: tuple[float, float]) ->
             if k == 0:
                 first.append(seen[key])
     entries = tuple(s for s in seen.values() if len(s.params) == D)
-    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(task), box, D)
+    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(name), box, D,
+                task=None if isinstance(task, str) else task)
 
 
 

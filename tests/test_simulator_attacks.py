@@ -1,0 +1,226 @@
+"""Issue 20, attack side: an attacker who can build a public env fits the secrets by simulating it.
+
+One test per finding that failed on the code before: (1) the run seed is read off a pp-hardened
+transcript and the audit warns; (2) with the initial states known, the exact fit recovers a
+Pendulum-v1 pp-hardened run and the audit says EXPOSED; (3) without them, the marginal fit moves
+the estimate of c from the prior towards the truth on CartPole pp-hardened, and the audit reports
+it; (4) the audit is not CLEAN on a run the fit breaks and lists the attacks it could not run, with
+why; (5) a module or class name of the user's own env in a prompt is flagged. Runs use the real
+loop, tasks and codec with the offline stand-in optimizer, seeded secrets, and small simulation
+budgets (``SMALL``), so the whole file takes seconds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sqlite3
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_attacks import seeded_secrets
+
+from ppprops.client.secrets import Secrets
+from ppprops.privacy import simfit
+from ppprops.privacy.attacks import run_attacks
+from ppprops.privacy.audit import audit_run
+from ppprops.privacy.runseed import find_run_seed
+from ppprops.privacy.simulate import offline_llm
+from ppprops.privacy.simulator import Budget, EnvSim, OverBudget, env_is_public, simulator_for
+from ppprops.privacy.transcript import load_requests
+from ppprops.privacy.view import view_of
+from ppprops.runner import start
+from ppprops.tasks import get_task
+
+from support import make_config
+
+SMALL = simfit.SimLimits(vector_steps=3_000_000, env_steps=20_000, seconds=300.0)
+MEDIUM = simfit.SimLimits(vector_steps=10_000_000, env_steps=20_000, seconds=300.0)  # the audit's default bound
+
+
+@pytest.fixture(autouse=True)
+def small_budgets(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every simulator attack in this file (the audit's too) runs within SMALL."""
+    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", SMALL)
+
+
+def make_run(root: Path, task: str, method: str, seed: int, secrets: Secrets, *, iterations: int = 10) -> Path:
+    out = root / f"{task}__{method}__{seed}"
+    with offline_llm():
+        start(make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed), out, secrets=secrets)
+    return out
+
+
+def estimates(run: Path, task: str, limits: simfit.SimLimits = SMALL) -> dict[str, object]:
+    return {e.attack: e for e in run_attacks(load_requests(run), get_task(task), (-6.0, 6.0), limits=limits)}
+
+
+def err(est: float | np.ndarray, true: float | np.ndarray) -> np.ndarray:
+    """Error factor minus one, as the privacy report states it."""
+    return np.expm1(np.abs(np.log(np.asarray(est, dtype=np.float64) / true)))
+
+
+@pytest.mark.parametrize("task", ["Pendulum-v1", "CartPole", "Acrobot"])
+def test_the_vectorised_simulators_reproduce_the_real_env(task: str) -> None:
+    """The numpy dynamics give the real env's returns and diagnostics, episode by episode."""
+    t = get_task(task)
+    fast, _ = simulator_for(t, Budget(10**8, 600.0))
+    exact = EnvSim(t, Budget(10**8, 600.0))
+    assert fast is not None and fast.kind == "vector"
+    rng = np.random.default_rng(3)
+    thetas = rng.uniform(-6, 6, size=(12, t.D)) * rng.uniform(0.02, 1.0, size=(12, 1))
+    seeds = rng.integers(0, 2**31, size=12).tolist()
+    a, b = fast.rollout(thetas, seeds), exact.rollout(thetas, seeds)
+    np.testing.assert_allclose(a.returns, b.returns, rtol=1e-9, atol=1e-9)
+    for k, v in b.diagnostics.items():
+        if k in a.diagnostics:
+            if v.dtype == object:
+                assert list(a.diagnostics[k]) == list(v), k
+            else:
+                np.testing.assert_allclose(a.diagnostics[k].astype(float), v, atol=1e-9, err_msg=k)
+    with pytest.raises(OverBudget, match="budget of 100 simulated steps"):  # a bound, not a hang
+        simulator_for(t, Budget(100, 600.0))[0].rollout(thetas, seeds)  # type: ignore[union-attr]
+
+
+def test_finding_1_the_run_seed_is_read_off_a_hardened_transcript_and_the_audit_warns(tmp_path: Path) -> None:
+    """The encoded warm-up printed in the first prompt is seeding.rng(seed, WARMUP, m).uniform(-6, 6):
+    a table lookup gives the run seed, hence every episode's initial state."""
+    run = make_run(tmp_path, "CartPole", "pp-hardened", 1234, seeded_secrets("pp-hardened", "CartPole", 0), iterations=2)
+    v = view_of(load_requests(run), get_task("CartPole"), (-6.0, 6.0))
+    seed, how = find_run_seed(v)
+    assert seed == 1234 and "encoded warm-up" in how
+    r = audit_run(run, simulate=False)
+    assert any(f.kind == "run_seed" and "read off the transcript" in f.detail for f in r.channels), r.format()
+    assert r.exit_code(strict=True) == 1  # --strict fails on it
+
+
+def test_finding_2_the_exact_fit_breaks_pendulum_hardened_and_the_audit_says_exposed(tmp_path: Path,
+                                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Initial states known (run seed 0): decoding the shown policies and simulating them explains
+    the printed returns; the best shown policy's raw return and A come out; the audit fails."""
+    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", MEDIUM)
+    secrets = seeded_secrets("pp-hardened", "Pendulum-v1", 0)
+    run = make_run(tmp_path, "Pendulum-v1", "pp-hardened", 0, secrets)
+    ests = estimates(run, "Pendulum-v1", MEDIUM)
+    exact, exact_a = ests["sim-exact"], ests["sim-exact-a"]
+    assert not exact.not_run and exact.raw, exact.detail  # type: ignore[attr-defined]
+    best = max(exact.raw, key=lambda g: g.ret)  # type: ignore[attr-defined]
+    true_best = max(c.ret for c in _candidates(run) if _shows(c, best))
+    assert abs(best.raw_ret - true_best) / abs(true_best) < 0.01  # measured: 0.0035% (-1556.17 for -1556.22)
+    assert float(np.median(err(exact_a.value, secrets.a))) < 0.10  # a_j: measured 2.6%; the prior guess: 76%
+    r = audit_run(run)
+    assert r.verdict().startswith("EXPOSED") and r.exit_code() == 1, r.format()
+    assert any(f.kind == "sim-exact" and "raw return" in f.detail for f in r.exposed)
+    assert "public dynamics: task Pendulum-v1 runs the public env Pendulum-v1" in r.format()
+    assert "simulator attacks: bounded by 1e+07 simulated steps" in r.format()
+
+
+def test_finding_3_the_marginal_fit_moves_c_from_the_prior_towards_the_truth(tmp_path: Path) -> None:
+    """No initial states (run seeds beyond the search): the shown policies are simulated on public
+    initial-state draws. With c = 8 (the prior guess 1 is off by 700%), five runs with different
+    A, m, s, p: the median error of the estimate is measured at 78% (three of the five within a
+    factor 1.8, two off by more than 20x: the exponent p and c trade off); asserted below 200%."""
+    errors = []
+    for k in range(5):
+        secrets = dataclasses.replace(seeded_secrets("pp-hardened", "CartPole", k), c=8.0)
+        run = make_run(tmp_path, "CartPole", "pp-hardened", 5000 + k, secrets)
+        ests = estimates(run, "CartPole")
+        assert "initial states unknown" in ests["sim-exact"].not_run  # type: ignore[attr-defined]
+        errors.append(float(err(ests["sim-marginal"].value, 8.0)))  # type: ignore[attr-defined]
+    assert float(np.median(errors)) < 2.0, errors
+    assert float(err(1.0, 8.0)) == pytest.approx(7.0)
+    r = audit_run(run)  # the last run: what the audit says about it
+    text = r.format()
+    assert "public dynamics: task CartPole runs the public env CartPole-v1" in text and "sim-marginal: c within" in text
+    assert "sim-exact (initial states unknown" in text  # listed among the attacks not run, with why
+
+
+def test_finding_4_the_audit_is_not_clean_on_a_pp_run_the_fit_breaks(tmp_path: Path) -> None:
+    """Pendulum-v1 under pp, run seed 1500: the old seed search stopped at a smaller seed whose
+    warm-up signs matched by chance (4 parameters: 16 sign patterns), so seed-replay failed and the
+    audit said CLEAN. The warm-up's scales single the seed out; A, then c and every raw value follow."""
+    secrets = seeded_secrets("pp", "Pendulum-v1", 3)
+    run = make_run(tmp_path, "Pendulum-v1", "pp", 1500, secrets, iterations=4)
+    r = audit_run(run)
+    assert r.verdict().startswith("EXPOSED"), r.format()
+    kinds = {f.kind for f in r.exposed}
+    assert {"seed-replay", "sim-exact"} <= kinds, kinds
+    c = next(f for f in r.exposed if f.kind == "sim-exact" and f.detail.startswith("recovers c"))
+    assert "to 0" in c.detail  # c within 1%
+    not_run = dict(r.not_run)
+    assert not_run["lattice"].startswith("fact unknown")  # Pendulum-v1 declares no privacy facts
+    assert "attacks not run: " in r.format()
+
+
+POINT_ROBOT = """
+    import gymnasium as gym
+    import numpy as np
+
+
+    class PointRobot(gym.Env):
+        observation_space = gym.spaces.Box(-10.0, 10.0, (2,), np.float64)
+        action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float64)
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            self.x = self.np_random.uniform(-1, 1, 2)
+            self.t = 0
+            return self.x.copy(), {}
+
+        def step(self, action):
+            self.x = self.x + 0.1 * np.array([float(action[0]), -self.x[1]])
+            self.t += 1
+            return self.x.copy(), -float(np.sum(self.x**2)), False, self.t >= 20, {}
+"""
+
+
+@pytest.fixture()
+def point_robot(tmp_path: Path) -> Iterator[str]:
+    (tmp_path / "point_robot.py").write_text(textwrap.dedent(POINT_ROBOT))
+    sys.path.insert(0, str(tmp_path))
+    yield "point_robot:PointRobot"
+    sys.path.remove(str(tmp_path))
+    sys.modules.pop("point_robot", None)
+
+
+def test_finding_5_a_module_or_class_name_of_the_users_env_in_a_prompt_is_flagged(tmp_path: Path, point_robot: str) -> None:
+    """Before the prompt named tasks neutrally, it named them by the task name: here the module and
+    class of the user's env. Once it names them neutrally the audit finds nothing, and a name
+    planted in a recorded request is still flagged."""
+    task = get_task(point_robot)
+    assert not env_is_public(task)
+    out = tmp_path / "run"
+    with offline_llm():
+        start(make_config(point_robot, "pp", warmup=3, iterations=1, final_episodes=0), out)
+    r = audit_run(out)
+    assert "sim-exact" in dict(r.not_run) and "private" in dict(r.not_run)["sim-exact"]
+    if "point_robot" not in load_requests(out)[0].text:  # a neutral name: nothing to flag; plant one
+        assert not r.identifiers, r.format()
+        with sqlite3.connect(out / "run.sqlite") as db:
+            call_id, body = db.execute("SELECT id, request FROM llm_calls ORDER BY id LIMIT 1").fetchone()
+            doc = json.loads(body)
+            if "messages" in doc:
+                doc["messages"][0]["content"] += "\n(point_robot.PointRobot)"
+            else:
+                doc["prompt"] = "(point_robot.PointRobot)\n" + doc["prompt"]
+            db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
+        r = audit_run(out)
+    names = {f.detail.split("'")[1] for f in r.identifiers}
+    assert {"point_robot", "PointRobot"} <= names, r.format()
+    assert r.verdict().startswith("IDENTIFIERS") and r.exit_code() == 1
+
+
+def _candidates(run: Path) -> list:  # type: ignore[type-arg]
+    from ppprops.store import open_store
+
+    with open_store(run) as store:
+        return store.candidates()
+
+
+def _shows(c: object, g: object) -> bool:
+    enc = np.asarray(c.params_enc)  # type: ignore[attr-defined]
+    return bool(np.all(np.abs(enc - np.asarray(g.params)) <= np.asarray(g.tols) + 1e-9))  # type: ignore[attr-defined]
