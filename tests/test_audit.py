@@ -147,7 +147,8 @@ def test_a_pp_transcript_sends_no_raw_value_but_fails_on_the_papers_channels(pp_
     assert {"diagnostic", "lattice"} <= {f.kind for f in r.exposed} and all(f.by_design for f in r.exposed)
     assert r.exit_code() == 1 and r.verdict().startswith("EXPOSED") and "channels PP-ProPS keeps as the paper defines it" in r.verdict()
     kinds = {f.kind for f in r.channels}
-    assert {"diagnostic_return", "diagnostic_determines", "warmup_scale", "run_seed", "reward_lattice"} <= kinds
+    assert {"diagnostic_return", "diagnostic_determines", "warmup_scale", "reward_lattice"} <= kinds
+    assert "run_seed" not in kinds  # the warm-up of a new run is keyed by its secrets, not drawn from the run seed
     assert any("episode_length equals the raw return" in f.detail for f in r.channels)
     assert any("episode_length equals the raw component alive" in f.detail for f in r.channels)
     assert "not checked: request timing" in r.format()

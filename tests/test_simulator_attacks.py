@@ -34,6 +34,7 @@ from ppprops.privacy.simulator import Budget, EnvSim, OverBudget, env_is_public,
 from ppprops.privacy.transcript import load_requests
 from ppprops.privacy.view import view_of
 from ppprops.runner import start
+from ppprops.study import Study
 from ppprops.tasks import get_task
 
 from support import make_config
@@ -48,10 +49,21 @@ def small_budgets(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(simfit, "DEFAULT_LIMITS", SMALL)
 
 
-def make_run(root: Path, task: str, method: str, seed: int, secrets: Secrets, *, iterations: int = 10) -> Path:
+def make_run(root: Path, task: str, method: str, seed: int, secrets: Secrets, *, iterations: int = 10, keyed: bool = True) -> Path:
+    """A run with the offline optimizer; ``keyed=False`` makes it as runs were made before its random
+    streams were keyed by its secrets (issue 20): warm-up and episode seeds from the run seed alone,
+    the transcripts the red team attacked (a user's old runs are such)."""
     out = root / f"{task}__{method}__{seed}"
-    with offline_llm():
-        start(make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed), out, secrets=secrets)
+    config = make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed)
+    if keyed:
+        with offline_llm():
+            start(config, out, secrets=secrets)
+        return out
+    with Study.create(config, out, secrets=secrets) as study:
+        with sqlite3.connect(out / "run.sqlite") as db:
+            db.execute("DELETE FROM meta WHERE key = 'streams'")
+    with offline_llm(), Study.load(out) as study:
+        study.optimize()
     return out
 
 
@@ -89,13 +101,19 @@ def test_the_vectorised_simulators_reproduce_the_real_env(task: str) -> None:
 def test_finding_1_the_run_seed_is_read_off_a_hardened_transcript_and_the_audit_warns(tmp_path: Path) -> None:
     """The encoded warm-up printed in the first prompt is seeding.rng(seed, WARMUP, m).uniform(-6, 6):
     a table lookup gives the run seed, hence every episode's initial state."""
-    run = make_run(tmp_path, "CartPole", "pp-hardened", 1234, seeded_secrets("pp-hardened", "CartPole", 0), iterations=2)
-    v = view_of(load_requests(run), get_task("CartPole"), (-6.0, 6.0))
+    old = make_run(tmp_path / "old", "CartPole", "pp-hardened", 1234, seeded_secrets("pp-hardened", "CartPole", 0), iterations=2,
+                   keyed=False)
+    v = view_of(load_requests(old), get_task("CartPole"), (-6.0, 6.0))
     seed, how = find_run_seed(v)
     assert seed == 1234 and "encoded warm-up" in how
-    r = audit_run(run, simulate=False)
+    r = audit_run(old, simulate=False)
     assert any(f.kind == "run_seed" and "read off the transcript" in f.detail for f in r.channels), r.format()
     assert r.exit_code(strict=True) == 1  # --strict fails on it
+    # closed for new runs: the warm-up is keyed by the secrets, the seed is not found, the audit has nothing to warn of
+    new = make_run(tmp_path / "new", "CartPole", "pp-hardened", 1234, seeded_secrets("pp-hardened", "CartPole", 0), iterations=2)
+    assert find_run_seed(view_of(load_requests(new), get_task("CartPole"), (-6.0, 6.0)))[0] is None
+    r = audit_run(new, simulate=False)
+    assert not any(f.kind == "run_seed" for f in r.channels) and r.exit_code(strict=True) == 0, r.format()
 
 
 def test_finding_2_the_exact_fit_breaks_pendulum_hardened_and_the_audit_says_exposed(tmp_path: Path,
@@ -104,7 +122,7 @@ def test_finding_2_the_exact_fit_breaks_pendulum_hardened_and_the_audit_says_exp
     the printed returns; the best shown policy's raw return and A come out; the audit fails."""
     monkeypatch.setattr(simfit, "DEFAULT_LIMITS", MEDIUM)
     secrets = seeded_secrets("pp-hardened", "Pendulum-v1", 0)
-    run = make_run(tmp_path, "Pendulum-v1", "pp-hardened", 0, secrets)
+    run = make_run(tmp_path, "Pendulum-v1", "pp-hardened", 0, secrets, keyed=False)  # a run made before streams were keyed
     ests = estimates(run, "Pendulum-v1", MEDIUM)
     exact, exact_a = ests["sim-exact"], ests["sim-exact-a"]
     assert not exact.not_run and exact.raw, exact.detail  # type: ignore[attr-defined]
@@ -144,7 +162,7 @@ def test_finding_4_the_audit_is_not_clean_on_a_pp_run_the_fit_breaks(tmp_path: P
     warm-up signs matched by chance (4 parameters: 16 sign patterns), so seed-replay failed and the
     audit said CLEAN. The warm-up's scales single the seed out; A, then c and every raw value follow."""
     secrets = seeded_secrets("pp", "Pendulum-v1", 3)
-    run = make_run(tmp_path, "Pendulum-v1", "pp", 1500, secrets, iterations=4)
+    run = make_run(tmp_path, "Pendulum-v1", "pp", 1500, secrets, iterations=4, keyed=False)  # made before streams were keyed
     r = audit_run(run)
     assert r.verdict().startswith("EXPOSED"), r.format()
     kinds = {f.kind for f in r.exposed}

@@ -38,7 +38,6 @@ from ..errors import ConfigError
 from ..plugins import load_plugins
 from ..proposers.llm import FALLBACK_SIGMA
 from . import simfit
-from .knowledge import PublicFacts
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
 from .runseed import RANGE_STATED as _RANGE
 from .runseed import find_run_seed, replay_scale
@@ -327,34 +326,28 @@ def run_attacks(requests: Sequence[Request], task: str | Task, box: tuple[float,
     v = view_of(requests, task, box)
     v.memo["sim_limits"] = limits or simfit.DEFAULT_LIMITS
     out = []
-    unknown = not facts_known(v)
     for name, f in ATTACKS.items():
         if name in SIMULATOR_ATTACKS and not simulate:
             out.append(Estimate(name, TARGET[name], None, "simulator attacks were not asked for",
                                 not_run="simulator attacks were not asked for"))
             continue
         est = f(v)
-        if unknown and name in NEEDS_FACT and est.value is None and not est.not_run:
-            est = replace(est, not_run=f"fact unknown: {NEEDS_FACT[name]} (no privacy facts are declared for task {v.facts.task})")
+        gone = v.facts.missing(*NEEDS_FACT.get(name, ()))
+        if gone and est.value is None and not est.not_run:  # it found nothing because the task does not say
+            est = replace(est, not_run=f"fact unknown: {', '.join(gone)} (not declared in the [privacy] table of task {v.facts.task})")
         out.append(est)
     return out
 
 
-# The public fact each attack's premise needs (knowledge.PublicFacts); for a task that declares none,
-# these attacks report "not run: fact unknown" instead of "found nothing".
-NEEDS_FACT = {
-    "lattice": "whether its returns are integers",
-    "warped-lattice": "whether its returns are integers, and their range",
-    "known-cap": "the public caps of its returns",
-    "additivity": "whether its reward components add up to the return",
-    "survive-length": "a component with a public per-step value",
-    "saturated-ctrl": "the control cost of a saturated controller",
+# The public facts each attack's premise needs (``tasks.facts.FACT_NAMES``, declared in a task file's
+# [privacy] table); when the task leaves one unknown and the attack finds nothing, it reports
+# "not run: fact unknown" instead of "found nothing".
+NEEDS_FACT: dict[str, tuple[str, ...]] = {
+    "lattice": ("integer_returns",),
+    "warped-lattice": ("integer_returns", "return_range"),
+    "known-cap": ("caps",),
+    "diagnostic": ("return_formula",),
+    "additivity": ("components_sum_to_return",),
+    "survive-length": ("survive_component", "time_limit"),
+    "saturated-ctrl": ("ctrl_component", "time_limit"),
 }
-
-
-def facts_known(v: View) -> bool:
-    """Whether the task has declared privacy facts (``knowledge.facts_for``); the paper's tasks do.
-
-    Adapter until task files declare them (issue 20): then ``facts_for(Task)`` says which are unknown.
-    """
-    return v.facts != PublicFacts(v.facts.task)

@@ -224,8 +224,9 @@ class _Auditor:
     def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
-                 limits: SimLimits | None = None, simulate: bool = True) -> None:
+                 limits: SimLimits | None = None, simulate: bool = True, keyed_streams: bool = False) -> None:
         self.limits = limits or simfit.DEFAULT_LIMITS
+        self.keyed_streams = keyed_streams  # the run's draws are keyed by its secrets (seeding.Streams): no seed replay
         self.simulate = simulate
         self.config = config
         self.mech: Mechanisms = config.mechanisms
@@ -411,9 +412,10 @@ class _Auditor:
         if mech.encode_params and not mech.encoded_warmup and any(c.source == "warmup" for c in shown):
             self.finding("channel", "warmup_scale", "warm-up drawn uniformly from the public box: max|theta~_j| over it estimates "
                          "a_j times the box bound", f"{sum(c.source == 'warmup' for c in shown)} warm-up entries shown")
-        if mech.encode_params and not mech.encoded_warmup and any(c.source == "warmup" for c in shown):
+        if mech.encode_params and not mech.encoded_warmup and not self.keyed_streams and any(c.source == "warmup" for c in shown):
             self.finding("channel", "run_seed", "the raw warm-up is drawn from the run seed: a provider that guesses a small "
-                         "run seed replays it (use a large random --seed)", f"run seed of {self.config.seed.bit_length()} bits")
+                         "run seed replays it (runs made before streams were keyed by the secrets)",
+                         f"run seed of {self.config.seed.bit_length()} bits")
         rets = [c.ret for c in shown]
         if mech.scale_rewards and not mech.warp_rewards and len(set(rets)) >= 3:
             if facts_for(self.task).integer_returns or all(float(r).is_integer() for r in rets):
@@ -929,6 +931,7 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         calls = store.llm_calls()
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         run_id, fingerprint = store.run_id(), store.key_fingerprint()
+        keyed = store.streams_keyed()
     secrets = None
     if (run_dir / "secrets.key").exists():
         try:
@@ -936,4 +939,4 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         except KeyFileError:
             secrets = None
     return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                   adaptations=adaptations, limits=limits, simulate=simulate).run()
+                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed).run()

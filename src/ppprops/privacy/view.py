@@ -87,7 +87,6 @@ def view_of(requests: Sequence[Request], task: str | Task, box: tuple[float, flo
     request bodies), the warm-up entries, and the task's public facts. ``task``: its name, or the
     Task itself (its public declaration: what a simulator attack needs to build a public env).
     """
-    name = task if isinstance(task, str) else task.name
     seen: dict[tuple[tuple[str, ...], str], Shown] = {}
     first: list[Shown] = []
     D = 0
@@ -105,7 +104,7 @@ def view_of(requests: Sequence[Request], task: str | Task, box: tuple[float, flo
             if k == 0:
                 first.append(seen[key])
     entries = tuple(s for s in seen.values() if len(s.params) == D)
-    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(name), box, D,
+    return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(task), box, D,
                 task=None if isinstance(task, str) else task)
 
 
