@@ -2,11 +2,15 @@
 
 A grid (``benchmarks/quality.toml``) run with ``ppprops experiment`` on both cores (one llama.cpp
 thread per run): CartPole, Acrobot and Pendulum-v1 with ten seeds, Ant-Ultra (D=88) with three,
-every method with the same number of evaluated policies (10 random warm-up + 50 proposals); pp
-uses the embedded model's default, the document form (``wire.document``). The same grid runs pp
-in the paper's chat form on the three target tasks, for benchmark 1's "no loss in search results". The figure
-of merit is the final evaluation: the mean return over 20 fresh episodes of the policy with the
-best single-episode return of the search. Every pp run is also audited (``ppprops audit``).
+every method with the same number of evaluated policies (10 random warm-up + 50 proposals) and
+the same selection stage (the top 5 candidates of the search re-run on 10 fresh episodes each, the
+best pooled mean handed over: ``proposers.selection``); pp uses the embedded model's default, the
+document form (``wire.document``). The same grid runs pp in the paper's chat form on the three
+target tasks, for benchmark 1's "no loss in search results", and an ablation of the exploration
+rule on CartPole and Acrobot. The figure of merit is the final evaluation: the mean return over 20
+fresh episodes of the policy handed over. The old selection (the best single search return, as
+before issue 21) is evaluated on the same 20 episodes for every run, so both stand side by side.
+Every pp run is also audited (``ppprops audit``).
 
 With ``run_all.py --keep`` a grid already recorded under ``--out`` is reused: ``ppprops
 experiment`` skips its finished runs and resumes the rest. With ``--keep --collect`` nothing is
@@ -27,6 +31,10 @@ from typing import Any
 import numpy as np
 from _common import Context, Section, llm_calls, mean_std, table, timings
 
+from ppprops import seeding
+from ppprops.config import RunConfig
+from ppprops.evaluation import Evaluator
+from ppprops.loop import best_candidate, search_candidates
 from ppprops.privacy.audit import audit_run
 from ppprops.report import run_summary
 from ppprops.store import open_store
@@ -69,6 +77,21 @@ def _steps(run_dir: Path, warmup: int) -> dict[str, float]:
             "new_bests": float(sum(R[i] > R[:i].max() for i in range(warmup, len(R))))}
 
 
+def old_selection_final(run_dir: Path) -> float | None:
+    """The final evaluation the run would have had before issue 21: the candidate with the best single
+    search return, on the same fresh episodes as the run's own final evaluation (the same seeds)."""
+    with open_store(run_dir) as store:
+        cands, fe, config = store.candidates(), store.final_eval(), RunConfig.from_json(store.config())
+    if fe is None or not fe.returns:
+        return None
+    old = best_candidate(search_candidates(cands))
+    if old.index == fe.candidate_index:
+        return fe.mean
+    with Evaluator(config.make_task()) as ev:
+        seeds = list(fe.seeds) or seeding.final_eval_seeds(config.seed, len(fe.returns))
+        return float(np.mean(ev.evaluate(old.params, seeds).episode_returns))
+
+
 def median_of(values: list[float]) -> str:
     return f"{statistics.median(values):.1f}" if values else "-"
 
@@ -86,7 +109,7 @@ def run(ctx: Context) -> Section:
     if not ctx.collect:
         subprocess.run(cmd, check=True)
     results: dict[tuple[str, str], dict[str, list[Any]]] = defaultdict(
-        lambda: {"best": [], "final": [], "llm": [], "seeds": [], "steps": []})
+        lambda: {"best": [], "final": [], "old_final": [], "llm": [], "seeds": [], "steps": [], "episodes": []})
     dirs: dict[tuple[str, str, int], Path] = {}
     audits: dict[str, Any] = {"runs": 0, "clean": 0, "not_clean": [], "verdicts": defaultdict(int)}
     unfinished = []
@@ -96,9 +119,13 @@ def run(ctx: Context) -> Section:
             unfinished.append(run_dir.name)  # still running (or stopped): no final evaluation to report
             continue
         arm = s["method"] + ("-chat" if s["config"].get("prompt_form") == "chat" else "")
+        if s["config"].get("explore") is False:
+            arm += "-noexplore"
         r = results[(s["env"], arm)]
-        r["best"].append(s["best"]["return"])
+        r["best"].append((s["best"].get("search_best") or s["best"])["return"])
         r["final"].append(s["final_eval"]["mean"])
+        r["old_final"].append(old_selection_final(run_dir))
+        r["episodes"].append(s["counts"].get("episodes", {}))
         r["seeds"].append(s["seed"])
         r["steps"].append(_steps(run_dir, int(s["config"].get("warmup", 10))))
         if s["method"] == "pp":
@@ -120,7 +147,9 @@ def run(ctx: Context) -> Section:
             if r is None:
                 continue
             data[f"{task}/{arm}"] = r
-            rows.append([task, label, len(r["final"]), mean_std(r["final"]), median_of(r["final"]), mean_std(r["best"])])
+            old = [x for x in r["old_final"] if x is not None]
+            rows.append([task, label, len(r["final"]), mean_std(r["final"]), median_of(r["final"]), mean_std(old), median_of(old),
+                         mean_std(r["best"])])
     n_runs = sum(len(r["final"]) for r in results.values())
     if not reused:
         source = f"{n_runs} runs from `ppprops experiment benchmarks/quality.toml`"
@@ -131,8 +160,20 @@ def run(ctx: Context) -> Section:
     else:
         source = f"{n_runs} runs of the grid recorded under `{out}` (reused: finished runs kept, the rest resumed)"
     body = [f"{source} (2 jobs, one llama.cpp thread each); final evaluation: mean (std) and median over seeds of the mean "
-            "return of 20 fresh episodes of each run's best policy:", "",
-            table(["task", "method", "seeds", "final-evaluation return", "median", "best return in the search"], rows), ""]
+            "return of 20 fresh episodes of the policy handed over, with the selection stage (new) and, on the same 20 episodes, "
+            "the candidate with the best single search return (old, before issue 21):", "",
+            table(["task", "method", "seeds", "final (new selection)", "median", "final (old selection)", "median",
+                   "best single return in the search"], rows), ""]
+    ep_rows = []
+    for task in TASKS:
+        for arm, label in ARMS:
+            r = results.get((task, arm))
+            if r and r["episodes"]:
+                e = r["episodes"]
+                ep_rows.append([task, label, f"{statistics.fmean(x.get('search', 0) for x in e):.0f}",
+                                f"{statistics.fmean(x.get('selection', 0) for x in e):.0f}", f"{statistics.fmean(x.get('final', 0) for x in e):.0f}"])
+    body += ["Episodes per run (means over seeds): the selection stage's cost beside the search's; the LLM budget is the same "
+             "(one proposal per LLM call):", "", table(["task", "method", "search", "selection stage", "final evaluation"], ep_rows), ""]
     for task in TARGET_TASKS:
         pp, rnd, cma = (results.get((task, a)) for a in ("pp", "random", "cmaes"))
         if not (pp and rnd and cma):
@@ -141,7 +182,7 @@ def run(ctx: Context) -> Section:
         met = (m(pp["final"]) > m(rnd["final"]) and statistics.median(pp["final"]) > statistics.median(rnd["final"])
                and m(pp["final"]) >= m(cma["final"]))
         seeds = f" ({len(pp['final'])}/{len(rnd['final'])}/{len(cma['final'])} seeds)"
-        targets.append((f"{task}: PP-ProPS above random (mean and median) and at least CMA-ES (mean), final-evaluation return",
+        targets.append((f"{task}: PP-ProPS above random (mean and median) and at least CMA-ES (mean), final-evaluation return (new selection)",
                         f"mean {m(pp['final']):.1f} vs {m(rnd['final']):.1f} vs {m(cma['final']):.1f}; median "
                         f"{statistics.median(pp['final']):.1f} vs {statistics.median(rnd['final']):.1f}"
                         + (seeds if ctx.collect else ""), met))
@@ -182,6 +223,19 @@ def run(ctx: Context) -> Section:
     body += ["", "How far each method's proposals go from the best policy found before them (search phase only; raw "
              "parameters, RMS per coordinate, the box [-6, 6] is 12 wide), and how often a proposal beats it:", "",
              table(["task", "method", "seeds", "median step from the best so far", "new bests per run"], step_rows)]
+    ablation = []
+    for task in TARGET_TASKS:
+        on, off = results.get((task, "pp")), results.get((task, "pp-noexplore"))
+        if on and off:
+            for label, r in (("exploration when stuck (default)", on), ("no exploration (--explore off)", off)):
+                ablation.append([task, label, len(r["final"]), mean_std(r["final"]), median_of(r["final"]), mean_std(r["best"]),
+                                 f"{statistics.median(x['step'] for x in r['steps']):.2f}",
+                                 f"{statistics.fmean(x['new_bests'] for x in r['steps']):.1f}"])
+    if ablation:
+        body += ["", "The exploration rule alone (pp, document form; the same seeds and selection stage; after 3 LLM iterations "
+                 "without a new best shown return an iteration is sampled at temperature 1.5):", "",
+                 table(["task", "pp", "seeds", "final (new selection)", "median", "best single return", "median step from the best",
+                        "new bests per run"], ablation)]
     forms = []
     for task in TARGET_TASKS:
         chat, doc = results.get((task, "pp-chat")), results.get((task, "pp"))

@@ -27,7 +27,7 @@ def _bb_config(method: str, encoded: bool = False, **kw: object):  # type: ignor
 def test_cli_runs_and_show_lists_the_sources(tmp_path: Path, capsys, method: str) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / method
     assert main(["run", "--env", "CartPole", "--method", method, "--warmup", "4", "--iterations", "8",
-                 "--final-episodes", "2", "--out", str(out), "--quiet"]) == 0
+                 "--final-episodes", "2", "--select-top", "0", "--out", str(out), "--quiet"]) == 0
     capsys.readouterr()
     assert main(["show", str(out), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)

@@ -22,7 +22,7 @@ def _call(capsys, args: list[str]) -> tuple[int, str]:  # type: ignore[no-untype
     return code, err
 
 
-RUN = ["run", "--env", "CartPole", "--quiet"]
+RUN = ["run", "--env", "CartPole", "--quiet", "--select-top", "0"]
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,7 @@ from ppprops.cli import build_parser, main, run_config, run_parser
 from ppprops.experiments.spec import run_settings
 from ppprops.store import open_store
 
-TINY = ["--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "3"]
+TINY = ["--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "3", "--select-top", "0"]
 
 
 def _ppprops(args: list[str], **kw) -> subprocess.CompletedProcess[str]:  # type: ignore[no-untyped-def]

@@ -23,6 +23,7 @@ from ppprops.methods import resolve
 from ppprops.privacy.audit import audit_run
 from ppprops.proposers import LLMProposer
 from ppprops.proposers.base import clip_to_box
+from ppprops.proposers.llm import stall_count
 from ppprops.runner import load_run, start
 from ppprops.seeding import Streams
 from ppprops.store import open_store
@@ -130,7 +131,7 @@ def test_continuation_cut_at_the_token_limit_is_never_used() -> None:
 
 # -- configuration ---------------------------------------------------------------------------------------
 def _config(**kw: object) -> RunConfig:
-    base = dict(task="CartPole", method="pp", mechanisms=resolve("pp"), warmup=4, iterations=4, final_episodes=2, seed=3)
+    base = dict(task="CartPole", method="pp", mechanisms=resolve("pp"), warmup=4, iterations=4, final_episodes=2, seed=3, select_top=0)
     base.update(kw)
     return RunConfig(**base)  # type: ignore[arg-type]
 
@@ -187,7 +188,8 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
             assert "messages" not in body and body["prompt"] == rebuilt.prompt()  # exactly the document, nothing else
             assert body["prompt"].endswith("\nparams: [")
             assert body["grammar"] == continuation_grammar(task.D, rebuilt.shown(), rebuilt.ctx)
-            assert body["temperature"] == document_temperature(c.iteration, int(call["attempt"]))
+            stalled = stall_count(cands[: c.index])  # LLM iterations in a row without a new best before this one
+            assert body["temperature"] == document_temperature(c.iteration, int(call["attempt"]), None, stalled)
             assert json.loads(str(call["response"]))["object"] == "text_completion"  # the completions endpoint
         last = by_iteration[c.iteration][-1]
         if c.source == "llm":  # the evaluated vector is the continuation the model wrote, decoded and clipped
@@ -268,11 +270,15 @@ def test_offline_document_run_is_accounted_for_byte_by_byte(tmp_path: Path) -> N
     run_dir = _offline_document_run(tmp_path)
     store = open_store(run_dir)
     try:
-        bodies = [json.loads(c["request"]) for c in store.llm_calls()]
+        calls = store.llm_calls()
+        cands = store.candidates()
+        bodies = [json.loads(c["request"]) for c in calls]
     finally:
         store.close()
     assert bodies and all("prompt" in b and "messages" not in b and "grammar" in b for b in bodies)
-    assert [b["temperature"] for b in bodies] == [document_temperature(i, 0) for i in range(len(bodies))]
+    warmup = sum(c.source == "warmup" for c in cands)
+    assert [b["temperature"] for b in bodies] == [document_temperature(c["iteration"], c["attempt"], None, stall_count(cands[: warmup + c["iteration"]]))
+                                                  for c in calls]
     report = audit_run(run_dir)
     assert not report.leaks and not report.unverified, report.format()
     assert report.requests == len(bodies)

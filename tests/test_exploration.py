@@ -43,9 +43,9 @@ class Stubborn:
         pass
 
 
-def _run(tmp_path: Path) -> tuple[Path, Stubborn]:
+def _run(tmp_path: Path, explore: bool = True) -> tuple[Path, Stubborn]:
     config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2), prompt_form="document",
-                     select_top=0)
+                     select_top=0, explore=explore)
     chat = Stubborn(config.llm)
     start(config, tmp_path / "r", chat=chat)
     return tmp_path / "r", chat
@@ -78,3 +78,12 @@ def test_a_decision_the_form_did_not_make_is_flagged(tmp_path: Path) -> None:
         db.execute("UPDATE llm_calls SET decisions = ? WHERE id = ?", (json.dumps(forged), row_id))
     report = audit_run(run)
     assert any("stall count 7 is not the 0 the shown returns give" in f.detail for f in report.unverified), report.format()
+
+
+def test_explore_off_keeps_the_plain_schedule_and_audits_clean(tmp_path: Path) -> None:
+    run, chat = _run(tmp_path, explore=False)
+    assert chat.temperatures == [TEMPERATURES[i % len(TEMPERATURES)] for i in range(8)]
+    with open_store(run) as store:
+        assert all(c["decisions"]["stalled"] == 0 for c in store.llm_calls())
+    report = audit_run(run)
+    assert not report.unverified and not report.leaks, report.format()

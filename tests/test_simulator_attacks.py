@@ -199,6 +199,7 @@ POINT_ROBOT = """
 @pytest.fixture()
 def point_robot(tmp_path: Path) -> Iterator[str]:
     (tmp_path / "point_robot.py").write_text(textwrap.dedent(POINT_ROBOT))
+    sys.modules.pop("point_robot", None)  # another test's point_robot (examples/own_robot) may be imported already
     sys.path.insert(0, str(tmp_path))
     yield "point_robot:PointRobot"
     sys.path.remove(str(tmp_path))

@@ -116,7 +116,7 @@ GROUPS: dict[str, dict[str, str]] = {
             "context_size": "context_size", "retries": "retries", "retry_base_delay": "retry_base_delay",
             "retry_max_delay": "retry_max_delay", "retry_after_cap": "retry_after_cap", "on_llm_failure": "on_llm_failure"},
     "prompt": {"top_k": "top_k", "form": "prompt_form", "params": "prompt_params", "digits": "param_digits",
-               "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries"},
+               "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries", "explore": "explore"},
     "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers", "select_top": "select_top",
                    "select_episodes": "select_episodes"},
     "task_options": {"env_kwargs": "env_kwargs", "max_episode_steps": "max_episode_steps", "gym_packages": "gym_packages",
@@ -240,7 +240,8 @@ def search(
             switches, each True/False (None keeps the preset's).
         prompt: ``top_k`` (history entries shown, best last, Eq. 9; 0 keeps all), ``form``
             (``auto``, ``chat``, ``document``), ``params`` (``list``/``indexed``), ``digits``,
-            ``layout``, ``decimals``, ``parse_retries``.
+            ``layout``, ``decimals``, ``parse_retries``, ``explore`` (the document form samples hotter
+            after 3 LLM iterations without a new best; default True).
         evaluation: ``episodes`` per candidate (default: the method's, 1; 20 for r2po),
             ``final_episodes`` (fresh episodes for the best policy, default 20), ``workers``
             (processes running episodes; results identical to one), ``select_top`` and

@@ -99,6 +99,9 @@ class RunConfig:
     param_digits: Annotated[Int | None, Field(ge=0, le=8), Flag(
         "significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals",
         range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form")] = None
+    # The document form's exploration rule (wire.document.STALL_AFTER, EXPLORE_TEMPERATURE)
+    explore: Annotated[OnOff, Flag("document form: after 3 LLM iterations without a new best shown return, sample one at "
+                                   "temperature 1.5", metavar="on|off", default_text="on")] = True
     prompt_layout: Annotated[Literal["static-first", "history-first"], Flag(
         "fixed sections before the history (a server's prefix cache reuses them) or history first")] = "static-first"
     # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
@@ -142,7 +145,8 @@ class RunConfig:
         """The settings the prompts of ``form`` (``chat`` or ``document``) depend on: what
         ``client.context.prompt_context`` and the proposers take instead of the whole config."""
         return PromptSettings(mechanisms=self.mechanisms, box=self.box, decimals=self.decimals, params_style=self.prompt_params,
-                              param_digits=self.digits(form), layout=self.prompt_layout, top_k=self.top_k, form=form)
+                              param_digits=self.digits(form), layout=self.prompt_layout, top_k=self.top_k, form=form,
+                              explore=self.explore is not False)
 
     @property
     def encoding(self) -> EncodingSettings:

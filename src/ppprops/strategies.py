@@ -57,7 +57,7 @@ def props_phase(s: SearchSetup) -> Phase:
     assert s.chat is not None, "a prompted method needs the run's LLM client"
     proposer = LLMProposer(chat=s.chat(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
                            box=s.box, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
-                           form=s.prompt.form, temperature=s.llm.temperature)  # fmt: skip
+                           form=s.prompt.form, temperature=s.llm.temperature, explore=s.prompt.explore)  # fmt: skip
     return Phase("llm", proposer, s.iterations)
 
 

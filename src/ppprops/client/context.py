@@ -22,7 +22,8 @@ class PromptSettings:
 
     ``form`` is the resolved prompt form (``chat`` or ``document``); ``param_digits`` the
     significant digits of a parameter in it (0: fixed decimals); ``top_k`` the history limit K
-    (0: unbounded), which only shapes the wording.
+    (0: unbounded), which only shapes the wording; ``explore`` the document form's rule of sampling
+    hotter when the search is stuck.
     """
 
     mechanisms: Mechanisms
@@ -33,6 +34,7 @@ class PromptSettings:
     layout: str = "static-first"
     top_k: int = 10
     form: str = "chat"
+    explore: bool = True  # the document form's exploration when stuck (wire.document.STALL_AFTER)
 
 
 def encoding_words(codec: Codec) -> tuple[str, str]:

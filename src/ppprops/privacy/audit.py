@@ -516,7 +516,8 @@ class _Auditor:
         verified = bool(shown) and all(c is not None for c in shown)
         grammar = continuation_grammar(self.task.D, [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None],
                                        self.ctx) if verified else None
-        stalled = stall_count(self.cands[: self.config.warmup + req.iteration])  # as the proposer counted it
+        # as the proposer counted it (0 with --explore off)
+        stalled = stall_count(self.cands[: self.config.warmup + req.iteration]) if self.config.explore is not False else 0
         expected = self.replay.document_fields(grammar, document_temperature(req.iteration, req.attempt,
                                                                              self.config.llm.temperature, stalled))
         if decisions is not None and verified:

@@ -87,12 +87,15 @@ class LLMProposer:
         form: str | PromptForm = "chat",
         temperature: float | None = None,
         on_answer: Callable[[Exchange], None] | None = None,
+        explore: bool = True,
     ) -> None:
         """``chat``: a ``RecordingChat`` (``send(request, D, seed, iteration, attempt)``, ``judged``).
         ``form``: a ``wire.forms`` form or its name (``chat``, ``document``). ``temperature`` is
         ``--temperature`` (None: the form's own schedule). ``on_answer`` sees every answer
-        received (R2PO measures its prompts' tokens per character from them)."""
+        received (R2PO measures its prompts' tokens per character from them). ``explore``: pass the
+        stall count to the form (the document form then samples hotter when stuck), else 0."""
         self.on_answer = on_answer
+        self.explore = explore
         self.temperature = temperature
         if isinstance(form, str):
             if form not in FORMS:
@@ -169,7 +172,7 @@ class LLMProposer:
         detail = ""
         for attempt in range(1 + self.parse_retries):
             req = self.form.request(prompt, ctx=self.ctx, shown=shown, iteration=iteration, attempt=attempt, previous=previous,
-                                    detail=detail, temperature=self.temperature, stalled=self.stalled)
+                                    detail=detail, temperature=self.temperature, stalled=self.stalled if self.explore else 0)
             seed = self.codec.sampling_seed(self.streams.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
                 ex = self.chat.send(req, D=self.D, seed=seed, iteration=iteration, attempt=attempt)
