@@ -14,7 +14,7 @@ from ppprops.llm.client import Exchange, RequestShape
 from ppprops.privacy.audit import audit_run
 from ppprops.runner import start
 from ppprops.store import open_store
-from ppprops.wire.document import EXPLORE_TEMPERATURE, STALL_AFTER, TEMPERATURES
+from ppprops.wire.document import EXPLORE_SAMPLING, EXPLORE_TEMPERATURE, STALL_AFTER, TEMPERATURES
 
 from support import make_config
 
@@ -25,11 +25,13 @@ class Stubborn:
     def __init__(self, llm: Any) -> None:
         self.shape = RequestShape.for_config(llm)  # the body the run's own client would send
         self.temperatures: list[float] = []
+        self.sampling: list[dict[str, float]] = []
 
     def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None) -> Exchange:
+                          temperature: float | None = None, sampling: dict[str, float] | None = None) -> Exchange:
         self.temperatures.append(float(temperature or 0.0))
-        body = self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+        self.sampling.append(dict(sampling or {}))
+        body = self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
         content = ",".join(f"{i}:{0.01 * len(self.temperatures) - 0.5:.2f}" for i in range(D)) + "]"  # new each time
         return Exchange(json.dumps(body), None, content, None, len(prompt), None, None, 0.0, True, finish_reason="stop")
 
@@ -63,7 +65,11 @@ def test_a_stuck_search_is_sampled_hotter_and_the_choice_is_recorded(tmp_path: P
         best = max(best, c.feedback_enc.ret)
     expected = [EXPLORE_TEMPERATURE if s >= STALL_AFTER else TEMPERATURES[i % len(TEMPERATURES)] for i, s in enumerate(stalled)]
     assert chat.temperatures == expected and EXPLORE_TEMPERATURE in expected  # the stubborn model got stuck, then hotter
+    # and untruncated: llama.cpp's default top-p/min-p/top-k would keep the copy of the best entry at any temperature
+    assert chat.sampling == [EXPLORE_SAMPLING if t == EXPLORE_TEMPERATURE else {} for t in expected]
     decisions: list[dict[str, Any]] = [c["decisions"] for c in calls]
+    bodies = [json.loads(c["request"]) for c in calls]
+    assert [{k: b[k] for k in EXPLORE_SAMPLING if k in b} for b in bodies] == chat.sampling  # sent as asked, audited below
     assert [d["stalled"] for d in decisions] == stalled and [d["temperature"] for d in decisions] == expected
     assert all(c["form"] == "document" for c in calls)
     report = audit_run(run)
@@ -82,7 +88,7 @@ def test_a_decision_the_form_did_not_make_is_flagged(tmp_path: Path) -> None:
 
 def test_explore_off_keeps_the_plain_schedule_and_audits_clean(tmp_path: Path) -> None:
     run, chat = _run(tmp_path, explore=False)
-    assert chat.temperatures == [TEMPERATURES[i % len(TEMPERATURES)] for i in range(8)]
+    assert chat.temperatures == [TEMPERATURES[i % len(TEMPERATURES)] for i in range(8)] and not any(chat.sampling)
     with open_store(run) as store:
         assert all(c["decisions"]["stalled"] == 0 for c in store.llm_calls())
     report = audit_run(run)

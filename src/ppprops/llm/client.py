@@ -41,7 +41,7 @@ import math
 import random
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 from urllib.parse import urlsplit
@@ -109,9 +109,11 @@ class Chat(Protocol):
         ...
 
     def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None) -> Exchange:
+                          temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> Exchange:
         """Send ``prompt`` (a document, ``wire.document``) to be continued with ``D`` numbers under
-        ``grammar`` (GBNF, or None) at ``temperature`` (None: the form's default); returns the recorded Exchange."""
+        ``grammar`` (GBNF, or None) at ``temperature`` (None: the form's default), with the more
+        sampling fields of ``sampling`` (``top_p``, ``min_p``, ``top_k``: an exploratory request;
+        the recording client passes it only when the form asks for it); returns the recorded Exchange."""
         ...
 
 
@@ -218,6 +220,9 @@ _PARAM_NAMES: dict[str, tuple[str, ...]] = {
     "response_format": ("response_format", "json_schema", "response_schema"),
     "grammar": ("grammar",),
     "stop": ("stop",),
+    "top_p": ("top_p",),
+    "min_p": ("min_p",),
+    "top_k": ("top_k",),
 }
 _REFUSES = re.compile(
     r"unknown|unsupported|not supported|unrecogni[sz]ed|not permitted|extra (?:inputs|fields)|cannot find field"
@@ -344,7 +349,7 @@ class RequestShape:
         return {"model": fields.pop("model"), "messages": messages, **fields}
 
     def document_fields(self, D: int, seed: int | None, *, grammar: str | None,
-                        temperature: float | None = None) -> dict[str, Any]:
+                        temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
         """The fields of a completions request (the document form, ``wire.document``) other than
         ``prompt``, in the order sent. ``grammar`` (GBNF, from ``wire.document.continuation_grammar``)
         is sent under ``--structured grammar``, and under ``auto`` until the endpoint refuses it;
@@ -352,10 +357,15 @@ class RequestShape:
         ``reasoning_effort``. ``temperature`` (the proposer's, per request:
         ``wire.document.document_temperature``) wins over ``--temperature``. To any endpoint but the
         embedded one, ``stop`` is ``["]"]`` (``DOCUMENT_STOP``): a base model that is not held by a
-        grammar writes on past the list until the token limit, and that answer is never used."""
+        grammar writes on past the list until the token limit, and that answer is never used.
+        ``sampling`` (an exploratory request: ``wire.document.document_sampling``) adds its fields,
+        each until the endpoint refuses it."""
         body: dict[str, Any] = {"model": self.model}
         if "temperature" not in self.dropped:
             body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
+        for key, value in (sampling or {}).items():
+            if key not in self.dropped:
+                body[key] = value
         if self.token_param not in self.dropped:
             body[self.token_param] = self.max_tokens(D, document=True)
         if seed is not None and "seed" not in self.dropped:
@@ -368,9 +378,9 @@ class RequestShape:
         return body
 
     def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
-                      temperature: float | None = None) -> dict[str, Any]:
+                      temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
         """The whole completions request body: the raw document, no chat wrapper."""
-        fields = self.document_fields(D, seed, grammar=grammar, temperature=temperature)
+        fields = self.document_fields(D, seed, grammar=grammar, temperature=temperature, sampling=sampling)
         return {"model": fields.pop("model"), "prompt": prompt, **fields}
 
     def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
@@ -509,9 +519,9 @@ class ChatClient:
         return self.shape.body(messages, D=D, seed=seed)
 
     def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
-                      temperature: float | None = None) -> dict[str, Any]:
+                      temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
         """A completions request body (``RequestShape.document_body``)."""
-        return self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+        return self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
 
     def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
         """One usable answer (``ok``), after adapting the request and retrying transient faults.
@@ -522,11 +532,12 @@ class ChatClient:
         return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
 
     def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None) -> Exchange:
+                          temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> Exchange:
         """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
         the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
         the continuation text; ``wire.parse.read_continuation`` reads it."""
-        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature), D=D)
+        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature,
+                                                        sampling=sampling), D=D)
 
     def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
         failures: list[Exchange] = []
@@ -688,7 +699,7 @@ class ChatClient:
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
-_SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed"})
+_SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed", "top_p"})
 
 
 def context_full(max_tokens: Any, prompt_tokens: int | None, completion_tokens: int | None,

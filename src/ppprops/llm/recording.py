@@ -64,7 +64,8 @@ class RecordingChat:
             hook()
         try:
             if req.endpoint == COMPLETIONS:
-                ex = self.inner.complete_document(req.prompt, D=D, seed=seed, grammar=req.grammar, temperature=req.temperature)
+                more = {"sampling": dict(req.sampling)} if req.sampling else {}  # only when the form asks: older chat objects
+                ex = self.inner.complete_document(req.prompt, D=D, seed=seed, grammar=req.grammar, temperature=req.temperature, **more)
             else:
                 ex = self.inner.complete(req.messages, D=D, seed=seed)
         except LLMUnavailable as e:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import AbstractContextManager, ExitStack, contextmanager, nullcontext
 
 from ..errors import ConfigError
@@ -89,11 +89,11 @@ class LazyChat:
             return client.complete(messages, D=D, seed=seed)
 
     def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None) -> Exchange:
+                          temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> Exchange:
         """Continue a document-form ``prompt`` (``ChatClient.complete_document``), starting the endpoint on first use."""
         client = self._get()
         with self.gate:
-            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+            return client.complete_document(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
 
     def count_tokens(self, text: str) -> int:
         """A local estimate, nothing sent: one token per two characters (digit-heavy prompts tokenize

@@ -54,7 +54,7 @@ from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
 from ..proposers.llm import stall_count
 from ..store import Candidate, open_store
-from ..wire.document import continuation_grammar, document_target, document_temperature
+from ..wire.document import continuation_grammar, document_sampling, document_target, document_temperature
 from ..wire.forms import FORMS
 from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
 from ..wire.turns import judge_answer
@@ -72,7 +72,7 @@ from .view import Estimate, view_of
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``).
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
-                         "response_format", "grammar", "stop"})
+                         "response_format", "grammar", "stop", "top_p", "min_p", "top_k"})
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
                "token counts, and the provider's own answers")
 
@@ -519,7 +519,8 @@ class _Auditor:
         # as the proposer counted it (0 with --explore off)
         stalled = stall_count(self.cands[: self.config.warmup + req.iteration]) if self.config.explore is not False else 0
         expected = self.replay.document_fields(grammar, document_temperature(req.iteration, req.attempt,
-                                                                             self.config.llm.temperature, stalled))
+                                                                             self.config.llm.temperature, stalled),
+                                               document_sampling(stalled, self.config.llm.temperature))
         if decisions is not None and verified:
             entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
             for problem in FORMS["document"].check_decisions(decisions, self.ctx, entries, iteration=req.iteration, attempt=req.attempt,

@@ -268,11 +268,11 @@ class ClientReplay:
         is present when it is sent, with a placeholder value (the audit checks the value itself)."""
         return self._shape().fields(self.D, seed=0)
 
-    def document_fields(self, grammar: str | None, temperature: float) -> dict[str, Any]:
+    def document_fields(self, grammar: str | None, temperature: float, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
         """The fields (all but ``prompt``) of the next recorded call when it is a document-form
-        request (``RequestShape.document_fields``), for the continuation ``grammar`` and the
-        ``temperature`` the proposer asked for; ``seed`` as in ``fields``."""
-        return self._shape().document_fields(self.D, seed=0, grammar=grammar, temperature=temperature)
+        request (``RequestShape.document_fields``), for the continuation ``grammar``, the
+        ``temperature`` and the exploratory ``sampling`` the proposer asked for; ``seed`` as in ``fields``."""
+        return self._shape().document_fields(self.D, seed=0, grammar=grammar, temperature=temperature, sampling=sampling)
 
     def observe(self, row: dict[str, Any], *, document: bool = False) -> None:
         """Feed the recorded outcome of that call to the shape, as ``ChatClient.complete`` (or

@@ -42,12 +42,12 @@ class EchoOptimizer:
                         latency_s=0.0, ok=True)
 
     def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None) -> Exchange:
+                          temperature: float | None = None, sampling: dict[str, float] | None = None) -> Exchange:
         """The document form: the same proposal, written as the continuation of the open list."""
         self.calls += 1
         proposal = self._propose(history_entries(prompt, "document"), D, seed)
         content = ",".join(f"{i}:{v:.2f}" for i, v in enumerate(proposal)) + "]"
-        body = self._body(None, D, seed, prompt=prompt, grammar=grammar, temperature=temperature)
+        body = self._body(None, D, seed, prompt=prompt, grammar=grammar, temperature=temperature, sampling=sampling)
         return Exchange(request=json.dumps(body), response=None, content=content, reasoning=None, prompt_chars=len(prompt),
                         prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, finish_reason="stop")
 
@@ -60,7 +60,7 @@ class EchoOptimizer:
         return best + rng.normal(0.0, self.spread * (np.abs(best) + 1.0))
 
     def _body(self, messages: list[dict[str, str]] | None, D: int, seed: int | None, *, prompt: str | None = None,
-              grammar: str | None = None, temperature: float | None = None) -> dict[str, Any]:
+              grammar: str | None = None, temperature: float | None = None, sampling: dict[str, float] | None = None) -> dict[str, Any]:
         """The body a fresh client of the run's endpoint would send (so the audit reads a real one):
         a chat body for ``messages``, a completions body for a document ``prompt``."""
         if self.config is None:
@@ -71,7 +71,7 @@ class EchoOptimizer:
 
         shape = RequestShape.for_config(self.config.llm)
         if prompt is not None:
-            return shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature)
+            return shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
         assert messages is not None
         return shape.body(messages, D=D, seed=seed)
 

@@ -27,7 +27,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .document import build_document, continuation_grammar, document_entry, document_target, document_temperature
+from .document import build_document, continuation_grammar, document_entry, document_sampling, document_target, document_temperature
 from .encoded import EncodedEntry, PromptContext
 from .parse import ParseResult
 from .prompt import build_prompt, history_entry
@@ -42,8 +42,8 @@ class FormRequest:
     """One request a form asks the client to send (the client adds the endpoint's own fields).
 
     ``endpoint`` is ``chat`` (``messages``, to /chat/completions) or ``completions`` (``prompt``,
-    to /completions). ``grammar`` (GBNF) and ``temperature`` are the form's choices for this
-    request (None: the client's defaults). ``decisions`` are the public choices the form made
+    to /completions). ``grammar`` (GBNF), ``temperature`` and ``sampling`` (fields such as
+    ``top_p``) are the form's choices for this request (None / empty: the client's defaults). ``decisions`` are the public choices the form made
     (temperature, the document's target return, ...), recorded with the call for the audit.
     """
 
@@ -53,6 +53,7 @@ class FormRequest:
     prompt: str | None = None
     grammar: str | None = None
     temperature: float | None = None
+    sampling: Mapping[str, float] = field(default_factory=dict)  # more sampling fields (top_p, min_p, top_k), or none
     decisions: Mapping[str, Any] = field(default_factory=dict)
 
 
@@ -117,10 +118,12 @@ class DocumentForm(PromptForm):
 
     def request(self, prompt: str, *, ctx: PromptContext, shown: Sequence[EncodedEntry], iteration: int, attempt: int,
                 previous: str | None = None, detail: str = "", temperature: float | None = None, stalled: int = 0) -> FormRequest:
-        """The same document at every attempt, with the continuation grammar and the temperature
-        ``document_temperature(iteration, attempt, temperature, stalled)`` (exploration when stuck)."""
+        """The same document at every attempt, with the continuation grammar, the temperature
+        ``document_temperature(iteration, attempt, temperature, stalled)`` and, when exploring, the
+        untruncated sampling of ``document_sampling`` (exploration when stuck)."""
         t = document_temperature(iteration, attempt, temperature, stalled)
         return FormRequest(self.name, self.endpoint, prompt=prompt, grammar=continuation_grammar(ctx.D, shown, ctx), temperature=t,
+                           sampling=document_sampling(stalled, temperature),
                            decisions={"temperature": t, "target": document_target(shown), "stalled": stalled})
 
     def judge(self, content: str | None, reasoning: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
