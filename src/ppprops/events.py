@@ -19,7 +19,8 @@ class RunEvents:
     on_start(done, total): candidates recorded and planned; on_candidate(candidate, LLM latency in
     seconds or None, best return so far); on_llm_loading() and on_llm_ready(seconds) around the
     start of the embedded model; on_final_start(episodes) and on_final_episode(done) during the
-    final evaluation; on_final(final evaluation) at the end.
+    final evaluation; on_final(final evaluation) at the end; on_notice(line) for something the user
+    should know once (printed even without progress).
     """
 
     on_start: Callable[[int, int], None] = _ignore
@@ -29,6 +30,7 @@ class RunEvents:
     on_llm_ready: Callable[[float], None] = _ignore
     on_final_start: Callable[[int], None] = _ignore
     on_final_episode: Callable[[int], None] = _ignore
+    on_notice: Callable[[str], None] = _ignore
 
 
 NO_EVENTS = RunEvents()  # the default: no hook does anything

@@ -77,11 +77,21 @@ class ProgressEvents:
                 bar.close()
         self.bar = self.final_bar = None
 
+    def _notice(self, text: str) -> None:
+        """A line the user should read even without progress (``--quiet`` keeps it)."""
+        if self.bar is not None:
+            from tqdm import tqdm
+
+            tqdm.write(f"note: {text}", file=sys.stderr)
+        else:
+            print(f"note: {text}", file=sys.stderr, flush=True)
+
     def hooks(self) -> RunEvents:
         """The runner's callbacks that drive these progress bars."""
         return RunEvents(on_start=self._start, on_candidate=self._candidate, on_final=self._final,
                          on_llm_loading=self._llm_loading, on_llm_ready=self._llm_ready,
-                         on_final_start=self._final_start, on_final_episode=self._final_episode)  # fmt: skip
+                         on_final_start=self._final_start, on_final_episode=self._final_episode,
+                         on_notice=self._notice)  # fmt: skip
 
 
 @contextmanager

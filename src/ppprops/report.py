@@ -9,6 +9,7 @@ from typing import Any
 
 from .baselines.record import format_rl_summary, rl_summary
 from .config import RunConfig
+from .errors import PPPropsError
 from .loop import best_candidate, pooled_returns, search_candidates, select_best
 from .status import RunKind, RunStatus, effective
 from .store import open_store
@@ -68,10 +69,21 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
         pooled = pooled_returns(cands).get(best.index) if best is not None else None
         status, reason = effective(store.status(), run_dir)
+        notes = []
+        if config.mechanisms.detailed_feedback and any(c.get("form") == "document" for c in calls):
+            try:
+                task = config.make_task()
+                declared = [*task.components, *(d for d in task.diagnostics if d != "episode_length")]
+            except PPPropsError:
+                declared = []
+            if declared:
+                notes.append(f"the document form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
+                             "(--prompt-form chat shows them)")
         return _finite({
             "run_id": store.run_id(),
             "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
             "pending_trial": None if pending is None else pending.number,
+            "notes": notes,
             "env": config.task,
             "method": config.method,
             "mechanisms": config.mechanisms.to_json(),
@@ -163,6 +175,8 @@ def format_summary(s: dict[str, Any]) -> str:
                 if fallbacks == searched else
                 f"{fallbacks} of the {searched} search candidates were fallbacks: the LLM contributed little")
         lines.append(f"WARNING  {head} ({why}; the best policy plus noise was evaluated instead)")
+    for note in s.get("notes") or []:
+        lines.append(f"note     {note}")
     ep = c.get("episodes")
     if ep:
         lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "

@@ -503,6 +503,9 @@ class Study:
             if config.iterations > 0:
                 chat = self._chat if self.method.uses_llm else None
                 form = self._form() if self.method.uses_llm else config.form
+                notice = self.feedback_notice(form) if self.method.uses_llm else None
+                if notice is not None:
+                    self.events.on_notice(notice)
                 setup = SearchSetup(task=self.task, codec=self.codec, streams=self.streams, box=config.box, warmup=config.warmup,
                                     iterations=config.iterations, prompt=config.prompt_settings(form), llm=config.llm,
                                     options=self.method.parse_options(config.method_options), on_llm_failure=config.on_llm_failure,
@@ -530,6 +533,15 @@ class Study:
                 model = self._stack.enter_context(closing(made))
             self._recording = RecordingChat(model, self.store, on_first_use=self.store.begin_llm_session)
         return self._recording
+
+    def feedback_notice(self, form: str) -> str | None:
+        """The line a run says once when the prompt form will not show the detailed feedback the
+        settings ask for (issue 23): the document form writes returns only."""
+        declared = [*self.task.components, *(d for d in self.task.diagnostics if d != "episode_length")]
+        if form != "document" or not self.config.mechanisms.detailed_feedback or not declared:
+            return None
+        return (f"the document form (the embedded model's default) shows the LLM returns only: the reward components and "
+                f"diagnostics of this task ({', '.join(declared)}) are not in its prompts; --prompt-form chat shows them")
 
     def _form(self) -> str:
         """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
