@@ -306,14 +306,11 @@ def create_study(
         ConfigError: bad settings or task, an occupied ``storage``.
     """
     from .naming import default_run_dir
-    from .status import RunStatus
 
     config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
     run_dir = Path(storage) if storage is not None else default_run_dir(config)
-    study = Study.create(config, run_dir, chat=chat)
-    study.store.set_status(RunStatus.OPEN)
-    return study
+    return Study.create(config, run_dir, chat=chat)
 
 
 def load_study(storage: Pathish, *, llm: Any = None) -> Study:

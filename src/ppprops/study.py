@@ -132,12 +132,14 @@ class Study:
     # -- making and opening -------------------------------------------------------------------
     @classmethod
     def create(cls, config: RunConfig, run_dir: Path, *, secrets: Secrets | None = None, **kwargs: Any) -> Study:
-        """A new study in ``run_dir`` (``runner.create_run``: the directory appears atomically,
-        with its key file and store). ``secrets`` replaces freshly drawn ones (tests, grids);
-        ``kwargs`` as for the constructor. Raises ConfigError for bad settings or an occupied ``run_dir``."""
+        """A new study in ``run_dir`` (``rundir.create_run``: the directory appears atomically,
+        with its key file and store), status ``open``. ``secrets`` replaces freshly drawn ones
+        (tests, grids); ``kwargs`` as for the constructor. Raises ConfigError for bad settings or
+        an occupied ``run_dir``."""
         store, secrets = create_run(config, run_dir, secrets)
         try:
             stored = RunConfig.from_json(store.config())  # with the task's declaration
+            store.set_status(RunStatus.OPEN)  # nobody runs it yet: ask/tell, or optimize (which says running)
             return cls(run_dir, store, stored, secrets, **kwargs)
         except BaseException:
             store.close()

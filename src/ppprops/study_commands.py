@@ -156,7 +156,6 @@ def cmd_tell(a: argparse.Namespace) -> int:
 
 def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
     """``ppprops study create`` / ``finalize``."""
-    from .status import RunStatus
     from .study import Study
 
     if a.study_command == "create":
@@ -166,7 +165,6 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
         out = a.out or default_run_dir(config)
         a.run_dir = out
         with Study.create(config, out) as study:
-            study.store.set_status(RunStatus.OPEN)
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
                               "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
         return 0

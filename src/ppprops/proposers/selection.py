@@ -38,11 +38,14 @@ class SelectionProposer:
         return sorted(finite, key=lambda c: (-c.ret, c.index))
 
     def ask(self, iteration: int) -> Proposal:
-        """Re-evaluate the candidate ranked ``iteration``: its own parameters, fresh seeds."""
+        """Re-evaluate the candidate ranked ``iteration``: its own parameters, fresh seeds (its own
+        stream; a repeat of the best, when fewer candidates than asks, on yet other seeds)."""
         ranked = self.ranking() or self._search
         if not ranked:
             raise RuntimeError("the selection stage follows the search: no candidate was told")
-        c = ranked[iteration] if iteration < len(ranked) else ranked[0]
-        words = self.streams.rng(seeding.SELECTION, c.index).integers(0, 2**32, size=self.episodes, dtype="uint64")
+        repeat, rank = divmod(iteration, len(ranked))
+        c = ranked[rank] if repeat == 0 else ranked[0]
+        key = c.index if repeat == 0 else c.index + (repeat << 32)
+        words = self.streams.rng(seeding.SELECTION, key).integers(0, 2**32, size=self.episodes, dtype="uint64")
         return Proposal(theta=c.params.copy(), source="reeval", note=f"re-evaluates candidate {c.index}",
                         seeds=tuple(int(w) for w in words), reevaluates=c.index)
