@@ -123,3 +123,21 @@ def test_the_checks_can_fail(toy_package: Path) -> None:
     (toy_package / "toy" / "sub" / "c.py").write_text("def g():\n    from .. import a\n_hidden = 2\n")
     edges, _ = import_graph(toy_package, "toy")
     assert find_cycle(edges) == ["toy.a", "toy.b", "toy.sub.c", "toy.a"]
+
+
+# The study is the composition root: it builds everything below it from the run's stored config and
+# hands each layer the narrow settings it needs. These modules may take the whole RunConfig; no other.
+RUN_CONFIG_USERS = {"config", "settings", "study", "rundir", "runner", "api", "cli", "report", "study_commands"}
+RUN_CONFIG_PACKAGES = ("experiments", "privacy", "baselines")  # grids, reports and the audit read stored runs whole
+
+
+def test_no_module_below_the_study_takes_the_whole_run_config() -> None:
+    users = set()
+    for path in sorted((SRC / PACKAGE).rglob("*.py")):
+        mod = module_name(path, SRC).removeprefix(f"{PACKAGE}.")
+        for node in _imports(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("config") and any(a.name == "RunConfig" for a in node.names):
+                users.add(mod)
+    below = sorted(m for m in users if m not in RUN_CONFIG_USERS and not m.startswith(RUN_CONFIG_PACKAGES))
+    assert below == [], f"modules below the study that import RunConfig: {below}"
+    assert {"study", "runner", "api"} <= users  # the check sees the modules that do
