@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -59,13 +60,25 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """One short training run per algorithm, through the CLI."""
     root = tmp_path_factory.mktemp("rl")
     dirs = {}
-    for algo, task, steps in RUNS:
-        out = root / algo
-        code = main(["baseline", "rl", "--algo", algo, "--env", task, "--timesteps", str(steps), "--seed", str(SEED),
-                     "--final-episodes", str(FINAL), "--out", str(out), "--quiet"])  # fmt: skip
-        assert code == 0, algo
-        dirs[algo] = out
+    scratch = root / "tempdir"  # the process's temp directory while training: nothing may be left there
+    scratch.mkdir()
+    saved, tempfile.tempdir = tempfile.tempdir, str(scratch)
+    try:
+        for algo, task, steps in RUNS:
+            out = root / algo
+            code = main(["baseline", "rl", "--algo", algo, "--env", task, "--timesteps", str(steps), "--seed", str(SEED),
+                         "--final-episodes", str(FINAL), "--out", str(out), "--quiet"])  # fmt: skip
+            assert code == 0, algo
+            dirs[algo] = out
+    finally:
+        tempfile.tempdir = saved
+    dirs["tempdir"] = scratch
     return dirs
+
+
+def test_training_leaves_nothing_in_the_temp_directory(trained: dict[str, Path]) -> None:
+    """SB3's default logger makes an empty SB3-<date> folder per learn(); the run's store is the log."""
+    assert sorted(p.name for p in trained["tempdir"].iterdir() if p.name.startswith("SB3-")) == []  # torch may cache there
 
 
 def test_the_table_covers_the_papers_seven_algorithms() -> None:

@@ -209,6 +209,7 @@ def run_baseline(config: RLConfig, run_dir: Path, *, progress: bool = False) -> 
             store.init_run(f"{task.name}__{config.method}__{config.seed}__{uuid.uuid4().hex[:8]}", stored, "")
             try:
                 model = cls(POLICY, env, seed=config.seed, device=config.device, verbose=0)
+                sb3.silence_logger(model)
                 logger = sb3.EpisodeLogger(log, total=config.timesteps, label=f"{task.name} {config.method}", progress=progress)
                 t0 = time.perf_counter()
                 model.learn(total_timesteps=config.timesteps, callback=logger)

@@ -17,6 +17,7 @@ import torch
 from numpy.typing import NDArray
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.monitor import Monitor
 from tqdm import tqdm
 
@@ -64,6 +65,13 @@ def default_hyperparameters(cls: type[BaseAlgorithm]) -> dict[str, Any]:
 def set_threads(n: int) -> None:
     """torch's intra-op CPU threads for this process (training and evaluation)."""
     torch.set_num_threads(n)
+
+
+def silence_logger(model: BaseAlgorithm) -> None:
+    """Give ``model`` a logger with no outputs: the run's store keeps the training episodes, and SB3's
+    default logger would otherwise create an empty ``SB3-<date>`` folder in the temp directory on
+    every ``learn``."""
+    model.set_logger(Logger(folder=None, output_formats=[]))
 
 
 def versions() -> dict[str, str]:
