@@ -126,3 +126,20 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
     assert "| Acrobot pp |" in capsys.readouterr().out
     assert (root / "privacy-report.md").exists() and len(json.loads((root / "privacy-report.json").read_text())) == len(runs)
     assert main(["privacy-report", "--runs", str(tmp_path)]) == 2  # no runs there: one line, exit 2
+
+
+def test_privacy_report_runs_a_users_task_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A user's own robot (a private module env) gets the same matrix: the simulator attacks say why they did not run."""
+    task_file = Path(__file__).resolve().parents[1] / "examples" / "own_robot" / "point_robot.toml"
+    out = tmp_path / "own"
+    assert main(["privacy-report", "--offline", "--task-file", str(task_file), "--seeds", "1", "--warmup", "3",
+                 "--iterations", "2", "--final-episodes", "1", "--out", str(out), "--json"]) == 0  # fmt: skip
+    analyses = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["PointRobot__pp-hardened__0", "PointRobot__pp__0"]
+    assert len(analyses) == 2
+    for a in analyses:
+        assert a["not_run"]["sim-exact"] == "the env of task PointRobot is private (its dynamics cannot be simulated by the provider)"
+    assert main(["privacy-report", "--envs", "", "--out", str(tmp_path / "none")]) == 2
+    assert "names no task" in capsys.readouterr().err
+    assert main(["privacy-report", "--task-file", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "none")]) == 2
+    assert not (tmp_path / "none").exists()

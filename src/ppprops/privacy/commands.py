@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from ..errors import ConfigError
 
 if TYPE_CHECKING:
+    from ..tasks.base import Task
     from .simfit import SimLimits
 
 
@@ -35,7 +36,10 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
     pr = sub.add_parser("privacy-report", help="attacks x scheme (pp, pp-hardened) and their search results")
     pr.add_argument("--runs", type=Path, default=None, metavar="DIR",
                     help="analyse the run directories under DIR instead of starting new runs")
-    pr.add_argument("--envs", default="CartPole,Acrobot", help="tasks for new runs (default CartPole,Acrobot)")
+    pr.add_argument("--envs", default=None,
+                    help="tasks for new runs, comma-separated (default CartPole,Acrobot; none with --task-file alone)")
+    pr.add_argument("--task-file", type=Path, action="append", default=[], metavar="FILE",
+                    help="a task file for new runs, e.g. your own robot's (repeatable; with --envs, both)")
     pr.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1 for new runs (default 5)")
     pr.add_argument("--warmup", type=int, default=10, help="warm-up policies per new run (default 10)")
     pr.add_argument("--iterations", type=int, default=10,
@@ -93,6 +97,7 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         ConfigError: no run with its key file under ``--runs``, bad counts, an unfinished run in
             the way of a new one.
         UnknownTaskError: an ``--envs`` name that names no task.
+        TaskFileError: a ``--task-file`` that cannot be read or declares a bad task.
         StoreError, KeyFileError: a run directory or key file that cannot be read.
         LLMError: the embedded model could not serve a new run.
     """
@@ -107,10 +112,13 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
     else:
         if a.seeds < 1 or a.warmup < 1 or a.iterations < 0:
             raise ConfigError("--seeds and --warmup must be >= 1, --iterations >= 0 (0: warm-up only, no LLM)")
-        envs = [e.strip() for e in a.envs.split(",") if e.strip()]
-        from ..tasks import get_task
+        from ..tasks import get_task, load_task
 
-        envs = [get_task(e).name for e in envs]
+        names = "CartPole,Acrobot" if a.envs is None and not a.task_file else a.envs or ""
+        envs: list[str | Task] = [get_task(e.strip()) for e in names.split(",") if e.strip()]
+        envs += [load_task(None, task_file=f) for f in a.task_file]
+        if not envs:
+            raise ConfigError("--envs names no task (give task names, or --task-file FILE)")
         out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
         dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
                           final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline)

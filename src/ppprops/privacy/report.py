@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 
 from ..client.secrets import Secrets
-from ..config import RunConfig
 from ..errors import ConfigError
 from ..store import open_store
+from ..tasks.base import Task
 from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
@@ -146,30 +146,37 @@ def _model_of(run_dir: Path) -> str:
 
 
 def run_matrix(
-    out: Path, *, envs: Sequence[str], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
+    out: Path, *, envs: Sequence[str | Task], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
     iterations: int = 10, final_episodes: int = 20, log: Callable[[str], None] = print, offline: bool = False,
 ) -> list[Path]:
-    """One run per (env, scheme, seed) with the embedded model (or the offline stand-in); finished runs are kept."""
+    """One run per (task, scheme, seed) with the embedded model (or the offline stand-in), in
+    ``out/<task>__<scheme>__<seed>``; finished runs are kept, so a stopped matrix continues.
+
+    ``envs``: task names, or Tasks (a user's task file, as ``load_task`` reads it). Returns the run
+    directories. Raises ConfigError for an unfinished run in the way, UnknownTaskError for a name
+    that names no task.
+    """
     from contextlib import nullcontext
 
-    from ..config import LLMConfig
-    from ..methods import resolve
     from ..runner import start
+    from ..settings import build_config
+    from ..tasks import get_task
     from .simulate import offline_llm
 
+    tasks = [env if isinstance(env, Task) else get_task(env) for env in envs]
     dirs = []
     for seed in seeds:
-        for env in envs:
+        for task in tasks:
             for scheme in schemes:
-                d = Path(out) / f"{env}__{scheme}__{seed}"
+                d = Path(out) / f"{task.name}__{scheme}__{seed}"
                 dirs.append(d)
                 if (d / "best_policy.json").exists():
                     continue
                 if d.exists():
                     raise ConfigError(f"{d} holds an unfinished run; finish it with 'ppprops resume {d}' or remove it")
                 t0 = time.time()
-                cfg = RunConfig(task=env, method=scheme, mechanisms=resolve(scheme), warmup=warmup, iterations=iterations,
-                                final_episodes=final_episodes, seed=seed, llm=LLMConfig())
+                cfg = build_config({"method": scheme, "warmup": warmup, "iterations": iterations,
+                                    "final_episodes": final_episodes, "seed": seed}, task=task)  # fmt: skip
                 with offline_llm() if offline else nullcontext():
                     start(cfg, d)
                 log(f"{d}: done in {time.time() - t0:.0f} s")
