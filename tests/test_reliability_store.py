@@ -34,6 +34,11 @@ _WRITER = textwrap.dedent(
         time.sleep(0.005)
     fb = Feedback(ret=float(w), components={"c": 1.0}, diagnostics={"episode_length": 3.0}, episode_returns=(float(w),))
     for i in range(rows):
+        if i == rows // 2:  # meet half way, so that the writers overlap however the OS schedules them
+            open(go + f".half{w}", "w").close()
+            deadline = time.monotonic() + 120
+            while sum(os.path.exists(go + f".half{k}") for k in range(int(sys.argv[5]))) < int(sys.argv[5]) and time.monotonic() < deadline:
+                time.sleep(0.005)
         idx = w * 100000 + i  # each writer its own index range, as runs sharing an experiment store would
         theta = np.full(4, float(i))
         store.add_candidate(Candidate(idx, i, "warmup", theta, theta, fb, fb, 0, (i,)))
@@ -85,7 +90,7 @@ def test_processes_opening_a_new_store_at_once_all_get_it(tmp_path: Path) -> Non
 def test_several_processes_writing_one_store_lose_nothing(tmp_path: Path) -> None:
     db, go = tmp_path / "shared.sqlite", tmp_path / "go"
     procs = [
-        subprocess.Popen([sys.executable, "-c", _WRITER, str(db), str(w), str(ROWS), str(go)], stderr=subprocess.PIPE, text=True)
+        subprocess.Popen([sys.executable, "-c", _WRITER, str(db), str(w), str(ROWS), str(go), str(WRITERS)], stderr=subprocess.PIPE, text=True)
         for w in range(WRITERS)
     ]
     deadline = time.monotonic() + 120
