@@ -53,6 +53,13 @@ RUN = ["run", "--env", "CartPole", "--quiet", "--select-top", "0"]
         (RUN + ["--retry-base-delay", "5", "--retry-max-delay", "1"], "--retry-max-delay (1.0) must be >= --retry-base-delay"),
         (RUN + ["--on-llm-failure", "retry"], "invalid choice"),
         (["run", "--quiet"], "--env or --task-file is required"),
+        # a model name for the embedded model, which would answer instead and be recorded as that model
+        (RUN + ["--model", "gpt-4"], "--model gpt-4 names a model at --base-url, and no --base-url was given"),
+        # LLM and prompt settings for a method that sends no prompt, refused like its mechanism switches
+        (RUN + ["--method", "random", "--prompt-form", "chat"], "--prompt-form does not apply to --method random: it sends no prompt"),
+        (RUN + ["--method", "cmaes", "--base-url", "http://127.0.0.1:9/v1", "--model", "m"],
+         "--base-url, --model do not apply to --method cmaes: it sends no prompt"),
+        (RUN + ["--method", "random", "--top-k", "3"], "--top-k does not apply to --method random"),
         (RUN + ["--config", "/nonexistent/c.toml"], "config file /nonexistent/c.toml does not exist"),
     ],
 )
@@ -232,6 +239,10 @@ def _pendulum_policy_doc() -> dict:  # type: ignore[type-arg]
         (lambda d: d.update(action_type="discrete"), "the action block's rule must be 'argmax' for action_type 'discrete'"),
         (lambda d: d.pop("env"), "the env block is missing or not an object"),
         (lambda d: d.update(observation=7), "the observation block is missing or not valid"),
+        # a value of the wrong type is named as such, not as a missing key
+        (lambda d: d.update(W=[["x"], [1.0], [2.0]]), "W and b must hold numbers only"),
+        (lambda d: d.update(n_s="three"), "n_s and n_a must be whole numbers"),
+        (lambda d: d.pop("b"), "lacks b"),
     ],
 )
 def test_policy_file_with_a_broken_action_block_is_one_line(capsys, tmp_path: Path, edit, needle: str) -> None:  # type: ignore[no-untyped-def]
@@ -250,3 +261,10 @@ def test_policy_file_with_a_broken_action_block_is_one_line(capsys, tmp_path: Pa
     assert code == 2 and needle in err and err.count("\n") == 1 and "Traceback" not in err
     with pytest.raises(PPPropsError, match="policy file"):
         load_policy(path)
+
+
+def test_policy_show_on_a_folder_that_is_not_a_run(capsys, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A plain folder is named as not a run directory (as show, audit and resume say), not as unreadable JSON."""
+    code, err = _call(capsys, ["policy", "show", str(tmp_path)])
+    assert code == 2 and err.count("\n") == 1
+    assert f"{tmp_path} is not a ppprops run directory (no run.sqlite) nor a policy file" in err

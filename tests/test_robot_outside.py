@@ -116,6 +116,7 @@ def test_bad_tells_are_one_line_and_store_nothing(tmp_path: Path) -> None:
         (["tell", "s", "0", "--return", "1", "--component", "x=fast"], "--component x='fast': expected a number"),
         (["tell", "s", "0", "--stdin"], "stdin is not a JSON object"),
         (["tell", "nowhere", "0", "--return", "1"], "nowhere is not a ppprops run directory"),
+        (["tell", "s", "-1", "--return", "1"], "trial -1 does not exist: trials are numbered from 0"),
     ]
     for args, message in bad:
         proc = _ppprops(args, tmp_path, stdin="")
@@ -128,6 +129,27 @@ def test_bad_tells_are_one_line_and_store_nothing(tmp_path: Path) -> None:
     assert ok.returncode == 0 and ok.stdout.startswith("trial 0: return 12; best 12 (trial 0); 1 of 8 told")  # 2 + 1 + 5 re-evaluations
     again = _ppprops(["tell", "s", "0", "--return", "12"], tmp_path)
     assert again.returncode == 2 and "trial 0 was already told" in again.stderr
+
+
+def test_episodes_told_must_match_the_trial_and_an_early_finalize_says_so(tmp_path: Path) -> None:
+    """A trial asked for 2 episodes takes 2 returns, not 1; a study finalized before its budget says
+    so once, and ask afterwards says it is finalized (not "all 1 of 4 told; finalize it")."""
+    assert _ppprops(["study", "create", "--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "2",
+                     "--episodes", "2", "--select-top", "0", "--final-episodes", "0", "--out", "s"], tmp_path).returncode == 0  # fmt: skip
+    trial = json.loads(_ppprops(["ask", "s"], tmp_path).stdout)
+    assert len(trial["seeds"]) == 2
+    one = _ppprops(["tell", "s", "0", "--return", "12"], tmp_path)
+    assert one.returncode == 2 and one.stderr.count("\n") == 1
+    assert "trial 0 asked for 2 episodes (its seeds) and 1 return(s) were told" in one.stderr
+    with open_store(tmp_path / "s") as store:
+        assert store.candidate_count() == 0
+    fb = json.dumps({"returns": [12, 14], "diagnostics": [{"episode_length": 12}, {"episode_length": 14}]})
+    both = _ppprops(["tell", "s", "0", "--stdin"], tmp_path, stdin=fb)
+    assert both.returncode == 0 and both.stdout.startswith("trial 0: return 13; best 13 (trial 0); 1 of 4 told"), both.stderr
+    early = _ppprops(["study", "finalize", "s"], tmp_path)
+    assert early.returncode == 0 and "note: study finalized after 1 of its 4 planned trials" in early.stderr
+    after = _ppprops(["ask", "s"], tmp_path)
+    assert after.returncode == 3 and after.stderr.strip() == "ppprops: study s is finalized (1 of 4 trials told): nothing more to ask"
 
 
 def test_a_task_without_env_is_driven_by_ask_tell_and_refused_by_run(tmp_path: Path) -> None:

@@ -119,7 +119,8 @@ def test_a_component_the_task_declares_must_be_told(tmp_path: Path) -> None:
 def test_ask_after_the_budget_and_finalize_with_the_users_own_episodes(study: Study) -> None:
     while not study.done:
         trial = study.ask()
-        study.tell(trial, float(trial.number), diagnostics={"episode_length": float(trial.number)})
+        n = len(trial.seeds)  # one return per episode asked for (a re-evaluation asks for 10)
+        study.tell(trial, [float(trial.number)] * n, diagnostics=[{"episode_length": float(trial.number)}] * n)
     with pytest.raises(StudyComplete, match="nothing more to ask .all 15 of 15 trials are told."):
         study.ask()
     fe = study.finalize(returns=[7.0, 9.0])
@@ -208,7 +209,7 @@ def test_stop_search_stops_the_study_and_it_can_be_finalized(tmp_path: Path) -> 
     with Study.create(config, tmp_path / "r", chat=EchoOptimizer(config)) as study:
         while study.store.candidate_count() < config.warmup:
             t = study.ask()
-            study.tell(t, 1.0, diagnostics={"episode_length": 1.0})
+            study.tell(t, [1.0] * len(t.seeds), diagnostics=[{"episode_length": 1.0}] * len(t.seeds))
         proposer = study._get_phases()[1].proposer
         proposer.context_window = 10  # type: ignore[attr-defined]
         with pytest.raises(StopSearch, match="context overflow"):

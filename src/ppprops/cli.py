@@ -21,7 +21,7 @@ from typing import Any, NoReturn
 from .config import RunConfig, read_table
 from .errors import ConfigError, PPPropsError
 from .methods import rl_algos
-from .settings import SETTINGS, add_flags, build_config, given, read_settings
+from .settings import SETTINGS, add_flags, build_config, given, read_settings, refuse_prompt_settings
 from .version import __version__
 
 EXIT_INPUT = 2
@@ -142,12 +142,13 @@ def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None)
     """The RunConfig of parsed ``ppprops run`` flags, over ``file_values`` (a ``--config`` file's).
 
     Without ``--seed`` (on the command line or in the file) the run seed is drawn from the OS
-    (``seeding.draw_seed``) and stored with the run; ``--seed N`` reproduces a run.
+    (``seeding.draw_seed``) and stored with the run (``--seed N`` repeats a run only with the same secrets: docs/experiments.md).
 
     Raises:
         ConfigError: one line naming the flag (``settings.build_config``).
     """
     values = {**(file_values if file_values is not None else getattr(a, "file_settings", None) or {}), **given(a)}
+    refuse_prompt_settings(str(values.get("method", "pp")), given(a))
     if "seed" not in values:
         from .seeding import draw_seed
 

@@ -82,8 +82,10 @@ class RunConfig:
         "search-time return is handed over)", default_text="5; 0 for a task without an env")] = None
     select_episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag(
         "fresh episodes per re-evaluated candidate")] = 10
-    seed: Annotated[Int, Field(ge=0, lt=2**63), Flag("run seed: warm-up, episode seeds, LLM sampling seeds",
-                                                      range_text="[0, 2^63)")] = 0
+    seed: Annotated[Int, Field(ge=0, lt=2**63), Flag(
+        "run seed; the draws the provider sees are keyed by it and the run's fresh secrets, so it repeats a run "
+        "only with the same secrets (a grid's master.key: ppprops experiment)", range_text="[0, 2^63)",
+        default_text="drawn from the OS, printed and stored")] = 0
     box: Annotated[Box, Flag("feasible range of every parameter", metavar="LOW,HIGH", default_text="-6,6")] = (-6.0, 6.0)
     decimals: Annotated[Int, Field(ge=0, le=8), Flag("decimals of numbers in the prompt", range_text="[0, 8]")] = 2
     parse_retries: Annotated[Int, Field(ge=0, le=MAX_PARSE_RETRIES), Flag("corrections asked for before a fallback")] = 2
@@ -101,7 +103,7 @@ class RunConfig:
         range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form")] = None
     # The document form's exploration rule (wire.document.STALL_AFTER, EXPLORE_TEMPERATURE)
     explore: Annotated[OnOff, Flag("document form: after 3 LLM iterations without a new best shown return, sample one at "
-                                   "temperature 1.5", metavar="on|off", default_text="on")] = True
+                                   "temperature 2.0 (wire.document.EXPLORE_TEMPERATURE)", metavar="on|off", default_text="on")] = True
     prompt_layout: Annotated[Literal["static-first", "history-first"], Flag(
         "fixed sections before the history (a server's prefix cache reuses them) or history first")] = "static-first"
     # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a

@@ -182,12 +182,18 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
         raise PPPropsError(f"policy file {path} cannot be read as JSON ({e.__class__.__name__})") from None
     if not isinstance(doc, dict) or doc.get("format") not in (FORMAT, FORMAT_V1):
         raise PPPropsError(f"policy file {path} is not a {FORMAT} document")
+    missing = [k for k in ("n_s", "n_a", "W", "b") if k not in doc]
+    if missing:
+        raise PPPropsError(f"policy file {path} lacks {', '.join(missing)}")
     try:
         n_s, n_a = int(doc["n_s"]), int(doc["n_a"])
+    except (TypeError, ValueError):
+        raise PPPropsError(f"policy file {path}: n_s and n_a must be whole numbers, got {doc['n_s']!r}, {doc['n_a']!r}") from None
+    try:
         W = np.asarray(doc["W"], dtype=np.float64)
         b = np.asarray(doc["b"], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise PPPropsError(f"policy file {path} lacks n_s, n_a, W or b") from None
+    except (TypeError, ValueError):
+        raise PPPropsError(f"policy file {path}: W and b must hold numbers only (W a list of rows, b a list)") from None
     if W.shape != (n_s, n_a) or b.shape != (n_a,) or not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
         raise ConfigError(f"policy file {path}: W must be {n_s}x{n_a} and b length {n_a}, all finite")
     if doc.get("action_type") not in ("discrete", "continuous"):

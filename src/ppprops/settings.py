@@ -267,6 +267,29 @@ def task_options(values: Mapping[str, Any]) -> TaskOptions:
     return TaskOptions(**{s.field: values[s.key] for s in SETTINGS if s.owner is TaskOptions and s.key in values})
 
 
+# run settings that shape the prompt or the LLM's answers: nothing to do for a method that sends no prompt
+PROMPT_SETTINGS = ("top_k", "decimals", "parse_retries", "on_llm_failure", "prompt_params", "param_digits", "explore",
+                   "prompt_layout", "prompt_form")
+
+
+def refuse_prompt_settings(method_name: str, keys: Iterable[str]) -> None:
+    """Refuse LLM and prompt settings given for a method that sends no prompt (random search, CMA-ES).
+
+    ``keys``: the settings the user gave explicitly (the command line's). A grid's shared settings
+    are not checked: there the same table serves its prompted and black-box runs alike.
+
+    Raises:
+        ConfigError: one line naming the flags, as for a mechanism switch (``Method.mechanisms``).
+    """
+    method = get_method(method_name)
+    if method.uses_llm or not method.is_search:
+        return
+    bad = [BY_KEY[k].flag for k in keys if k in BY_KEY and (BY_KEY[k].group == "llm" or k in PROMPT_SETTINGS)]
+    if bad:
+        raise ConfigError(f"{', '.join(bad)} {'does' if len(bad) == 1 else 'do'} not apply to --method {method.name}: "
+                          "it sends no prompt (drop it)")
+
+
 def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunConfig:
     """The RunConfig of the given settings (by key; those not given take the schema's defaults).
 
@@ -290,6 +313,9 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
     run.setdefault("episodes", method.default_episodes)
     run["method"] = method.name
     llm = LLMConfig(**{s.field: values[s.key] for s in SETTINGS if s.owner is LLMConfig and s.key in values})
+    if llm.model and llm.base_url is None:  # the embedded model would answer, and the run would record a model that never did
+        raise ConfigError(f"--model {llm.model} names a model at --base-url, and no --base-url was given (the embedded model "
+                          "answers without one): give --base-url too, or drop --model")
     name = task.name if task is not None else str(options.env or options.task_file) if options is not None else ""
     config = RunConfig(task=name, mechanisms=mechanisms, llm=llm, **run)  # every number checked before an env is made
     if task is None:

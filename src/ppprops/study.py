@@ -239,7 +239,9 @@ class Study:
                 return pending
             status, reason = self.store.run_status()
             n = self.store.candidate_count()
-            if status in (RunStatus.STOPPED, RunStatus.FINISHED) or n >= self.total:
+            if status is RunStatus.FINISHED:
+                raise StudyComplete(f"study {self.run_dir} is finalized ({n} of {self.total} trials told): nothing more to ask")
+            if status is RunStatus.STOPPED or n >= self.total:
                 why = f"it stopped: {reason}" if status is RunStatus.STOPPED and reason else f"all {n} of {self.total} trials are told"
                 raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it")
             self._sync()
@@ -270,19 +272,28 @@ class Study:
         feedback (paper Sec. II-C); encoding happens here. ``feedback`` instead passes an evaluated
         ``Feedback`` (``optimize``). Nothing is stored when this raises ConfigError: a trial that is
         not the pending one or was already told, a non-finite value, a missing or unknown
-        component, an unknown diagnostic, or a mismatch between the episodes given.
+        component, an unknown diagnostic, a mismatch between the episodes given, or fewer returns than the
+        trial asked episodes for (more are welcome: the mean of all is used).
         """
         number = trial if isinstance(trial, int) else trial.number
         with file_lock(self.run_dir, STUDY_LOCK):
             pending = self.store.pending_trial()
             if pending is None or pending.number != number:
                 recorded = self.store.candidate_count()
+                if number < 0:
+                    raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
                 if number < recorded:
                     raise ConfigError(f"trial {number} was already told; each trial is told once")
                 waiting = "no trial is pending: ask first" if pending is None else f"the study waits for trial {pending.number}"
                 raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
             if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
                 raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
+            if feedback is None and returns is not None and pending.seeds:
+                given_n = 1 if isinstance(returns, (int, float, np.floating, np.integer)) else len(returns)
+                if 0 < given_n < len(pending.seeds):  # more is welcome (their mean is used), fewer is less evidence than asked
+                    raise ConfigError(f"trial {number} asked for {len(pending.seeds)} episodes (its seeds) and {given_n} "
+                                      f"return(s) were told: tell one return per episode (ppprops tell --stdin: "
+                                      '{"returns": [...]}), or create the study with the --episodes you run')
             fb = feedback if feedback is not None else self._feedback(returns, components, diagnostics)
             cand = Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
                              params_enc=self.codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(self.codec, fb),

@@ -121,7 +121,8 @@ def cmd_ask(a: argparse.Namespace) -> int:
         try:
             trial = study.ask()
         except StudyComplete as e:
-            print(f"ppprops: {e}: 'ppprops study finalize {a.dir}'", file=sys.stderr)
+            text = str(e)
+            print(f"ppprops: {text}" + ("" if "is finalized" in text else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
             return EXIT_DONE
         print(json.dumps(trial.to_json()))
     return 0
@@ -171,7 +172,11 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
     from .report import format_summary, run_summary
 
     with Study.load(a.dir) as study:
+        told, total = study.store.candidate_count(), study.total
         study.finalize(returns=a.returns)
+    if told < total:  # stopping early is the user's call; say what it means once
+        print(f"ppprops: note: study finalized after {told} of its {total} planned trials; its best of those is handed over "
+              "(nothing more can be asked)", file=sys.stderr)
     s = run_summary(a.dir)
     print(json.dumps(s) if a.json else format_summary(s))
     return 0
@@ -184,7 +189,9 @@ def cmd_policy_show(a: argparse.Namespace) -> int:
     from .store import DB_NAME
 
     path = Path(a.path)
-    if path.is_dir() and (path / DB_NAME).exists():
+    if path.is_dir() and not (path / DB_NAME).exists():
+        raise ConfigError(f"{path} is not a ppprops run directory (no {DB_NAME}) nor a policy file")
+    if path.is_dir():
         from .study import Study
 
         with Study.load(path) as study:
