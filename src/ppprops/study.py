@@ -90,7 +90,12 @@ def chat_factory_active() -> bool:
 
 
 class StudyComplete(ConfigError):
-    """``ask`` after the budget is spent (or after the search stopped on purpose): finalize instead."""
+    """``ask`` after the budget is spent (or after the search stopped on purpose): finalize instead.
+    ``finalized``: the study is already finalized (nothing left to do)."""
+
+    def __init__(self, message: str, *, finalized: bool = False) -> None:
+        super().__init__(message)
+        self.finalized = finalized
 
 
 class Study:
@@ -240,7 +245,8 @@ class Study:
             status, reason = self.store.run_status()
             n = self.store.candidate_count()
             if status is RunStatus.FINISHED:
-                raise StudyComplete(f"study {self.run_dir} is finalized ({n} of {self.total} trials told): nothing more to ask")
+                raise StudyComplete(f"study {self.run_dir} is finalized ({n} of {self.total} trials told): nothing more to ask",
+                                    finalized=True)
             if status is RunStatus.STOPPED or n >= self.total:
                 why = f"it stopped: {reason}" if status is RunStatus.STOPPED and reason else f"all {n} of {self.total} trials are told"
                 raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it")

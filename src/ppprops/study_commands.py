@@ -121,8 +121,7 @@ def cmd_ask(a: argparse.Namespace) -> int:
         try:
             trial = study.ask()
         except StudyComplete as e:
-            text = str(e)
-            print(f"ppprops: {text}" + ("" if "is finalized" in text else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
+            print(f"ppprops: {e}" + ("" if e.finalized else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
             return EXIT_DONE
         print(json.dumps(trial.to_json()))
     return 0
