@@ -3,6 +3,7 @@ grid secrets derive deterministically from the master key with Secrets' own dist
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -20,6 +21,7 @@ from ppprops.errors import ConfigError
 from ppprops.experiments import paper_values as pv
 from ppprops.experiments.grid import MASTER_KEY, Grid, create_master_key, derive_secrets, read_master_key
 from ppprops.experiments.spec import build_spec, flags_table, load_spec, read_spec_file
+from ppprops.methods import get_method
 
 ROOT = Path(__file__).resolve().parent.parent
 SPECS = ROOT / "experiments"
@@ -81,9 +83,15 @@ def test_a_grid_run_is_configured_exactly_as_ppprops_run() -> None:
     with pytest.raises(ConfigError, match="--method r2po shows the critic raw states"):
         build_spec(flags_table(["CartPole"], ["r2po"], 1), overrides={"encode_params": True})
     for r in spec.runs:
-        expected = _cli_config("--env", r.task, "--method", r.method, "--seed", str(r.seed), "--warmup", "3", "--top-k", "0",
+        prompted = get_method(r.method).uses_llm
+        # ppprops run refuses prompt settings for a method that sends no prompt (--top-k with cmaes); a grid's shared
+        # table keeps them for every run, where they do nothing
+        top_k = ["--top-k", "0"] if prompted else []
+        expected = _cli_config("--env", r.task, "--method", r.method, "--seed", str(r.seed), "--warmup", "3", *top_k,
                                "--encode-params", "on")  # fmt: skip
-        assert RunConfig.from_json(r.config) == expected
+        assert RunConfig.from_json(r.config) == (expected if prompted else dataclasses.replace(expected, top_k=0))
+    with pytest.raises(ConfigError, match="--top-k does not apply to --method cmaes: it sends no prompt"):
+        _cli_config("--env", "CartPole", "--method", "cmaes", "--top-k", "0")
 
 
 def test_spec_settings_and_flags_layer_like_run_config(tmp_path: Path) -> None:
