@@ -233,7 +233,7 @@ def run(ctx: Context) -> Section:
                                  f"{statistics.fmean(x['new_bests'] for x in r['steps']):.1f}"])
     if ablation:
         body += ["", "The exploration rule alone (pp, document form; the same seeds and selection stage; after 3 LLM iterations "
-                 "without a new best shown return an iteration is sampled at temperature 1.5):", "",
+                 "without a new best shown return an iteration is sampled at temperature 2.0, untruncated):", "",
                  table(["task", "pp", "seeds", "final (new selection)", "median", "best single return", "median step from the best",
                         "new bests per run"], ablation)]
     forms = []

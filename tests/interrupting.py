@@ -33,8 +33,11 @@ class Launched:
     """``python -m ppprops ARGS`` in a new session (its own process group, like a terminal job)."""
 
     def __init__(self, args: list[str], env: dict[str, str] | None = None) -> None:
+        # a terminal job gets Ctrl-C; a suite started in the background by a non-interactive shell ignores SIGINT,
+        # and a child would inherit that: restore the default, as a terminal would
         self.proc = subprocess.Popen([sys.executable, "-m", "ppprops", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     start_new_session=True, env=env)  # fmt: skip
+                                     start_new_session=True, env=env,
+                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # fmt: skip
         self._err: list[bytes] = []
         self._out: list[bytes] = []
         self._threads = [threading.Thread(target=self._pump, args=(self.proc.stderr, self._err), daemon=True),
