@@ -286,8 +286,9 @@ def refuse_prompt_settings(method_name: str, keys: Iterable[str]) -> None:
         return
     bad = [BY_KEY[k].flag for k in keys if k in BY_KEY and (BY_KEY[k].group == "llm" or k in PROMPT_SETTINGS)]
     if bad:
-        raise ConfigError(f"{', '.join(bad)} {'does' if len(bad) == 1 else 'do'} not apply to --method {method.name}: "
-                          "it sends no prompt (drop it)")
+        one = len(bad) == 1
+        raise ConfigError(f"{', '.join(bad)} {'does' if one else 'do'} not apply to --method {method.name}: "
+                          f"it sends no prompt (drop {'it' if one else 'them'})")
 
 
 def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunConfig:
