@@ -45,7 +45,7 @@ def run_case(name: str, run_dir: Path) -> None:
     from ppprops.runner import start
 
     config = case_config(name)
-    start(config, run_dir, secrets=case_secrets(name, config), chat=EchoOptimizer(config, spread=0.5))
+    start(config, run_dir, secrets=case_secrets(name, config), llm=EchoOptimizer(config.llm, spread=0.5))
 
 
 def golden_record(run_dir: Path) -> dict[str, Any]:

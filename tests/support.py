@@ -77,3 +77,35 @@ def doc_block(doc: str, first_line: str) -> str:
     to its closing fence: the code exactly as the page shows it."""
     start = doc.index(first_line + "\n")
     return doc[start:doc.index("```", start)]
+
+
+@contextmanager
+def offline_llm(spread: float = 0.5) -> Iterator[None]:
+    """Within the block, every study given no model talks to an ``EchoOptimizer`` (the offline
+    stand-in of ``ppprops.privacy.simulate``) instead of its configured endpoint: the test seam
+    for command lines (``ppprops.cli.main``), which take no model object."""
+    from unittest import mock
+
+    from ppprops.privacy.simulate import EchoOptimizer
+
+    with mock.patch("ppprops.llm.client.connect", lambda llm, **kw: EchoOptimizer(llm, spread=spread)):
+        yield
+
+
+def chat_request(messages: list[dict[str, str]], D: int, *, iteration: int = 0, attempt: int = 0, temperature: float | None = None):  # type: ignore[no-untyped-def]
+    """The chat form's request for ``messages`` asking ``D`` numbers (as the chat form builds its requests)."""
+    from ppprops.wire.forms import CHAT, CHAT_TEMPERATURE, FormRequest, answer_budget, params_grammar, params_schema
+
+    return FormRequest(CHAT.name, CHAT.endpoint, D, iteration, attempt, messages=tuple(messages),
+                       sampling={"temperature": CHAT_TEMPERATURE if temperature is None else temperature}, answer_tokens=answer_budget(D),
+                       explains=True, json_schema=params_schema(D), grammar=params_grammar(D))
+
+
+def document_request(prompt: str, D: int, *, iteration: int = 0, attempt: int = 0, grammar: str | None = None,
+                     temperature: float = 0.6, sampling: dict[str, float] | None = None):  # type: ignore[no-untyped-def]
+    """The document form's request for ``prompt`` (a document ending inside its open list) asking ``D`` numbers."""
+    from ppprops.wire.forms import DOCUMENT, FormRequest, answer_budget
+
+    return FormRequest(DOCUMENT.name, DOCUMENT.endpoint, D, iteration, attempt, prompt=prompt,
+                       sampling={"temperature": temperature, **(sampling or {})}, answer_tokens=answer_budget(D, labels=True),
+                       grammar=grammar, stop=("]",))

@@ -16,13 +16,12 @@ from ppprops.cli import main
 from ppprops.client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.report import analyse_run, privacy_report
+from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simfit import SimLimits
-from ppprops.privacy.simulate import offline_llm
-from ppprops.privacy.transcript import load_requests
 from ppprops.runner import start
 from ppprops.tasks import get_task
 
-from support import make_config
+from support import make_config, offline_llm
 
 
 def seeded_secrets(method: str, task: str, seed: int) -> Secrets:

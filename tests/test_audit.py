@@ -21,18 +21,18 @@ from ppprops.client.hardening import codec_for, generate_secrets
 from ppprops.client.secrets import Secrets
 from ppprops.errors import StoreError
 from ppprops.evaluation import Feedback
-from ppprops.llm.client import ChatClient, Exchange
+from ppprops.llm.client import EndpointClient
 from ppprops.llm.embedded import MODEL_ALIAS
+from ppprops.llm.protocol import Exchange
 from ppprops.privacy import simfit
 from ppprops.privacy.audit import audit_run, renders, token_value
-from ppprops.privacy.simulate import offline_llm
 from ppprops.runner import create_run, start
 from ppprops.store import Candidate, open_store
 from ppprops.tasks import get_task
 from ppprops.wire import build_prompt, top_k
 from ppprops.wire.numbers import fmt, fmt_sig, fmt_vector
 
-from support import make_config
+from support import chat_request, make_config, offline_llm
 
 
 def shown_vector(values: object) -> str:
@@ -60,7 +60,7 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
     store, secrets = create_run(cfg, run_dir, secrets)
     codec = codec_for(secrets, task, cfg.encoding)
     ctx = prompt_context(task, cfg.prompt, codec)
-    client = ChatClient(cfg.llm, base_url="http://127.0.0.1:9/v1", model=MODEL_ALIAS, api_key="x", grammar_ok=True)  # the real body
+    client = EndpointClient(cfg.llm, base_url="http://127.0.0.1:9/v1", model=MODEL_ALIAS, api_key="x", grammar_ok=True)  # the real body
     rng = np.random.default_rng(5)
     entries = []
     thetas: list[np.ndarray] = []
@@ -80,9 +80,9 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
         if i >= 6:  # the request that produced candidate i shows the history so far
             it = i - 6
             prompt = build_prompt(ctx, top_k(entries, cfg.top_k))
-            body = client.body([{"role": "user", "content": prompt}], D=task.D, seed=codec.sampling_seed(cfg.seed, it, 0))
+            body = client.body(chat_request([{"role": "user", "content": prompt}], task.D, iteration=it), seed=codec.sampling_seed(cfg.seed, it, 0))
             answer = json.dumps({"params": [round(float(v), 2) for v in codec.encode(theta)]})
-            store.add_llm_call(it, 0, Exchange(json.dumps(body), None, answer, None, len(prompt), None, None, 0.0, True), None)
+            store.add_llm_call(it, 0, Exchange(json.dumps(body), None, answer, None, len(prompt), None, None, 0.0, True), None, form="chat")
         store.add_candidate(c)
         detailed = cfg.mechanisms.detailed_feedback
         entries.append(codec.entry(i, c.params_enc, enc.ret, enc.components if detailed else {}, enc.diagnostics if detailed else {}))

@@ -23,12 +23,14 @@ import pytest
 
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig, RunConfig
+from ppprops.privacy import reconstruct
 from ppprops.privacy.audit import AuditReport, audit_run
 from ppprops.privacy.reconstruct import ClientReplay
 from ppprops.runner import RunEvents, resume, start
 from ppprops.store import Candidate, open_store
 from ppprops.testing.fault_server import FaultConfig, FaultServer
 from ppprops.testing.personas import PERSONAS
+from ppprops.wire.forms import CHAT
 from ppprops.wire.parse import final_text
 from ppprops.wire.prompt import build_correction
 from ppprops.wire.turns import ECHO_CHARS, REPEATS_HISTORY, correction_messages
@@ -126,17 +128,20 @@ def test_the_audit_replays_the_clients_adaptations_exactly(persona_run: Path) ->
     store = open_store(persona_run)
     try:
         config = RunConfig.from_json(store.config())
+        task = config.make_task()
+        ctx = reconstruct.context(task, config, reconstruct.client_codec(task, config, None), CHAT)
         replay = ClientReplay(config.llm, D, store.llm_sessions(), store.endpoint_changes())
         calls, recorded = store.llm_calls(), [a["change"] for a in store.llm_adaptations()]
     finally:
         store.close()
     for row in calls:
-        expected = replay.fields()
+        req = CHAT.request("", ctx=ctx, shown=[], iteration=row["iteration"], attempt=row["attempt"], temperature=config.llm.temperature)
+        expected = replay.fields(req)
         sent = json.loads(row["request"])
         assert set(sent) - {"messages"} == set(expected), row["id"]
         assert {k: v for k, v in sent.items() if k not in ("messages", "seed")} == \
             {k: v for k, v in expected.items() if k != "seed"}, row["id"]
-        replay.observe(row)
+        replay.observe(row, req)
     assert replay.changes == recorded and len(recorded) == 5
 
 

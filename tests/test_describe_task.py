@@ -15,13 +15,12 @@ from ppprops.client.context import prompt_context
 from ppprops.client.secrets import Secrets
 from ppprops.methods import METHODS, MethodKind, resolve
 from ppprops.privacy.audit import audit_run
-from ppprops.privacy.simulate import offline_llm
 from ppprops.tasks import get_task
 from ppprops.wire import EncodedEntry, build_prompt
 from ppprops.wire.prompt import task_section
 from ppprops.wire.r2po import Evidence, build_critic_prompt
 
-from support import make_config
+from support import make_config, offline_llm
 
 
 def _contexts(task_name: str, method: str):  # type: ignore[no-untyped-def]

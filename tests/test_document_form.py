@@ -29,7 +29,8 @@ from ppprops.seeding import Streams
 from ppprops.store import open_store
 from ppprops.wire import EncodedEntry, PromptContext, build_document, continuation_grammar, document_target, read_continuation
 from ppprops.wire.document import document_temperature
-from ppprops.wire.transcript import history_entries, open_target
+from ppprops.wire.forms import DOCUMENT
+from ppprops.wire.transcript import open_target
 
 
 def _ctx(**kw: object) -> PromptContext:
@@ -119,10 +120,10 @@ def test_continuation_is_read_up_to_the_first_closing_bracket(text: str, values:
 
 def test_labels_out_of_order_make_an_entry_unreadable_for_the_audit() -> None:
     doc = build_document(_ctx(), HISTORY)
-    assert [e.params for e in history_entries(doc, "document")] == [
+    assert [e.params for e in DOCUMENT.entries(doc)] == [
         ("0.50", "14.3", "-300", "1.00", "2.00", "0.00"), ("3.10", "-0.20", "5.50", "0.00", "-7.25", "8.00")]
     swapped = doc.replace("[0:3.10,1:-0.20", "[1:3.10,0:-0.20")
-    assert history_entries(swapped, "document")[1].params == ("(indices out of order)",)
+    assert DOCUMENT.entries(swapped)[1].params == ("(indices out of order)",)
 
 
 def test_continuation_cut_at_the_token_limit_is_never_used() -> None:
@@ -173,7 +174,7 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
         store.close()
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg.encoding)
-    rebuilt = LLMProposer(chat=None, codec=codec, context=prompt_context(task, cfg.prompt, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
+    rebuilt = LLMProposer(llm=None, codec=codec, context=prompt_context(task, cfg.prompt, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
                           box=cfg.box, streams=Streams(cfg.seed), form="document")
     by_iteration: dict[int, list[dict[str, object]]] = {}
     for c in calls:
@@ -213,7 +214,7 @@ def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
     finally:
         store.close()
     assert report.requests == len(prompts)
-    assert report.entries == sum(len(history_entries(p, "document")) for p in prompts) >= 4 * len(prompts)
+    assert report.entries == sum(len(DOCUMENT.entries(p)) for p in prompts) >= 4 * len(prompts)
     assert not [f for f in report.findings if f.kind == "target"]
 
 
@@ -246,7 +247,7 @@ def test_audit_flags_a_raw_return_or_a_wrong_target_in_a_document(run_dir: Path,
 
 # -- the audit of document-form requests, offline (no model): fields replayed, tampering found ---------------
 def _offline_document_run(root: Path, name: str = "off", **kw: object) -> Path:
-    from ppprops.privacy.simulate import offline_llm
+    from support import offline_llm
 
     out = root / name
     with offline_llm():

@@ -10,7 +10,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from ppprops.llm.client import Exchange, RequestShape
+from ppprops.llm.client import RequestShape
+from ppprops.llm.protocol import Exchange
 from ppprops.privacy.audit import audit_run
 from ppprops.runner import start
 from ppprops.store import open_store
@@ -27,19 +28,16 @@ class Stubborn:
         self.temperatures: list[float] = []
         self.sampling: list[dict[str, float]] = []
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None, sampling: dict[str, float] | None = None) -> Exchange:
-        self.temperatures.append(float(temperature or 0.0))
-        self.sampling.append(dict(sampling or {}))
-        body = self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
-        content = ",".join(f"{i}:{0.01 * len(self.temperatures) - 0.5:.2f}" for i in range(D)) + "]"  # new each time
-        return Exchange(json.dumps(body), None, content, None, len(prompt), None, None, 0.0, True, finish_reason="stop")
+    endpoints = ("completions",)
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        raise AssertionError("the document form never chats")
-
-    def count_tokens(self, text: str) -> int:
-        return len(text) // 4
+    def send(self, request: Any, *, seed: int | None = None) -> Exchange:
+        assert request.endpoint == "completions", "the document form never chats"
+        sampling = dict(request.sampling)
+        self.temperatures.append(float(sampling.pop("temperature", 0.0)))
+        self.sampling.append(sampling)
+        body = self.shape.body(request, seed)
+        content = ",".join(f"{i}:{0.01 * len(self.temperatures) - 0.5:.2f}" for i in range(request.D)) + "]"  # new each time
+        return Exchange.answer(request, content, body=json.dumps(body))
 
     def close(self) -> None:
         pass
@@ -49,7 +47,7 @@ def _run(tmp_path: Path, explore: bool = True) -> tuple[Path, Stubborn]:
     config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2), prompt_form="document",
                      select_top=0, explore=explore)
     chat = Stubborn(config.llm)
-    start(config, tmp_path / "r", chat=chat)
+    start(config, tmp_path / "r", llm=chat)
     return tmp_path / "r", chat
 
 

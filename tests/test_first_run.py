@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 
 from ppprops.cli import main
-from ppprops.privacy.simulate import offline_llm
 from ppprops.report import format_summary, run_summary
+
+from support import offline_llm
 
 TINY = ["--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "0", "--select-top", "0"]
 

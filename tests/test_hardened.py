@@ -267,9 +267,11 @@ def test_an_interrupted_hardened_run_resumes_to_the_same_history(tmp_path: Path)
     """Same key file, same warm-up draw, same encodings: resume continues exactly where it stopped."""
     from unittest import mock
 
-    from ppprops.privacy.simulate import EchoOptimizer, offline_llm
+    from ppprops.privacy.simulate import EchoOptimizer
     from ppprops.runner import resume, start
     from ppprops.store import open_store
+
+    from support import offline_llm
 
     cfg = make_config("CartPole", "pp-hardened", warmup=4, iterations=4, final_episodes=0, seed=2)
     secrets = Secrets.generate_hardened("resume-h", get_task("CartPole").D, box=BOX, reward_scale=500.0)
@@ -277,12 +279,12 @@ def test_an_interrupted_hardened_run_resumes_to_the_same_history(tmp_path: Path)
         start(cfg, tmp_path / "whole", secrets=secrets)
 
     class Dies(EchoOptimizer):
-        def complete(self, messages, *, D, seed=None):  # type: ignore[no-untyped-def]
+        def send(self, request, *, seed=None):  # type: ignore[no-untyped-def]
             if self.calls == 2:
                 raise KeyboardInterrupt
-            return super().complete(messages, D=D, seed=seed)
+            return super().send(request, seed=seed)
 
-    with mock.patch("ppprops.study.LazyChat", lambda *args, **kwargs: Dies()), pytest.raises(KeyboardInterrupt):
+    with mock.patch("ppprops.llm.client.connect", lambda *args, **kwargs: Dies()), pytest.raises(KeyboardInterrupt):
         start(cfg, tmp_path / "cut", secrets=secrets)
     with offline_llm():
         resume(tmp_path / "cut")

@@ -15,8 +15,8 @@ import pytest
 from ppprops import seeding
 from ppprops.client.hardening import generate_secrets
 from ppprops.privacy.attacks import find_run_seed
+from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simulate import EchoOptimizer
-from ppprops.privacy.transcript import load_requests
 from ppprops.privacy.view import view_of
 from ppprops.store import open_store
 from ppprops.study import Study
@@ -36,7 +36,7 @@ def _run(tmp_path: Path, name: str, method: str, *, keyed: bool = True, seed: in
             with sqlite3.connect(tmp_path / name / "run.sqlite") as db:
                 db.execute("DELETE FROM meta WHERE key = 'streams'")
         study.store.close()
-    with Study.load(tmp_path / name, chat=EchoOptimizer(config)) as study:
+    with Study.load(tmp_path / name, llm=EchoOptimizer(config.llm)) as study:
         study.optimize()
     return tmp_path / name
 

@@ -5,11 +5,10 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
-from ppprops.privacy.simulate import offline_llm
 from ppprops.runner import start
 from ppprops.store import open_store
 
-from support import make_config
+from support import make_config, offline_llm
 
 
 def test_each_candidate_records_its_ask_and_evaluation_seconds(tmp_path: Path) -> None:

@@ -566,7 +566,7 @@ def test_search_with_a_chat_object(tmp_path: Path) -> None:
     calls = store.llm_calls()
     store.close()
     assert len(calls) == 3 and all("echo-optimizer" in c["request"] for c in calls)
-    again = ppprops.resume(tmp_path / "r", chat=chat)  # finished: nothing more to do
+    again = ppprops.resume(tmp_path / "r", llm=chat)  # finished: nothing more to do
     assert [(c.index, c.ret) for c in again.history] == [(c.index, c.ret) for c in result.history] and chat.calls == 3
 
 

@@ -21,10 +21,9 @@ import numpy as np
 import pytest
 
 from ppprops.client.secrets import Secrets
-from ppprops.privacy.simulate import offline_llm
 from ppprops.runner import start
 
-from support import doc_block, make_config
+from support import doc_block, make_config, offline_llm
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text(encoding="utf-8")
 SMALL = ["--warmup", "3", "--iterations", "3", "--final-episodes", "2", "--select-top", "0", "--seed", "1"]

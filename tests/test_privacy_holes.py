@@ -26,13 +26,13 @@ from ppprops.methods import HARDENING, check_method, resolve
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.audit import audit_run
 from ppprops.privacy.report import privacy_report
-from ppprops.privacy.simulate import EchoOptimizer, offline_llm
-from ppprops.privacy.transcript import load_requests
-from ppprops.runner import LazyChat, start, use_chat
+from ppprops.privacy.requests import load_requests
+from ppprops.privacy.simulate import EchoOptimizer
+from ppprops.runner import start
 from ppprops.store import open_store
 from ppprops.wire.numbers import fmt
 
-from support import make_config
+from support import make_config, offline_llm
 
 
 # -- R2PO ---------------------------------------------------------------------------------------
@@ -179,17 +179,17 @@ def test_the_request_seed_is_keyed_not_derived_from_the_run_seed(tmp_path: Path)
 class _Unusable(EchoOptimizer):
     """Answers every other call with something unparseable, so the run has many fallbacks."""
 
-    def complete(self, messages, *, D, seed=None):  # type: ignore[no-untyped-def]
-        ex = super().complete(messages, D=D, seed=seed)
-        return replace(ex, content="no idea") if self.calls % 2 == 0 or len(messages) > 1 else ex
+    def send(self, request, *, seed=None):  # type: ignore[no-untyped-def]
+        ex = super().send(request, seed=seed)
+        return replace(ex, content="no idea") if self.calls % 2 == 0 or len(request.messages) > 1 else ex
 
 
 def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secret(tmp_path: Path) -> None:
 
     run = tmp_path / "fb"
     secrets = seeded_secrets("pp", "CartPole", 3)
-    with use_chat(lambda config: _Unusable(config)):
-        start(make_config("CartPole", "pp", warmup=6, iterations=16, final_episodes=0, seed=0, parse_retries=0), run, secrets=secrets)
+    config = make_config("CartPole", "pp", warmup=6, iterations=16, final_episodes=0, seed=0, parse_retries=0)
+    start(config, run, secrets=secrets, llm=_Unusable(config.llm))
     store = open_store(run)
     cands = store.candidates()
     store.close()
@@ -279,9 +279,12 @@ def test_ant_components_give_c_under_pp_and_nothing_under_pp_hardened(tmp_path: 
 
 # -- token counting sends nothing ------------------------------------------------------------------
 def test_counting_tokens_starts_no_client_and_sends_nothing() -> None:
-    chat = LazyChat(make_config("CartPole", "vanilla").llm)
-    assert chat.count_tokens("x" * 1000) >= 500 and chat._client is None
-    chat.close()
+    from ppprops.llm.client import connect
+    from ppprops.proposers.r2po import estimate_tokens
+
+    client = connect(make_config("CartPole", "vanilla").llm)
+    assert estimate_tokens("x" * 1000) >= 500 and client._sdk is None
+    client.close()
 
 
 def test_r2po_estimates_prompt_tokens_from_the_usage_of_its_answers() -> None:

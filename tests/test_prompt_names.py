@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from ppprops.cli import main
-from ppprops.privacy.simulate import offline_llm
 from ppprops.store import open_store
+
+from support import offline_llm
 
 ENV = '''
 import gymnasium as gym

@@ -22,7 +22,7 @@ from test_attacks import seeded_secrets
 from ppprops.cli import main
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig
-from ppprops.llm.client import DOCUMENT_STOP, ChatClient, RequestShape, context_full, default_max_tokens
+from ppprops.llm.client import EndpointClient, RequestShape, context_full, default_max_tokens
 from ppprops.privacy.audit import audit_run
 from ppprops.proposers.llm import HINTS
 from ppprops.runner import start
@@ -31,7 +31,7 @@ from ppprops.testing.fault_server import FaultConfig, FaultServer, requested_dim
 from ppprops.testing.personas import CONTEXT_TOKENS
 from ppprops.wire.document import continuation_grammar
 
-from support import make_config
+from support import chat_request, document_request, make_config
 
 D = 10  # CartPole
 A = 2.0  # encoded = 2 * raw: the personas' answers in [-3, 3] decode inside the box
@@ -136,12 +136,13 @@ def test_chat_requests_leave_room_for_a_short_explanation(tmp_path: Path) -> Non
 
 
 def test_the_embedded_model_and_the_document_form_get_no_explanation_room() -> None:
+    chat, document = chat_request([{"role": "user", "content": "x"}], D), document_request("x", D, grammar="g")
     embedded = RequestShape.for_config(LLMConfig())
-    assert embedded.fields(D, seed=1)["max_tokens"] == default_max_tokens(D) == 104
-    assert embedded.document_fields(D, seed=1, grammar="g")["max_tokens"] == DOCUMENT_BUDGET == 104
+    assert embedded.body(chat, 1)["max_tokens"] == default_max_tokens(D) == 104
+    assert embedded.body(document, 1)["max_tokens"] == DOCUMENT_BUDGET == 104
     remote = RequestShape.for_config(LLMConfig(base_url="http://h/v1", model="m"))
-    assert remote.fields(D, seed=1)["max_tokens"] == CHAT_BUDGET == 104 + 512
-    assert remote.document_fields(D, seed=1, grammar="g")["max_tokens"] == DOCUMENT_BUDGET
+    assert remote.body(chat, 1)["max_tokens"] == CHAT_BUDGET == 104 + 512
+    assert remote.body(document, 1)["max_tokens"] == DOCUMENT_BUDGET
 
 
 def test_the_document_budget_holds_every_index_label() -> None:
@@ -174,8 +175,8 @@ def test_a_timed_out_try_waits_twice_as_long_the_next_time(tmp_path: Path) -> No
     with FaultServer(FaultConfig(fault_rate=0.0, personas=("slow_cpu_reasoner",))) as srv:
         conf = LLMConfig(base_url=srv.base_url, model="m", timeout_s=0.5, transport_retries=2, retry_base_s=0.01,
                          retry_max_s=0.02, max_tokens=9000, structured="none")
-        client = ChatClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
-        ex = client.complete([{"role": "user", "content": "Answer with 10 numbers."}], D=D)  # 1,020 tokens: 1.02 s
+        client = EndpointClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
+        ex = client.send(chat_request([{"role": "user", "content": "Answer with 10 numbers."}], D))  # 1,020 tokens: 1.02 s
         client.close()
     assert ex.ok and [f.error_kind for f in ex.failures] == ["timeout", "timeout"]
     assert [f.error.split(" within ")[1].split(" s ")[0] for f in ex.failures if f.error] == ["0.5", "1"]
@@ -183,11 +184,12 @@ def test_a_timed_out_try_waits_twice_as_long_the_next_time(tmp_path: Path) -> No
 
 def test_the_embedded_models_first_request_gets_a_timeout_fitted_to_its_budget() -> None:
     shape = RequestShape.for_config(LLMConfig())
-    assert shape.timeout(10, prompt_chars=1500, document=True) == 300  # CartPole: --timeout holds
+    assert shape.timeout(document_request("x" * 1500, 10)) == 300  # CartPole: --timeout holds
     # Humanoid-Joints (D=459): a 7,933-character document; a 4,504-token answer on busy cores
-    wait = shape.timeout(459, prompt_chars=7933, document=True)
+    wait = shape.timeout(document_request("x" * 7933, 459))
     assert wait >= 2 * (7933 / 50 + 4504 / 5)
-    assert RequestShape.for_config(LLMConfig(base_url="http://h/v1", model="m")).timeout(459, prompt_chars=7933) == 300
+    remote = RequestShape.for_config(LLMConfig(base_url="http://h/v1", model="m"))
+    assert remote.timeout(chat_request([{"role": "user", "content": "x" * 7933}], 459)) == 300
 
 
 # -- a bullet list of too few numbers ----------------------------------------------------------------------
@@ -213,7 +215,7 @@ def test_forced_thinking_the_answer_is_read_from_reasoning_content_and_the_schem
 def test_document_form_on_a_remote_server_sends_the_grammar_and_a_stop_sequence(tmp_path: Path) -> None:
     r = run(tmp_path, "base_model_runs_on", prompt_form="document")
     for q in r.requests():
-        assert q["stop"] == list(DOCUMENT_STOP) == ["]"] and q["grammar"].startswith('root ::= "0:"')
+        assert q["stop"] == ["]"] and q["grammar"].startswith('root ::= "0:"')
         assert q["max_tokens"] == DOCUMENT_BUDGET and "response_format" not in q
     assert not any(c["parse_error"] for c in r.calls)
     assert_evaluated_the_answers(r, 2)
@@ -258,8 +260,8 @@ def test_document_answer_faults_come_back_as_the_kind_they_are(kind: str, error:
 
     with FaultServer(FaultConfig(fault_rate=1.0, kinds=(kind,), seed=3)) as srv:
         conf = LLMConfig(base_url=srv.base_url, model="m", structured="none")
-        client = ChatClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
-        ex = client.complete_document("# T\n\nreturn: 1.00\nparams: [0:1,1:2,2:3]\n\nreturn: 2.00\nparams: [", D=3, seed=1)
+        client = EndpointClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
+        ex = client.send(document_request("# T\n\nreturn: 1.00\nparams: [0:1,1:2,2:3]\n\nreturn: 2.00\nparams: [", 3), seed=1)
         client.close()
         proposed = srv.answers()
     result = read_continuation(ex.content, 3, finish_reason=ex.finish_reason)
@@ -271,9 +273,9 @@ def test_document_answer_faults_come_back_as_the_kind_they_are(kind: str, error:
 def test_transport_faults_on_the_completions_endpoint_are_retried(kind: str, error_kind: str) -> None:
     with FaultServer(FaultConfig(fault_rate=1.0, kinds=(kind,))) as srv:
         conf = LLMConfig(base_url=srv.base_url, model="m", transport_retries=1, retry_base_s=0.01, retry_max_s=0.02)
-        client = ChatClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=srv.base_url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(Exception) as info:
-            client.complete_document("return: 1.00\nparams: [0:1,1:2]\n\nreturn: 2.00\nparams: [", D=2, seed=1)
+            client.send(document_request("return: 1.00\nparams: [0:1,1:2]\n\nreturn: 2.00\nparams: [", 2), seed=1)
         client.close()
         assert srv.stats()["requests"] == 2
     assert [t.error_kind for t in info.value.failures] == [error_kind] * 2  # type: ignore[attr-defined]
@@ -349,17 +351,18 @@ def test_no_new_request_field_is_left_unchecked_by_the_audit() -> None:
     from ppprops.privacy.audit import SENT_FIELDS
 
     shape = RequestShape.for_config(LLMConfig(base_url="http://h/v1", model="m", reasoning_effort="low"))
-    sent = set(shape.body([{"role": "user", "content": "x"}], D=D, seed=1)) | set(
-        shape.document_body("x", D=D, seed=1, grammar="g", temperature=0.5))
+    sent = set(shape.body(chat_request([{"role": "user", "content": "x"}], D), 1)) | set(
+        shape.body(document_request("x", D, grammar="g", temperature=0.5), 1))
     assert sent <= SENT_FIELDS and "stop" in sent
 
 
 def test_replay_of_the_shape_learns_the_same_timeout_from_the_recorded_exchange() -> None:
     live = RequestShape.for_config(LLMConfig(base_url="http://h/v1", model="m", timeout_s=10.0))
-    live.fields(D, seed=1)
-    notes = live.learn('{"params": [1,2,3,4,5,6,7,8,9,10]}', None, D=D, latency_s=30.0, completion_tokens=300)
+    req = chat_request([{"role": "user", "content": "x" * 10}], D)
+    live.body(req, 1)
+    notes = live.learn(req, '{"params": [1,2,3,4,5,6,7,8,9,10]}', None, latency_s=30.0, completion_tokens=300)
     # twice the budget at 10 tokens/s is 123.2 s, rounded up to whole 10 s
     assert notes == [f"timeout set to 130 s (--timeout 10): answers came at 10.0 tokens/s and up to {CHAT_BUDGET} "
-                     "tokens are asked for"] and live.timeout(D, prompt_chars=10) == 130
+                     "tokens are asked for"] and live.timeout(req) == 130
     quick = replace(live.config, timeout_s=1000.0)
-    assert RequestShape(quick, model="m", grammar_ok=False).learn("x", None, D=D, latency_s=3.0, completion_tokens=3) == []
+    assert RequestShape(quick, model="m", grammar_ok=False).learn(req, "x", None, latency_s=3.0, completion_tokens=3) == []

@@ -26,7 +26,7 @@ from ppprops.client.hardening import codec_for
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig
 from ppprops.errors import LLMError
-from ppprops.llm.client import REASONING_ROOM, ChatClient, LLMRejected, LLMUnavailable, default_max_tokens
+from ppprops.llm.client import REASONING_ROOM, EndpointClient, LLMRejected, LLMUnavailable, default_max_tokens
 from ppprops.proposers.base import clip_to_box
 from ppprops.runner import load_run, start
 from ppprops.store import Candidate, open_store
@@ -34,7 +34,7 @@ from ppprops.testing.fault_server import FaultConfig, FaultServer
 from ppprops.testing.personas import HARMONY_TEMPLATE_ERROR
 from ppprops.wire.numbers import fmt_vector
 
-from support import make_config
+from support import chat_request, make_config
 
 D = 10  # CartPole: (4 + 1) * 2
 A = 2.0  # every a_j: encoded = 2 * raw, so a persona's answers in [-3, 3] decode inside the box, unclipped
@@ -222,12 +222,12 @@ def test_row4_corrections_never_echo_markup_so_the_template_never_refuses(tmp_pa
 def test_row4_a_500_saying_the_request_is_invalid_is_not_retried() -> None:
     with FaultServer(FaultConfig(fault_rate=0.0, personas=("harmony_markup",))) as server:
         conf = LLMConfig(base_url=server.base_url, model="m", transport_retries=4, retry_base_s=0.01)
-        client = ChatClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
         messages = [{"role": "user", "content": "Answer with JSON only, exactly in this form, with 10 numbers: x"},
                     {"role": "assistant", "content": "<|channel|>analysis<|message|>hm<|end|>"},
                     {"role": "user", "content": "again"}]
         with pytest.raises(LLMRejected) as info:
-            client.complete(messages, D=10)
+            client.send(chat_request(messages, 10))
         client.close()
         assert server.stats()["requests"] == 1
     (tried,) = info.value.failures
@@ -328,9 +328,9 @@ def test_row10_an_error_body_with_a_permanent_code_stops_with_the_providers_mess
 def test_row10_an_error_body_with_a_transient_code_is_retried_to_the_bound() -> None:
     with FaultServer(FaultConfig(fault_rate=1.0, kinds=("error_body",), error_body_code=502)) as server:
         conf = LLMConfig(base_url=server.base_url, model="m", transport_retries=2, retry_base_s=0.01, retry_max_s=0.02)
-        client = ChatClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMUnavailable) as info:
-            client.complete([{"role": "user", "content": "with 10 numbers"}], D=10)
+            client.send(chat_request([{"role": "user", "content": "with 10 numbers"}], 10))
         client.close()
         assert server.stats()["requests"] == 3
     assert not isinstance(info.value, LLMRejected)
@@ -400,9 +400,9 @@ def test_a_quota_exhausted_429_is_not_retried() -> None:
                       "type": "insufficient_quota", "param": None, "code": "insufficient_quota"}}
     with json_server(429, body) as (url, hits):
         conf = LLMConfig(base_url=url, model="m", transport_retries=3, retry_base_s=0.01)
-        client = ChatClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMRejected, match="quota_exhausted: HTTP 429 .*You exceeded your current quota"):
-            client.complete([{"role": "user", "content": "x"}], D=3)
+            client.send(chat_request([{"role": "user", "content": "x"}], 3))
         client.close()
         assert len(hits) == 1
 
@@ -413,9 +413,9 @@ def test_a_400_naming_no_parameter_stops_at_once_with_the_servers_message() -> N
             "param": None, "code": 400}
     with json_server(400, body) as (url, hits):
         conf = LLMConfig(base_url=url, model="m", transport_retries=3, retry_base_s=0.01)
-        client = ChatClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMRejected, match="bad_request: HTTP 400 .*maximum context length is 4096 tokens"):
-            client.complete([{"role": "user", "content": "x"}], D=3)
+            client.send(chat_request([{"role": "user", "content": "x"}], 3))
         client.close()
         assert len(hits) == 1
 

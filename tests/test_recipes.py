@@ -26,10 +26,9 @@ from ppprops.methods import METHODS, Method, register_method
 from ppprops.privacy import attacks
 from ppprops.privacy.attacks import register_attack
 from ppprops.privacy.report import privacy_report
-from ppprops.privacy.simulate import offline_llm
 from ppprops.runner import start
 
-from support import doc_block, make_config
+from support import doc_block, make_config, offline_llm
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "architecture.md").read_text(encoding="utf-8")
 

@@ -15,21 +15,24 @@ from contextlib import contextmanager
 import pytest
 
 from ppprops.config import LLMConfig
-from ppprops.llm.client import ChatClient, LLMRejected, LLMUnavailable, params_grammar, params_schema
+from ppprops.llm.client import EndpointClient, LLMRejected, LLMUnavailable
 from ppprops.testing.fault_server import ALL_KINDS, FaultConfig, FaultServer, requested_dim
+from ppprops.wire.forms import params_grammar, params_schema
+
+from support import chat_request
 
 MSG = [{"role": "user", "content": "Answer with JSON only, exactly in this form, with 6 numbers: ..."}]
 
 
 @contextmanager
-def client_for(cfg: FaultConfig, **llm: object) -> Iterator[tuple[ChatClient, FaultServer]]:
+def client_for(cfg: FaultConfig, **llm: object) -> Iterator[tuple[EndpointClient, FaultServer]]:
     settings: dict[str, object] = dict(
         timeout_s=0.5, transport_retries=2, retry_base_s=0.01, retry_max_s=0.05, structured="json_schema"
     )
     settings.update(llm)
     with FaultServer(cfg) as server:
         conf = LLMConfig(base_url=server.base_url, model="m", **settings)  # type: ignore[arg-type]
-        client = ChatClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=server.base_url, model="m", api_key="k", grammar_ok=False)
         try:
             yield client, server
         finally:
@@ -45,7 +48,7 @@ def test_transient_fault_is_retried_to_the_bound_and_every_try_is_kept(kind: str
     cfg = FaultConfig(fault_rate=1.0, kinds=(kind,), timeout_s=10.0, retry_after_s=0.01)  # stalls past every try
     with client_for(cfg) as (client, server):
         with pytest.raises(LLMUnavailable) as info:
-            client.complete(MSG, D=6)
+            client.send(chat_request(MSG, 6))
         assert server.stats()["requests"] == 3  # 1 try + 2 retries, no more
     tries = info.value.failures
     assert [t.retry for t in tries] == [0, 1, 2]
@@ -61,7 +64,7 @@ def test_a_fault_then_success_returns_the_answer_with_the_failed_tries() -> None
         cfg = FaultConfig(fault_rate=0.5, kinds=("http_503",), seed=seed)
         with client_for(cfg, transport_retries=4) as (client, server):
             try:
-                ex = client.complete(MSG, D=6)
+                ex = client.send(chat_request(MSG, 6))
             except LLMUnavailable:
                 continue
             if ex.failures:
@@ -77,20 +80,20 @@ def test_retry_after_is_honoured_and_capped() -> None:
     with client_for(cfg, transport_retries=1, retry_after_cap_s=10.0) as (client, _):
         t0 = time.perf_counter()
         with pytest.raises(LLMUnavailable) as info:
-            client.complete(MSG, D=6)
+            client.send(chat_request(MSG, 6))
         assert time.perf_counter() - t0 >= 0.4  # waited what the server asked
         assert "Retry-After 0.4 s" in (info.value.failures[0].error or "")
     cfg = FaultConfig(fault_rate=1.0, kinds=("http_429",), retry_after_s=30.0)
     with client_for(cfg, transport_retries=1, retry_after_cap_s=0.1) as (client, _):
         t0 = time.perf_counter()
         with pytest.raises(LLMUnavailable):
-            client.complete(MSG, D=6)
+            client.send(chat_request(MSG, 6))
         assert time.perf_counter() - t0 < 5.0  # not the 30 s asked for
 
 
 def test_backoff_grows_exponentially_with_jitter_and_a_ceiling() -> None:
     conf = LLMConfig(base_url="http://127.0.0.1:9/v1", model="m", retry_base_s=1.0, retry_max_s=8.0)
-    client = ChatClient(conf, base_url="http://127.0.0.1:9/v1", model="m", api_key="k", grammar_ok=False)
+    client = EndpointClient(conf, base_url="http://127.0.0.1:9/v1", model="m", api_key="k", grammar_ok=False)
     waits = {r: [client.backoff(r, None) for _ in range(200)] for r in range(6)}
     client.close()
     for r, ws in waits.items():
@@ -106,9 +109,9 @@ def test_refused_connection_is_its_own_kind() -> None:
         port = s.getsockname()[1]
     url = f"http://127.0.0.1:{port}/v1"
     conf = LLMConfig(base_url=url, model="m", transport_retries=1, retry_base_s=0.01, retry_max_s=0.01)
-    client = ChatClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
+    client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
     with pytest.raises(LLMUnavailable) as info:
-        client.complete(MSG, D=6)
+        client.send(chat_request(MSG, 6))
     client.close()
     assert [f.error_kind for f in info.value.failures] == ["refused", "refused"]
 
@@ -117,9 +120,9 @@ def test_a_permanent_http_error_is_not_retried() -> None:
     with FaultServer(FaultConfig(fault_rate=0.0)) as server:
         url = server.base_url.replace("/v1", "/wrong/v1")  # 404 for every request
         conf = LLMConfig(base_url=url, model="m", transport_retries=3, retry_base_s=0.01)
-        client = ChatClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
+        client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMRejected) as info:
-            client.complete(MSG, D=6)
+            client.send(chat_request(MSG, 6))
         client.close()
     assert [f.error_kind for f in info.value.failures] == ["http_404"]
 
@@ -132,7 +135,7 @@ def test_fault_server_reads_D_from_schema_grammar_or_prompt_and_answers_it() -> 
     assert requested_dim({"messages": [{"role": "user", "content": "no length here"}]}) is None
     for structured in ("json_schema", "grammar", "none"):
         with client_for(FaultConfig(fault_rate=0.0), structured=structured) as (client, _):
-            ex = client.complete(MSG, D=6)
+            ex = client.send(chat_request(MSG, 6))
         assert ex.ok and len(json.loads(ex.content or "")["params"]) == 6
 
 
@@ -141,7 +144,7 @@ def test_fault_server_is_seeded_and_stops_by_itself() -> None:
         with client_for(FaultConfig(fault_rate=0.5, kinds=ALL_KINDS, seed=seed, timeout_s=0.6), transport_retries=0) as (c, s):
             for _ in range(12):
                 try:
-                    c.complete(MSG, D=6)
+                    c.send(chat_request(MSG, 6))
                 except LLMUnavailable:
                     pass
             return dict(s.stats()["injected"])
@@ -177,8 +180,8 @@ def test_fault_server_passes_healthy_requests_to_the_embedded_model(embedded_ser
                       upstream=embedded_server.base_url)  # seed 3: one fault, then healthy requests
     with FaultServer(cfg) as server:
         conf = LLMConfig(base_url=server.base_url, model=MODEL_ALIAS, transport_retries=4, retry_base_s=0.01, retry_max_s=0.02)
-        client = ChatClient(conf, base_url=server.base_url, model=MODEL_ALIAS, api_key="k", grammar_ok=True)
-        ex = client.complete(MSG, D=3, seed=0)
+        client = EndpointClient(conf, base_url=server.base_url, model=MODEL_ALIAS, api_key="k", grammar_ok=True)
+        ex = client.send(chat_request(MSG, 3), seed=0)
         client.close()
         stats = server.stats()
     assert stats["passed"] == 1 and stats["injected_total"] == 1 and len(ex.failures) == 1

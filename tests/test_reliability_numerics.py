@@ -101,7 +101,7 @@ def test_non_finite_feedback_is_kept_out_of_the_history() -> None:
     config = make_config(method="pp")
     secrets = Secrets.generate("r", cartpole.D)
     codec = Codec(secrets, encode_params=True, scale_rewards=True)
-    proposer = LLMProposer(chat=None, codec=codec, context=prompt_context(cartpole, config.prompt, codec), top_k=0,  # type: ignore[arg-type]
+    proposer = LLMProposer(llm=None, codec=codec, context=prompt_context(cartpole, config.prompt, codec), top_k=0,  # type: ignore[arg-type]
                            box=(-6.0, 6.0), streams=Streams(0))
 
     def cand(i: int, ret: float, comps: dict[str, float], diags: dict[str, Any]) -> Candidate:

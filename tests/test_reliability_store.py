@@ -44,7 +44,7 @@ _WRITER = textwrap.dedent(
         store.add_candidate(Candidate(idx, i, "warmup", theta, theta, fb, fb, 0, (i,)))
         ex = types.SimpleNamespace(request=f"w{w}-{i}", response=None, content="{}", reasoning=None, prompt_chars=2,
                                    prompt_tokens=None, completion_tokens=None, latency_s=0.0, ok=True, error=None)
-        store.add_llm_call(i, 0, ex, None)
+        store.add_llm_call(i, 0, ex, None, form="chat")
     store.close()
     """
 )
@@ -126,7 +126,8 @@ CREATE TABLE final_eval (id INTEGER PRIMARY KEY CHECK (id = 1), candidate_idx IN
     seeds TEXT NOT NULL, created REAL NOT NULL);
 INSERT INTO meta VALUES ('schema_version', '1'), ('run_id', 'old-run');
 INSERT INTO llm_calls (iteration, attempt, request, content, prompt_chars, latency_s, ok, parse_error, created)
-    VALUES (0, 0, '{}', 'hello', 2, 0.5, 1, 'no_numbers', 0);
+    VALUES (0, 0, '{}', 'hello', 2, 0.5, 1, 'no_numbers', 0),
+           (1, 0, '{"model": "m", "prompt": "return: 1\\nparams: ["}', '0:1]', 2, 0.5, 1, NULL, 0);
 INSERT INTO candidates VALUES (0, 0, 'warmup', '[1.0]', '[2.0]', '{"return": 3.0, "components": {}, "diagnostics": {}}',
     '{"return": 6.0, "components": {}, "diagnostics": {}}', 0, '[7]', '', 0);
 """
@@ -137,19 +138,20 @@ def test_a_schema_1_store_migrates_in_place(tmp_path: Path) -> None:
     with sqlite3.connect(db) as con:
         con.executescript(_SCHEMA_1)
     store = RunStore(db)
-    assert store.schema_version() == SCHEMA_VERSION == 4 and store.run_id() == "old-run"
+    assert store.schema_version() == SCHEMA_VERSION == 5 and store.run_id() == "old-run"
     (first,) = store.candidates()  # an old row reads back, its timings unknown
     assert first.ret == 3.0 and first.ask_s is None and first.eval_s is None
     fb = Feedback(ret=4.0)
     store.add_candidate(Candidate(index=1, iteration=0, source="llm", params=np.ones(1), params_enc=np.ones(1), feedback=fb,
                                   feedback_enc=fb, clipped=0, seeds=(8,), ask_s=1.5, eval_s=0.25))
     assert [(i, src, a, e) for i, src, _, _, a, e in store.candidate_times()] == [(0, "warmup", None, None), (1, "llm", 1.5, 0.25)]
-    (old,) = store.llm_calls()
+    old, document = store.llm_calls()
     assert old["parse_error"] == "no_numbers" and old["retry"] == 0 and old["error_kind"] is None
+    assert (old["form"], document["form"]) == ("chat", "document")  # every call names its form, old ones as their body shows
     ex = types.SimpleNamespace(request="{}", response=None, content=None, reasoning=None, prompt_chars=2, prompt_tokens=None,
                                completion_tokens=None, latency_s=0.1, ok=False, error="timeout", error_kind="timeout", retry=1)
-    store.add_llm_call(1, 0, ex, None)
-    assert store.llm_calls()[1]["error_kind"] == "timeout" and store.llm_calls()[1]["retry"] == 1
+    store.add_llm_call(1, 0, ex, None, form="chat")
+    assert store.llm_calls()[-1]["error_kind"] == "timeout" and store.llm_calls()[-1]["retry"] == 1
     store.close()
     RunStore(db).close()  # opening again is a no-op
 

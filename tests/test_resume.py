@@ -16,7 +16,7 @@ import pytest
 
 from ppprops.cli import main
 from ppprops.errors import LLMError
-from ppprops.llm.client import ChatClient
+from ppprops.llm.client import EndpointClient
 from ppprops.runner import resume, start
 from ppprops.store import open_store
 
@@ -65,16 +65,16 @@ def test_resume_after_kill_9(tmp_path: Path, capsys, kill_after: int) -> None:  
 
 
 def test_endpoint_failure_stops_cleanly_and_resumes(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    real = ChatClient.complete
+    real = EndpointClient.send
     calls = {"n": 0}
 
-    def flaky(self, messages, *, D, seed=None):  # type: ignore[no-untyped-def]
+    def flaky(self, request, *, seed=None):  # type: ignore[no-untyped-def]
         calls["n"] += 1
         if calls["n"] == 3:
             raise LLMError("injected: endpoint gone")
-        return real(self, messages, D=D, seed=seed)
+        return real(self, request, seed=seed)
 
-    monkeypatch.setattr(ChatClient, "complete", flaky)
+    monkeypatch.setattr(EndpointClient, "send", flaky)
     out = tmp_path / "run"
     with pytest.raises(LLMError):
         start(make_config(warmup=3, iterations=4, parse_retries=0), out)

@@ -28,16 +28,15 @@ from ppprops.client.secrets import Secrets
 from ppprops.privacy import simfit
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.audit import audit_run
+from ppprops.privacy.requests import load_requests
 from ppprops.privacy.runseed import find_run_seed
-from ppprops.privacy.simulate import offline_llm
 from ppprops.privacy.simulator import Budget, EnvSim, OverBudget, env_is_public, simulator_for
-from ppprops.privacy.transcript import load_requests
 from ppprops.privacy.view import view_of
 from ppprops.runner import start
 from ppprops.study import Study
 from ppprops.tasks import get_task
 
-from support import make_config
+from support import make_config, offline_llm
 
 SMALL = simfit.SimLimits(vector_steps=3_000_000, env_steps=20_000, seconds=300.0)
 MEDIUM = simfit.SimLimits(vector_steps=10_000_000, env_steps=20_000, seconds=300.0)  # the audit's default bound

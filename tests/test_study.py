@@ -54,7 +54,7 @@ def _episodes(study: Study, theta: np.ndarray, seeds: tuple[int, ...]) -> tuple[
 @pytest.mark.parametrize("name", ["pp-document", "vanilla-2ep", "cmaes"])
 def test_ask_tell_by_hand_gives_the_same_run_as_the_loop(tmp_path: Path, name: str) -> None:
     config = case_config(name)
-    with Study.create(config, tmp_path / "hand", secrets=case_secrets(name, config), chat=EchoOptimizer(config, spread=0.5)) as study:
+    with Study.create(config, tmp_path / "hand", secrets=case_secrets(name, config), llm=EchoOptimizer(config.llm, spread=0.5)) as study:
         while not study.done:
             trial = study.ask()
             assert study.ask() == trial  # asked again before the tell: the same trial, no second proposal
@@ -70,7 +70,7 @@ def test_ask_tell_by_hand_gives_the_same_run_as_the_loop(tmp_path: Path, name: s
 @pytest.fixture
 def study(tmp_path: Path) -> Study:
     config = case_config("pp-chat")
-    s = Study.create(config, tmp_path / "s", secrets=case_secrets("pp-chat", config), chat=EchoOptimizer(config))
+    s = Study.create(config, tmp_path / "s", secrets=case_secrets("pp-chat", config), llm=EchoOptimizer(config.llm))
     yield s
     s.close()
 
@@ -206,7 +206,7 @@ def test_cmaes_population_size_is_an_option_of_the_method(tmp_path: Path) -> Non
 
 def test_stop_search_stops_the_study_and_it_can_be_finalized(tmp_path: Path) -> None:
     config = case_config("r2po")
-    with Study.create(config, tmp_path / "r", chat=EchoOptimizer(config)) as study:
+    with Study.create(config, tmp_path / "r", llm=EchoOptimizer(config.llm)) as study:
         while study.store.candidate_count() < config.warmup:
             t = study.ask()
             study.tell(t, [1.0] * len(t.seeds), diagnostics=[{"episode_length": 1.0}] * len(t.seeds))
@@ -226,10 +226,10 @@ _ASK_AND_DIE = textwrap.dedent("""
     from ppprops.privacy.simulate import EchoOptimizer
     from ppprops.study import Study
     class Slow(EchoOptimizer):
-        def complete(self, *a, **k):
-            import time; time.sleep(float(sys.argv[3])); return super().complete(*a, **k)
+        def send(self, *a, **k):
+            import time; time.sleep(float(sys.argv[3])); return super().send(*a, **k)
     with Study.load(sys.argv[1]) as s:
-        s._chat_given = Slow(s.config)
+        s._llm_given = Slow(s.config.llm)
         t = s.ask()
         print(json.dumps(t.to_json()), flush=True)
         if sys.argv[2] == "kill":
@@ -253,13 +253,13 @@ def _warm_up(study: Study) -> None:
 def test_kill_between_ask_and_tell_then_ask_again_gives_the_same_trial(tmp_path: Path) -> None:
     config = case_config("pp-chat")
     with Study.create(config, tmp_path / "k", secrets=case_secrets("pp-chat", config)) as study:
-        study._chat_given = EchoOptimizer(config)
+        study._llm_given = EchoOptimizer(config.llm)
         _warm_up(study)
     proc = _ask_in_process(tmp_path / "k", "kill")
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == -signal.SIGKILL, err
     asked = json.loads(out)
-    with Study.load(tmp_path / "k", chat=EchoOptimizer(config)) as study:
+    with Study.load(tmp_path / "k", llm=EchoOptimizer(config.llm)) as study:
         again = study.ask()  # after the kill: the pending trial, no new LLM call
         assert again.number == asked["trial"] == config.warmup and again.theta.tolist() == asked["theta"]
         assert len(study.store.llm_calls()) == 1
@@ -278,7 +278,7 @@ def test_kill_between_ask_and_tell_then_ask_again_gives_the_same_trial(tmp_path:
 def test_two_processes_asking_at_once_make_one_llm_call(tmp_path: Path) -> None:
     config = case_config("pp-chat")
     with Study.create(config, tmp_path / "t", secrets=case_secrets("pp-chat", config)) as study:
-        study._chat_given = EchoOptimizer(config)
+        study._llm_given = EchoOptimizer(config.llm)
         _warm_up(study)
     first = _ask_in_process(tmp_path / "t", "ask", delay=2.0)
     second = _ask_in_process(tmp_path / "t", "ask", delay=2.0)

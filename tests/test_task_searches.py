@@ -15,8 +15,9 @@ from pathlib import Path
 import pytest
 
 from ppprops.cli import main
-from ppprops.privacy.simulate import offline_llm
 from ppprops.tasks import get_task
+
+from support import offline_llm
 
 FAST = ["CartPole", "Acrobot", "FetchReachDense", "Highway-Fast", "Ant-Ultra", "MountainCarContinuous-v0"]
 HIGH_D = ["Ant-Joints", "Ant-Torso", "Humanoid-Ultra", "Humanoid-Joints", "Humanoid-Torso"]

@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from .config import RunConfig
 from .errors import ConfigError
+from .llm.protocol import LLM
 from .policy_file import Policy, load_policy
 from .status import RunKind
 from .study import Study
@@ -155,16 +156,16 @@ def _group_values(group: str, given: Any) -> dict[str, Any]:
 
 def _build(task: TaskLike, *, method: str, warmup: int, iterations: int, seed: int | None, box: tuple[float, float],
            llm: Any, privacy: Mapping[str, bool | None] | None, prompt: Any, evaluation: Any, method_options: Mapping[str, Any] | None,
-           task_options: Any) -> tuple[RunConfig, Any]:  # fmt: skip
-    """The RunConfig of ``search``'s arguments (and whether ``llm`` is a chat object instead of settings)."""
+           task_options: Any) -> tuple[RunConfig, LLM | None]:  # fmt: skip
+    """The RunConfig of ``search``'s arguments, and the model ``llm`` names when it is one (an ``LLM``) rather than settings."""
     from .methods import get_method
     from .seeding import draw_seed
     from .settings import build_config
     from .tasks import load_task
 
-    chat = None
-    if llm is not None and callable(getattr(llm, "complete", None)):
-        chat, llm = llm, None
+    model: LLM | None = None
+    if isinstance(llm, LLM):
+        model, llm = llm, None
     switches = dict(privacy or {})
     entry = get_method(method)  # a bad method or switch fails before the env is made
     entry.mechanisms(**switches)
@@ -179,7 +180,7 @@ def _build(task: TaskLike, *, method: str, warmup: int, iterations: int, seed: i
     t = load_task(task, env_kwargs=topts.get("env_kwargs"), max_episode_steps=topts.get("max_episode_steps"),
                   gym_packages=topts.get("gym_packages", ()), obs_keys=topts.get("obs_keys"), components=topts.get("components", ()),
                   diagnostics=topts.get("diagnostics", ()))  # fmt: skip
-    return build_config(values, task=t), chat
+    return build_config(values, task=t), model
 
 
 def search(
@@ -230,10 +231,10 @@ def search(
             ``LLMConfig`` (``base_url``, ``model``, ``api_key_env``, ``temperature``, ``max_tokens``,
             ``timeout``, ``reasoning_effort``, ``structured``, ``context_size``, ``retries``,
             ``retry_base_delay``, ``retry_max_delay``, ``retry_after_cap``, ``on_llm_failure``); or a
-            chat object with ``complete(messages, *, D, seed)`` returning a
-            ``ppprops.llm.client.Exchange``, ``count_tokens(text)`` and ``close()`` (the caller keeps
-            it; with ``complete_document(prompt, *, D, seed, grammar, temperature)`` too it gets the
-            document form under ``form="auto"``). Every exchange is recorded like an endpoint's.
+            model object, a ``ppprops.llm.LLM`` (``endpoints``, ``send(request, *, seed)`` returning a
+            ``ppprops.llm.Exchange``, ``close()``; the caller keeps it; one that serves the
+            completions endpoint gets the document form under ``form="auto"``). Every exchange is
+            recorded like an endpoint's.
         privacy: mechanism switches over the method's preset (paper Sec. II; docs/threat-model.md):
             ``encode_params`` (Eq. 5), ``scale_rewards`` (Eq. 7-8), ``detailed_feedback``,
             ``disclose_optimum``, ``disclose_reward_structure``, ``describe_task`` and the hardening
@@ -268,14 +269,14 @@ def search(
     from .evaluation import exit_if_importing_main_in_a_worker
 
     exit_if_importing_main_in_a_worker()  # an unguarded script re-imported by a worker must not start a second run
-    config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
-                          prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    config, model = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
+                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
     from .naming import default_run_dir
     from .runner import start
 
     run_dir = Path(out) if out is not None else default_run_dir(config)
     with _progress(progress, f"{config.task} {method}") as events:
-        start(config, run_dir, events, chat=chat, callbacks=callbacks)
+        start(config, run_dir, events, llm=model, callbacks=callbacks)
     return load_run(run_dir)
 
 
@@ -307,16 +308,16 @@ def create_study(
     """
     from .naming import default_run_dir
 
-    config, chat = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
-                          prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    config, model = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
+                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
     run_dir = Path(storage) if storage is not None else default_run_dir(config)
-    return Study.create(config, run_dir, chat=chat)
+    return Study.create(config, run_dir, llm=model)
 
 
-def load_study(storage: Pathish, *, llm: Any = None) -> Study:
+def load_study(storage: Pathish, *, llm: LLM | None = None) -> Study:
     """The study stored in ``storage`` (made by ``create_study``, ``ppprops study create`` or any
-    run), as it was left: a pending trial is asked again without a second LLM call. ``llm``: a chat
-    object replacing the configured LLM in this process (the caller keeps it).
+    run), as it was left: a pending trial is asked again without a second LLM call. ``llm``: a model
+    (``ppprops.llm.LLM``) replacing the configured one in this process (the caller keeps it).
 
     Raises:
         StoreError, KeyFileError: not a run directory, or its store / key file is damaged.
@@ -325,7 +326,7 @@ def load_study(storage: Pathish, *, llm: Any = None) -> Study:
     from .baselines.record import refuse_resume
 
     refuse_resume(Path(storage))
-    return Study.load(Path(storage), chat=llm)
+    return Study.load(Path(storage), llm=llm)
 
 
 def resume(
@@ -334,7 +335,7 @@ def resume(
     base_url: str | None = None,
     model: str | None = None,
     api_key_env: str | None = None,
-    chat: Any = None,
+    llm: LLM | None = None,
     progress: bool = False,
 ) -> SearchResult:
     """Continue an interrupted run with its own secrets and task, then return it (as ``search``).
@@ -347,7 +348,7 @@ def resume(
         base_url: continue against this endpoint instead of the run's (recorded with the run).
         model: the model name there (default: the run's).
         api_key_env: the environment variable holding its API key ("" for none; default: the run's).
-        chat: a chat object (as in ``search``) that replaces the run's LLM for this session.
+        llm: a model (``ppprops.llm.LLM``, as in ``search``) that replaces the run's LLM for this session.
         progress: show a progress bar on stderr.
 
     Raises:
@@ -361,7 +362,7 @@ def resume(
     refuse_resume(Path(run_dir))  # an RL baseline run has no search to continue
     endpoint = Endpoint(base_url=base_url, model=model, api_key_env=api_key_env)
     with _progress(progress, str(run_dir)) as events:
-        _resume(Path(run_dir), events, endpoint=endpoint, chat=chat)
+        _resume(Path(run_dir), events, endpoint=endpoint, llm=llm)
     return load_run(run_dir)
 
 

@@ -44,11 +44,6 @@ MAX_PARSE_RETRIES = 10
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
-PROMPT_FORMS = ("auto", "chat", "document")  # see RunConfig.form
-# Default significant digits of a parameter per prompt form: the document form's labelled lists need
-# the room (Ant-Ultra's K=10 prompt stays under 8,000 characters) and the small model gains nothing
-# from a third digit; the chat form keeps the list form's 3.
-PARAM_DIGITS = {"chat": 3, "document": 2}
 
 
 @one_line_errors
@@ -97,7 +92,7 @@ class RunConfig:
     diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: Annotated[Literal["list", "indexed"], Flag(
         "history parameters as one list (compact) or as ProPS-style params[i]: value pairs")] = "list"
-    # None: the prompt form's default (PARAM_DIGITS: 3 for chat, 2 for the document form)
+    # None: the prompt form's default (wire.forms.PromptForm.default_digits: 3 for chat, 2 for the document form)
     param_digits: Annotated[Int | None, Field(ge=0, le=8), Flag(
         "significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals",
         range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form")] = None
@@ -128,8 +123,6 @@ class RunConfig:
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
         get_method(self.method).check_settings(self.mechanisms, prompt_form=self.prompt_form, options=self.method_options)
-        if self.method == "r2po" and self.prompt_form == "document":
-            raise ConfigError("--prompt-form document does not apply to r2po (its critic is a chat prompt); use auto or chat")
         return self
 
     def selection(self, has_env: bool = True) -> tuple[int, int]:
@@ -157,13 +150,19 @@ class RunConfig:
 
     def digits(self, form: str | None = None) -> int:
         """Significant digits of a parameter in the prompt of ``form`` (default: this run's form)."""
-        return self.param_digits if self.param_digits is not None else PARAM_DIGITS[form or self.form]
+        from .wire.forms import FORMS
+
+        return self.param_digits if self.param_digits is not None else FORMS[form or self.form].default_digits
 
     @property
     def form(self) -> str:
-        """The prompt form this run uses: ``chat`` or ``document`` (``auto`` resolved). R2PO always chats."""
+        """The prompt form this run uses (``auto`` resolved): the document form for the embedded model
+        (a base model) when the method takes it, the chat form otherwise."""
         if self.prompt_form == "auto":
-            return "document" if self.llm.embedded and self.method != "r2po" else "chat"
+            from .methods import get_method
+            from .wire.forms import CHAT, DOCUMENT
+
+            return DOCUMENT.name if self.llm.embedded and DOCUMENT.name in get_method(self.method).forms else CHAT.name
         return self.prompt_form
 
     def validate(self) -> None:

@@ -30,6 +30,7 @@ from .client.mechanisms import HARDENING, PRESETS, PRIVACY_SWITCHES, SWITCH_HELP
 from .errors import ConfigError
 from .plugins import load_plugins
 from .schema import describe_error
+from .wire.forms import CHAT, CHOOSABLE
 
 if TYPE_CHECKING:
     from .baselines.algorithms import Algorithm
@@ -95,7 +96,7 @@ class Method:
     raw_evidence: bool = False  # its prompts show raw states and actions: no privacy switch applies (PRIVACY_SWITCHES)
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
     options: type[BaseModel] | None = None  # the method's own options (a pydantic model), None: none
-    forms: tuple[str, ...] = ("auto", "chat", "document")  # the --prompt-form values it takes
+    forms: tuple[str, ...] = ("auto", *CHOOSABLE)  # the --prompt-form values it takes
 
     @property
     def algorithm(self) -> Algorithm:
@@ -220,7 +221,7 @@ METHODS: dict[str, Method] = {
         _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
         Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
                default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
-               raw_evidence=True, forms=("auto", "chat")),
+               raw_evidence=True, forms=("auto", CHAT.name)),
         _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
         _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
         _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),

@@ -70,14 +70,17 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
         pooled = pooled_returns(cands).get(best.index) if best is not None else None
         status, reason = effective(store.status(), run_dir)
         notes = []
-        if config.mechanisms.detailed_feedback and any(c.get("form") == "document" for c in calls):
+        from .wire.forms import FORMS
+
+        quiet = [str(c["form"]) for c in calls if c.get("form") in FORMS and not FORMS[str(c["form"])].shows_feedback]
+        if config.mechanisms.detailed_feedback and quiet:
             try:
                 task = config.make_task()
                 declared = [*task.components, *(d for d in task.diagnostics if d != "episode_length")]
             except PPPropsError:
                 declared = []
             if declared:
-                notes.append(f"the document form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
+                notes.append(f"the {quiet[0]} form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
                              "(--prompt-form chat shows them)")
         return _finite({
             "run_id": store.run_id(),

@@ -9,71 +9,36 @@ once (``ppprops.rundir``, ``ppprops.study``).
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import AbstractContextManager, contextmanager
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Protocol
 
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, StoreError
 from .evaluation import check_parallel
 from .events import NO_EVENTS, RunEvents
-from .llm.client import ChatClient, Exchange
-from .llm.session import LazyChat, open_client
+from .llm.protocol import LLM
 from .rundir import create_run, final_returns, load_run, new_run_id
 from .store import RunStore
-from .study import POLICY_NAME, Callback, Study, chat_factory_active, use_chat
+from .study import POLICY_NAME, Callback, Study
 from .values import FinalEval
 
-__all__ = ["ChatModel", "Endpoint", "LazyChat", "POLICY_NAME", "RunEvents", "change_endpoint", "chat_client", "create_run",
-           "final_returns", "load_run", "new_run_id", "resume", "start", "use_chat"]
-
-
-class ChatModel(Protocol):
-    """What a study asks an LLM through: the ``ChatClient`` of an endpoint or any object like it.
-
-    ``complete`` sends one prompt (``messages``: OpenAI chat messages) for a vector of ``D`` numbers
-    and returns the ``Exchange`` (request and answer text; the study's recording client stores it,
-    so the audit sees it); ``count_tokens`` measures a prompt (R2PO's context check); ``close``
-    ends it. A model that also has ``complete_document(prompt, *, D, seed, grammar, temperature)``
-    (``ChatClient`` does) can be sent the document form; without it, ``--prompt-form auto`` uses
-    the chat form.
-    """
-
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """Send ``messages`` asking for ``D`` numbers; the Exchange holds the request, answer and errors."""
-        ...
-
-    def count_tokens(self, text: str) -> int:
-        """An estimate of ``text``'s length in the model's tokens (never under-counted on purpose)."""
-        ...
-
-    def close(self) -> None:
-        """Release the endpoint (stop an embedded server this object started)."""
-        ...
-
-
-@contextmanager
-def chat_client(config: RunConfig, events: RunEvents = NO_EVENTS) -> Iterator[ChatClient]:
-    """The configured endpoint's client, or the embedded llama.cpp server started for the duration
-    (``llm.session.open_client``). Raises ConfigError when the named API-key variable is empty,
-    LLMError when the embedded server fails to start."""
-    with open_client(config.llm, on_loading=events.on_llm_loading, on_ready=events.on_llm_ready) as client:
-        yield client
+__all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "create_run", "final_returns", "load_run", "new_run_id", "resume",
+           "start"]
 
 
 def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) -> None:
     """Every check of a new run that needs no episode, before anything is written: the task has an
     env (a task without one is driven with ask/tell), the output directory is free, worker processes
     can make the env, and the API key variable is set when the method will call the configured
-    endpoint (``endpoint``: False when a chat object stands in for it).
+    endpoint (``endpoint``: False when a model object stands in for it).
 
     Raises:
         ConfigError: one line saying what to change.
     """
-    from .llm.session import api_key
+    from .llm.client import read_api_key
     from .methods import get_method
     from .rundir import check_out
 
@@ -85,7 +50,7 @@ def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) 
     if config.workers > 1:
         check_parallel(task)
     if endpoint and get_method(config.method).uses_llm and config.iterations > 0 and not config.llm.embedded:
-        api_key(config.llm)
+        read_api_key(config.llm)
 
 
 def start(
@@ -95,14 +60,14 @@ def start(
     *,
     secrets: Secrets | None = None,
     llm_gate: AbstractContextManager[object] | None = None,
-    chat: ChatModel | None = None,
+    llm: LLM | None = None,
     callbacks: Sequence[Callback] = (),
 ) -> FinalEval | None:
-    """Create the run directory (``create_run``) and run it (``execute``): warm-up, search, final
-    evaluation, policy file (Algorithm 1 of the paper for the prompted methods).
+    """Create the run directory (``create_run``) and run it: warm-up, search, final evaluation,
+    policy file (Algorithm 1 of the paper for the prompted methods).
 
     A loop over the study (``Study.create(...).optimize()``). ``llm_gate`` (e.g. a shared
-    semaphore) is held around every LLM request of the run; ``chat`` replaces the configured LLM;
+    semaphore) is held around every LLM request of the run; ``llm`` replaces the configured LLM;
     ``secrets`` replaces freshly drawn ones (tests, controlled grids); ``callbacks`` are called
     after each candidate (``Study.optimize``).
 
@@ -118,8 +83,8 @@ def start(
         FeedbackKeyError, EpisodeLimitError: the env broke its declaration mid-run (status
             ``stopped: ...``).
     """
-    check_startable(config, run_dir, endpoint=chat is None and not chat_factory_active())
-    with Study.create(config, run_dir, secrets=secrets, chat=chat, llm_gate=llm_gate, events=events) as study:
+    check_startable(config, run_dir, endpoint=llm is None)
+    with Study.create(config, run_dir, secrets=secrets, llm=llm, llm_gate=llm_gate, events=events) as study:
         return study.optimize(callbacks, events)
 
 
@@ -173,12 +138,12 @@ def resume(
     *,
     llm_gate: AbstractContextManager[object] | None = None,
     endpoint: Endpoint | None = None,
-    chat: ChatModel | None = None,
+    llm: LLM | None = None,
     callbacks: Sequence[Callback] = (),
 ) -> FinalEval | None:
     """Continue a run with its own secrets: every recorded candidate is kept, the rest is run,
     then the final evaluation. ``endpoint`` continues it against a corrected or different LLM
-    endpoint (``change_endpoint``). Raises StoreError for a missing or foreign directory or key
+    endpoint (``change_endpoint``); ``llm`` replaces the run's LLM for this session. Raises StoreError for a missing or foreign directory or key
     file, ConfigError for a bad endpoint, LLMError when the endpoint stays down."""
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
@@ -186,7 +151,7 @@ def resume(
     try:
         if endpoint is not None and endpoint.given:
             config = change_endpoint(store, config, endpoint)
-        study = Study(Path(run_dir), store, config, secrets, chat=chat, llm_gate=llm_gate, events=events)
+        study = Study(Path(run_dir), store, config, secrets, llm=llm, llm_gate=llm_gate, events=events)
     except BaseException:
         store.close()
         raise

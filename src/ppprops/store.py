@@ -11,7 +11,9 @@ Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``a
 ``eval_s`` (where an iteration's time goes); 4 adds the ``pending`` table (the trial a study has
 asked for and not yet been told: stored before ``ask`` returns, so a restart asks nothing twice)
 and ``llm_calls.form`` and ``decisions`` (the prompt form of each call and the public choices it
-made, which the audit reads). Older stores are migrated in place. Changes the LLM
+made, which the audit reads); 5 names the form of every call (calls recorded before forms were
+named get the form their body shows, ``wire.forms.recorded_form``, once). Older stores are
+migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
 in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
 (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
@@ -33,7 +35,7 @@ from .errors import ConfigError, StoreError
 from .status import RunStatus
 from .values import Candidate, Feedback, FinalEval, Trial
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"
 KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
@@ -191,6 +193,11 @@ class RunStore:
             have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
             if column not in have:
                 db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
+        if version is not None and version < 5:  # every call names its form from schema 5 on
+            from .wire.forms import recorded_form
+
+            for call_id, request in db.execute("SELECT id, request FROM llm_calls WHERE form IS NULL").fetchall():
+                db.execute("UPDATE llm_calls SET form = ? WHERE id = ?", (recorded_form(str(request)), call_id))
         if version != SCHEMA_VERSION:
             db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
 
@@ -406,7 +413,7 @@ class RunStore:
             "SELECT idx, source, iteration, created, ask_s, eval_s FROM candidates ORDER BY idx").fetchall()]
 
     # -- LLM exchanges --------------------------------------------------------------------
-    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str | None = None,
+    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str,
                      decisions: Mapping[str, Any] | None = None) -> int:
         """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry,
         answer_source and adaptation are optional, so older exchange-like objects still record),

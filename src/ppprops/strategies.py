@@ -54,8 +54,8 @@ def props_phase(s: SearchSetup) -> Phase:
     mechanisms, in the run's prompt form (``s.prompt.form``: the document form for the embedded model)."""
     from .proposers import LLMProposer
 
-    assert s.chat is not None, "a prompted method needs the run's LLM client"
-    proposer = LLMProposer(chat=s.chat(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
+    assert s.llm_client is not None, "a prompted method needs the run's LLM client"
+    proposer = LLMProposer(llm=s.llm_client(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
                            box=s.box, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
                            form=s.prompt.form, temperature=s.llm.temperature, explore=s.prompt.explore)  # fmt: skip
     return Phase("llm", proposer, s.iterations)
@@ -67,19 +67,18 @@ def r2po_phase(s: SearchSetup) -> Phase:
     from .proposers.r2po import R2POProposer
     from .rollout import record_rollout
 
-    assert s.chat is not None, "a prompted method needs the run's LLM client"
+    assert s.llm_client is not None, "a prompted method needs the run's LLM client"
     if s.evaluator is None:
         raise ConfigError(f"--method r2po re-runs episodes for its critic: task {s.task.name} has no env to run them in")
-    task, evaluator, chat = s.task, s.evaluator, s.chat()
+    task, evaluator = s.task, s.evaluator
     proposer = R2POProposer(
-        chat=chat,
+        llm=s.llm_client(),
         codec=s.codec,
         context=prompt_context(task, s.prompt, s.codec),
         top_k=s.prompt.top_k,
         box=s.box,
         streams=s.streams,
         rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
-        count_tokens=chat.count_tokens,
         context_window=s.llm.context_size,
         max_tokens=s.llm.max_tokens or default_max_tokens(task.D),
         parse_retries=s.parse_retries,

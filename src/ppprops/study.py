@@ -28,9 +28,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import ExitStack, closing, contextmanager
-from contextvars import ContextVar
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager, ExitStack, closing
 from pathlib import Path
 from typing import Any
 
@@ -45,8 +44,8 @@ from .errors import ConfigError, LLMError, StoreError
 from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, PoolError, WorkerError, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
-from .llm.recording import RecordingChat
-from .llm.session import LazyChat
+from .llm.protocol import LLM
+from .llm.recording import RecordingLLM
 from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
 from .loop import locate, pooled_returns, search_candidates, select_best
 from .methods import Method, get_method
@@ -59,35 +58,13 @@ from .store import RunStore
 from .strategies import search_phase
 from .tasks import FeedbackKeyError, Task
 from .values import Candidate, Feedback, FinalEval, Trial
+from .wire.forms import CHAT, ENDPOINT_COMPLETIONS, FORMS, PromptForm
 
 POLICY_NAME = "best_policy.json"
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 
 Callback = Callable[[Candidate, "Study"], "bool | None"]
-
-# A chat model for every study opened in this context (``use_chat``); None: the configured LLM.
-_CHAT_FACTORY: ContextVar[Callable[[RunConfig], Any] | None] = ContextVar("ppprops_chat_factory", default=None)
-
-
-@contextmanager
-def use_chat(factory: Callable[[RunConfig], Any]) -> Iterator[None]:
-    """Within the block, studies talk to ``factory(config)`` instead of their configured endpoint.
-
-    For offline stand-ins (``ppprops.privacy.simulate.offline_llm``) and tests; a single study
-    takes its chat model as the ``chat`` argument instead.
-    """
-    token = _CHAT_FACTORY.set(factory)
-    try:
-        yield
-    finally:
-        _CHAT_FACTORY.reset(token)
-
-
-def chat_factory_active() -> bool:
-    """True inside a ``use_chat`` block (studies then talk to the factory's chat model)."""
-    return _CHAT_FACTORY.get() is not None
-
 
 class StudyComplete(ConfigError):
     """``ask`` after the budget is spent (or after the search stopped on purpose): finalize instead.
@@ -109,14 +86,15 @@ class Study:
         store: its open store (the study closes it).
         config: the run's stored configuration.
         secrets: the run's secrets (its key file).
-        chat: a chat model instead of the configured endpoint (``complete`` and, for the document
-            form, ``complete_document``; ``count_tokens`` for R2PO); the caller keeps and closes it.
+        llm: the model to ask instead of the configured endpoint (an ``llm.protocol.LLM``; the
+            caller keeps and closes it). None: the configured endpoint, or the embedded model,
+            started on the first LLM request and closed with the study.
         llm_gate: held around every LLM request (a grid's cap on concurrent requests).
         events: progress hooks (the embedded model's start, the final evaluation).
     """
 
-    def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, chat: Any = None,
-                 llm_gate: Any = None, events: RunEvents = NO_EVENTS) -> None:  # fmt: skip
+    def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, llm: LLM | None = None,
+                 llm_gate: AbstractContextManager[object] | None = None, events: RunEvents = NO_EVENTS) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.store = store
         self.config = config
@@ -126,10 +104,10 @@ class Study:
         self.codec: Codec = codec_for(secrets, self.task, config.encoding)
         self.streams = seeding.Streams(config.seed, secrets.subkey("streams") if store.streams_keyed() else None)
         self.events = events
-        self._chat_given = chat
+        self._llm_given = llm
         self._gate = llm_gate
         self._stack = ExitStack()
-        self._recording: RecordingChat | None = None
+        self._recording: RecordingLLM | None = None
         self._phases: list[Phase] | None = None
         self._told = 0  # candidates the proposers have been told
         self._evaluator: Evaluator | None = None
@@ -520,15 +498,14 @@ class Study:
             warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec)
             phases = [Phase("warmup", warmup, config.warmup)]
             if config.iterations > 0:
-                chat = self._chat if self.method.uses_llm else None
-                form = self._form() if self.method.uses_llm else config.form
+                form = self._form() if self.method.uses_llm else FORMS[config.form]
                 notice = self.feedback_notice(form) if self.method.uses_llm else None
                 if notice is not None:
                     self.events.on_notice(notice)
                 setup = SearchSetup(task=self.task, codec=self.codec, streams=self.streams, box=config.box, warmup=config.warmup,
-                                    iterations=config.iterations, prompt=config.prompt_settings(form), llm=config.llm,
+                                    iterations=config.iterations, prompt=config.prompt_settings(form.name), llm=config.llm,
                                     options=self.method.parse_options(config.method_options), on_llm_failure=config.on_llm_failure,
-                                    parse_retries=config.parse_retries, chat=chat,
+                                    parse_retries=config.parse_retries, llm_client=self._llm if self.method.uses_llm else None,
                                     evaluator=self.evaluator if self.has_env else None)  # fmt: skip
                 phases.append(search_phase(self.method, setup))
             top, episodes = config.selection(self.has_env)
@@ -541,36 +518,37 @@ class Study:
             self._sync()
         return self._phases
 
-    def _chat(self) -> RecordingChat:
-        """The run's recording LLM client (the model made, not started, on first use)."""
+    def _llm(self) -> RecordingLLM:
+        """The run's recording LLM client, over the model given or the configured one (``llm.client.connect``:
+        nothing is started before the first request)."""
         if self._recording is None:
-            model = self._chat_given
+            model = self._llm_given
             if model is None:
-                factory = _CHAT_FACTORY.get()
-                made = factory(self.config) if factory is not None else LazyChat(
-                    self.config.llm, self._gate, on_loading=self.events.on_llm_loading, on_ready=self.events.on_llm_ready)
-                model = self._stack.enter_context(closing(made))
-            self._recording = RecordingChat(model, self.store, on_first_use=self.store.begin_llm_session)
+                from .llm.client import connect
+
+                model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
+                                                                  on_ready=self.events.on_llm_ready)))
+            self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session)
         return self._recording
 
-    def feedback_notice(self, form: str) -> str | None:
+    def feedback_notice(self, form: PromptForm) -> str | None:
         """The line a run says once when the prompt form will not show the detailed feedback the
-        settings ask for (issue 23): the document form writes returns only."""
+        settings ask for (a form whose entries show returns only)."""
         declared = [*self.task.components, *(d for d in self.task.diagnostics if d != "episode_length")]
-        if form != "document" or not self.config.mechanisms.detailed_feedback or not declared:
+        if form.shows_feedback or not self.config.mechanisms.detailed_feedback or not declared:
             return None
-        return (f"the document form (the embedded model's default) shows the LLM returns only: the reward components and "
+        return (f"the {form.name} form (the embedded model's default) shows the LLM returns only: the reward components and "
                 f"diagnostics of this task ({', '.join(declared)}) are not in its prompts; --prompt-form chat shows them")
 
-    def _form(self) -> str:
+    def _form(self) -> PromptForm:
         """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
-        for a chat model that cannot continue documents (``--prompt-form document`` with one: ConfigError)."""
-        form = self.config.form
-        if form == "document" and not self._chat().completes_documents:
-            if self.config.prompt_form == "document":
-                raise ConfigError("--prompt-form document needs a chat model with complete_document(prompt, *, D, seed, "
-                                  "grammar); this one has only complete(): use --prompt-form chat or auto")
-            return "chat"
+        for a model that cannot continue documents (a form it cannot serve, chosen explicitly: ConfigError)."""
+        form = FORMS[self.config.form]
+        if form.endpoint == ENDPOINT_COMPLETIONS and ENDPOINT_COMPLETIONS not in self._llm().endpoints:
+            if self.config.prompt_form == form.name:
+                raise ConfigError(f"--prompt-form {form.name} needs a model that continues documents (the completions "
+                                  "endpoint); this one serves chat only: use --prompt-form chat or auto")
+            return CHAT
         return form
 
 
@@ -588,4 +566,4 @@ def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
     return out
 
 
-__all__ = ["Study", "StudyComplete", "Trial", "use_chat"]
+__all__ = ["Study", "StudyComplete", "Trial"]

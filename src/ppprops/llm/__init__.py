@@ -1,5 +1,5 @@
-"""Reaching a model: any OpenAI-compatible endpoint, or the embedded llama.cpp server."""
+"""Reaching the model: the one LLM protocol, the endpoint client, the recording client and the embedded server."""
 
-from .client import ChatClient, Exchange
+from .protocol import LLM, Exchange, LLMRejected, LLMUnavailable
 
-__all__ = ["ChatClient", "Exchange"]
+__all__ = ["LLM", "Exchange", "LLMRejected", "LLMUnavailable"]

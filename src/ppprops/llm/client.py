@@ -1,12 +1,15 @@
-"""A thin chat-completions client over the official ``openai`` SDK that records every exchange.
+"""The LLM of an OpenAI-compatible endpoint (or of the embedded model), over the official ``openai`` SDK.
 
-It also sends the document form (``wire.document``) to the completions endpoint
-(``complete_document``): same recording, retries and adaptation, fields from the same
-``RequestShape`` (``document_fields``).
+``EndpointClient`` is an ``llm.protocol.LLM``: it turns a prompt form's ``wire.forms.FormRequest``
+into a request body (``RequestShape.body``: the form's payload and sampling fields, plus what the
+endpoint needs: the model, the token budget, the seed, the answer's constraint), sends it to
+/chat/completions or /completions, and returns every HTTP try as an ``Exchange`` for the run's
+store. It never reads the form's fields one by one: a field a form adds is sent as it is. For the
+embedded model it starts the shipped llama.cpp server on the first request (``connect``), so a
+warm-up never waits for a model to load.
 
-Only the request body is recorded (never headers, so never the API key). Every HTTP try is an
-``Exchange``; ``complete`` returns one usable exchange or raises, so an HTTP error never reaches
-the model as if it were an answer.
+Only the request body is recorded (never headers, so never the API key). ``send`` returns one
+usable exchange or raises, so an HTTP error never reaches the model as if it were an answer.
 
 - **Transient faults** (timeouts, refused or dropped connections, 429, 5xx, a garbled body, a
   200 whose body is an error with a transient code) are retried here, not in the SDK (its
@@ -16,14 +19,15 @@ the model as if it were an answer.
 - **Deterministic failures** end at once in ``LLMRejected``, with the server's own message: 401,
   403, 404 (with the URL tried and the likely fix), an exhausted quota, a 400/422 that names no
   parameter this client can change, a 5xx whose body says the request itself is invalid.
-- **Request adaptation**: a 400/422 that says a parameter is unknown or unsupported changes that
-  parameter once, for the rest of the run: ``seed``, ``temperature`` and ``reasoning_effort`` are
-  dropped, ``max_tokens`` becomes ``max_completion_tokens`` when the server asks for it, the JSON
-  schema (``response_format``) or grammar is dropped under ``--structured auto``. Under
-  ``auto`` the schema is also dropped after ``SCHEMA_MISSES`` unusable answers in a row under it.
-  When the endpoint turns out to reason (a reasoning field, reasoning markup, reasoning tokens)
-  the default token budget grows to leave room for it. Each change is carried on the exchange
-  that caused it (``Exchange.adaptation``), which the store records in the run.
+- **Request adaptation**: a 400/422 that says a parameter the last request carried is unknown or
+  unsupported changes that parameter once, for the rest of the run: ``seed``, a sampling field
+  and ``reasoning_effort`` are dropped, ``max_tokens`` becomes ``max_completion_tokens`` when the
+  server asks for it, the JSON schema (``response_format``) or grammar is dropped under
+  ``--structured auto``. Under ``auto`` the schema is also dropped after ``SCHEMA_MISSES``
+  unusable answers in a row under it. When the endpoint turns out to reason (a reasoning field,
+  reasoning markup, reasoning tokens) the default token budget grows to leave room for it. Each
+  change is carried on the exchange that caused it (``Exchange.adaptation``), which the store
+  records in the run.
 - **Timeouts fitted to the budget**: the per-request timeout is ``--timeout`` or, when the
   token budget at the slowest generation speed seen so far needs longer, that time twice over
   (an adaptation like the others); before any answer the embedded model gets a prior from slow
@@ -38,113 +42,25 @@ from __future__ import annotations
 import email.utils
 import json
 import math
+import os
 import random
 import re
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
+from contextlib import AbstractContextManager, ExitStack, nullcontext
 from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
-from ..errors import LLMError
-from ..wire.document import document_temperature
+from ..errors import ConfigError
+from ..wire.forms import ENDPOINT_CHAT, ENDPOINT_COMPLETIONS, FormRequest, answer_budget
 from ..wire.parse import read_answer, split_reasoning
+from .protocol import Exchange, LLMRejected, LLMUnavailable
 from .settings import LLMConfig
 
+if TYPE_CHECKING:
+    from openai import OpenAI
 
-@dataclass(frozen=True)
-class Exchange:
-    """One HTTP round trip, as recorded in the store."""
-
-    request: str  # the JSON body sent
-    response: str | None  # the raw JSON body received
-    content: str | None  # the assistant's message content, as received
-    reasoning: str | None  # reasoning text when the server returns it separately
-    prompt_chars: int
-    prompt_tokens: int | None
-    completion_tokens: int | None
-    latency_s: float
-    ok: bool
-    error: str | None = None
-    # timeout | refused | dropped | rate_limited | quota_exhausted | bad_response | bad_request | invalid_request
-    # | endpoint_error | http_NNN
-    error_kind: str | None = None
-    retry: int = 0  # 0 for the first try of a request, n for its n-th retry (transient or adapted)
-    answer_source: str | None = None  # set by the proposer: content | reasoning
-    failures: tuple[Exchange, ...] = ()  # failed tries before this one
-    finish_reason: str | None = None  # the choice's: stop | length | content_filter | ...
-    reasoning_tokens: int | None = None  # usage.completion_tokens_details.reasoning_tokens, when reported
-    adaptation: str | None = None  # a change to later requests this exchange caused (recorded in the run)
-    # finish_reason length, but the server's context filled, not the answer budget (``context_full``)
-    context_full: bool = False
-
-
-class LLMUnavailable(LLMError):
-    """A request kept failing with transient faults past the retry bound. Carries the failed tries."""
-
-    def __init__(self, message: str, failures: tuple[Exchange, ...]) -> None:
-        super().__init__(message)
-        self.failures = failures
-
-    @property
-    def kind(self) -> str:
-        """The last failed try's error kind (``timeout``, ``refused``, ``http_5xx``, ...), or ``unknown``."""
-        return (self.failures[-1].error_kind or "unknown") if self.failures else "unknown"
-
-
-class LLMRejected(LLMUnavailable):
-    """The endpoint refused the request for good (401, 403, 404, an invalid request, an exhausted
-    quota, ...): retrying or skipping cannot help."""
-
-
-class Chat(Protocol):
-    """What a proposer needs from a model: one chat completion, or one continuation of a
-    document (``wire.document``), recorded.
-
-    Both return an ``ok`` exchange or raise ``LLMUnavailable``/``LLMRejected``.
-    """
-
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """Send ``messages`` (OpenAI chat messages) asking for ``D`` numbers; returns the recorded Exchange."""
-        ...
-
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> Exchange:
-        """Send ``prompt`` (a document, ``wire.document``) to be continued with ``D`` numbers under
-        ``grammar`` (GBNF, or None) at ``temperature`` (None: the form's default), with the more
-        sampling fields of ``sampling`` (``top_p``, ``min_p``, ``top_k``: an exploratory request;
-        the recording client passes it only when the form asks for it); returns the recorded Exchange."""
-        ...
-
-
-def params_schema(D: int) -> dict[str, Any]:
-    """The JSON schema of an answer: an object with ``params``, an array of exactly ``D`` numbers (``--structured json_schema``)."""
-    return {
-        "type": "object",
-        "properties": {"params": {"type": "array", "items": {"type": "number"}, "minItems": D, "maxItems": D}},
-        "required": ["params"],
-        "additionalProperties": False,
-    }
-
-
-def params_grammar(D: int) -> str:
-    """GBNF for {"params":[n, ...]} with exactly D plain decimals and no free whitespace.
-
-    llama.cpp's JSON-schema grammar lets small models pad with whitespace until max_tokens;
-    this one cannot, which keeps answers short and always parseable.
-    """
-    rest = f' ("," ws num){{{D - 1}}}' if D > 1 else ""
-    return (
-        f'root ::= "{{\\"params\\": [" num{rest} "]}}"\n'
-        'ws ::= " "?\n'
-        'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
-    )
-
-
-CHAT_TEMPERATURE = 1.0  # the chat form's default sampling temperature (--temperature unset)
-
-# Tokens of reasoning room added to the answer budget: by --reasoning-effort, or when the endpoint
-# reasons without one being set. Reasoning counts against max_tokens on every server we know of.
 REASONING_ROOM = {"minimal": 1024, "low": 4096, "medium": 8192, "high": 16384}
 REASONING_ROOM_UNSET = 8192
 SCHEMA_MISSES = 2  # --structured auto drops the JSON schema after this many unusable answers in a row under it
@@ -162,14 +78,8 @@ TIMEOUT_STEP_S = 10.0
 TIMED_SHARE = 0.1
 EMBEDDED_PRIOR = (50.0, 5.0)
 CHARS_PER_TOKEN = 1.0
-# The document form's stop sequence on endpoints without the continuation grammar: the list it
-# continues ends at its first "]" (``wire.parse.read_continuation``); servers do not return the
-# stop sequence itself.
-DOCUMENT_STOP = ("]",)
-
-
 # Tokens added to the answer budget of a chat request to an endpoint other than the embedded
-# model: instruction-tuned chat models often explain before they answer (issue 23: at 24 + 8 D
+# model: instruction-tuned chat models often explain before they answer (at 24 + 8 D
 # tokens, Qwen2.5-Coder-1.5B was cut off in 2 of 14 answers, SmolLM2-135M in 30 of 45 without a
 # schema), and each cut answer costs a correction request. The embedded model's grammar leaves
 # it no room to explain, and its document form continues a list, so neither gets it.
@@ -178,22 +88,13 @@ EXPLANATION_ROOM = 512
 
 def default_max_tokens(D: int, reasoning_effort: str | None = None, *, reasoning: bool = False,
                        explanation: bool = False, labels: bool = False) -> int:
-    """Default token budget of one answer.
-
-    Room for D numbers plus the JSON frame: some tokenizers (Gemma's) spend one token per digit,
-    so "-12.99, " can take 7 tokens; 8 per number leaves a margin. With ``labels`` (the document
-    form's continuation ``0:v,1:v,...]``, ``wire.document``) each value also carries its index
-    and a colon, a token per character on Gemma (a Humanoid-Joints answer, D=459, was cut off
-    after 423 values at 24 + 8 D = 3,696 tokens): the budget is then at least ``24 + sum over j
-    of (digits of j + 7)`` (the same 104 as before on CartPole, 4,504 at D=459). With
-    ``explanation`` (a chat request to an endpoint other than the embedded model)
-    ``EXPLANATION_ROOM`` more, for a short explanation before the answer. With
-    ``reasoning_effort`` set (other than ``none``), or ``reasoning`` (the endpoint was seen to
-    reason), ``REASONING_ROOM`` more, since reasoning tokens count against the same limit.
+    """Default token budget of one answer: the form's ``wire.forms.answer_budget(D, labels=labels)``;
+    with ``explanation`` (a chat request to an endpoint other than the embedded model)
+    ``EXPLANATION_ROOM`` more, for a short explanation before the answer; with ``reasoning_effort``
+    set (other than ``none``), or ``reasoning`` (the endpoint was seen to reason), ``REASONING_ROOM``
+    more, since reasoning tokens count against the same limit.
     """
-    answer = 24 + 8 * D + (EXPLANATION_ROOM if explanation else 0)
-    if labels:
-        answer = max(answer, 24 + sum(len(str(j)) + 7 for j in range(D)))
+    answer = answer_budget(D, labels=labels) + (EXPLANATION_ROOM if explanation else 0)
     if reasoning_effort in REASONING_ROOM:
         return answer + REASONING_ROOM[reasoning_effort]
     return answer + (REASONING_ROOM_UNSET if reasoning else 0)
@@ -210,20 +111,13 @@ class ServerError:
     code: str | None = None
 
 
-# What each parameter this client sends may be called in an error message.
-_PARAM_NAMES: dict[str, tuple[str, ...]] = {
-    "seed": ("seed",),
-    "temperature": ("temperature",),
-    "max_tokens": ("max_tokens",),
-    "max_completion_tokens": ("max_completion_tokens",),
-    "reasoning_effort": ("reasoning_effort",),
-    "response_format": ("response_format", "json_schema", "response_schema"),
-    "grammar": ("grammar",),
-    "stop": ("stop",),
-    "top_p": ("top_p",),
-    "min_p": ("min_p",),
-    "top_k": ("top_k",),
-}
+# What a parameter this client sends may also be called in an error message (any other parameter,
+# a form's sampling field included, by its own name).
+_ALIASES: dict[str, tuple[str, ...]] = {"response_format": ("response_format", "json_schema", "response_schema")}
+# The order in which parameters named in one refusal are changed (and the change described); a
+# parameter not listed (a form's own sampling field) comes after them, in the order sent.
+_ORDER = ("seed", "temperature", "max_tokens", "max_completion_tokens", "reasoning_effort", "response_format", "grammar", "stop",
+          "top_p", "min_p", "top_k")
 _REFUSES = re.compile(
     r"unknown|unsupported|not supported|unrecogni[sz]ed|not permitted|extra (?:inputs|fields)|cannot find field"
     r"|not allowed|does not support|unavailable|no longer supported|invalid type|unexpected (?:keyword|field|argument)"
@@ -246,10 +140,10 @@ ADAPTABLE_KINDS = ("bad_request", "http_422")
 
 
 class RequestShape:
-    """Everything a request carries besides its messages, and how that changes as one client
-    session learns its endpoint (module docstring, "Request adaptation"). It starts from the
+    """Everything a request carries besides the form's own fields, and how that changes as one
+    client session learns its endpoint (module docstring, "Request adaptation"). It starts from the
     run's ``LLMConfig`` and changes only through ``adapt`` (a refused parameter) and ``learn``
-    (a usable answer): ``ChatClient`` drives it live, and the audit replays it on the recorded
+    (a usable answer): ``EndpointClient`` drives it live, and the audit replays it on the recorded
     exchanges to know what each recorded request must hold (``privacy.reconstruct``).
 
     It also holds the per-request timeout (``timeout``), which is not a request field but is
@@ -270,7 +164,7 @@ class RequestShape:
         self.fitted_timeout_s: float | None = None  # the timeout fitted to ``rate`` and the budget
         self._adapted: set[str] = set()
         self._schema_misses = 0
-        self._sent: frozenset[str] = frozenset()  # the parameters of the last request built
+        self._sent: tuple[str, ...] = ()  # the parameters of the last request built, in the order sent
 
     @classmethod
     def for_config(cls, config: LLMConfig) -> RequestShape:
@@ -289,112 +183,76 @@ class RequestShape:
         with ``--context-size``), else None."""
         return self.config.context_size if self.grammar_ok else None
 
-    def max_tokens(self, D: int, *, document: bool = False) -> int:
-        """The token budget sent: ``--max-tokens`` if given, else ``default_max_tokens`` (with room
-        for an explanation in a chat request to an endpoint other than the embedded model; a
-        ``document`` continuation gets none, and room for its index labels)."""
-        return self.config.max_tokens or default_max_tokens(D, self.config.reasoning_effort, reasoning=self.reasoning_seen,
-                                                            explanation=not document and not self.grammar_ok,
-                                                            labels=document)
+    def max_tokens(self, req: FormRequest) -> int:
+        """The token budget sent: ``--max-tokens`` if given, else the form's ``answer_tokens``, with
+        ``EXPLANATION_ROOM`` for a form whose model may explain first when nothing constrains it
+        (any endpoint but the embedded one), and room for reasoning (``REASONING_ROOM``) once it is
+        asked for or seen."""
+        if self.config.max_tokens:
+            return self.config.max_tokens
+        answer = req.answer_tokens + (EXPLANATION_ROOM if req.explains and not self.grammar_ok else 0)
+        if self.config.reasoning_effort in REASONING_ROOM:
+            return answer + REASONING_ROOM[self.config.reasoning_effort]
+        return answer + (REASONING_ROOM_UNSET if self.reasoning_seen else 0)
 
-    def timeout(self, D: int, *, prompt_chars: int, document: bool = False) -> float:
-        """Seconds to wait for one answer: ``--timeout``, or longer where the budget needs it.
+    def timeout(self, req: FormRequest) -> float:
+        """Seconds to wait for one answer to ``req``: ``--timeout``, or longer where the budget needs it.
 
         Once answers have been seen, ``fitted_timeout_s`` (``learn``): ``TIMEOUT_MARGIN`` times the
         budget at the slowest speed seen. Before that, for the embedded model only, a prior from
-        ``EMBEDDED_PRIOR``: the prompt (``prompt_chars``, about ``CHARS_PER_TOKEN`` a token) and
-        the whole budget at slow-CPU speeds, so a high-dimensional task's first answer is not cut
-        off by a timeout meant for a remote server."""
+        ``EMBEDDED_PRIOR``: the prompt (about ``CHARS_PER_TOKEN`` characters a token) and the whole
+        budget at slow-CPU speeds, so a high-dimensional task's first answer is not cut off by a
+        timeout meant for a remote server."""
         wait = self.config.timeout_s
         if self.fitted_timeout_s is not None:
             return max(wait, self.fitted_timeout_s)
         if self.grammar_ok:
             prefill, generation = EMBEDDED_PRIOR
-            prior = prompt_chars / CHARS_PER_TOKEN / prefill + self.max_tokens(D, document=document) / generation
+            prior = req.prompt_chars / CHARS_PER_TOKEN / prefill + self.max_tokens(req) / generation
             wait = max(wait, _round_up(TIMEOUT_MARGIN * prior))
         return wait
 
-    def _grammar_on(self) -> bool:
-        """Whether a document request carries its continuation grammar: under ``--structured
-        grammar``, and under ``auto`` until the endpoint refuses it (a server that does not know
-        the field refuses or ignores it; llama.cpp's enforces it)."""
-        if "grammar" in self.dropped:
-            return False
-        return self.structured == "grammar" or self.config.structured == "auto"
+    def _constraint(self, req: FormRequest) -> dict[str, Any]:
+        """The answer's constraint field: the form's JSON schema under ``--structured json_schema``
+        (as ``response_format``); else its grammar under ``--structured grammar``, and under
+        ``auto`` for a form without a schema, until the endpoint refuses it."""
+        if self.structured == "json_schema" and req.json_schema is not None:
+            return {"response_format": {"type": "json_schema",
+                                        "json_schema": {"name": "policy_parameters", "schema": dict(req.json_schema), "strict": True}}}
+        grammar_mode = self.structured == "grammar" or (self.config.structured == "auto" and req.json_schema is None)
+        if req.grammar is not None and grammar_mode and "grammar" not in self.dropped:
+            return {"grammar": req.grammar}
+        return {}
 
-    def fields(self, D: int, seed: int | None) -> dict[str, Any]:
-        """The request body's fields other than ``messages``, in the order sent."""
-        body: dict[str, Any] = {"model": self.model}
-        if "temperature" not in self.dropped:
-            body["temperature"] = CHAT_TEMPERATURE if self.config.temperature is None else self.config.temperature
+    def body(self, req: FormRequest, seed: int | None) -> dict[str, Any]:
+        """The whole request body of ``req``: the model, the form's payload and sampling fields (less
+        those the endpoint refused), the token budget, the ``seed``, ``reasoning_effort`` (chat
+        requests), the answer's constraint, and the form's ``stop`` for any endpoint but the
+        embedded one (a base model that is not held by a grammar writes on past its answer)."""
+        body: dict[str, Any] = {"model": self.model, **req.payload}
+        body.update({k: v for k, v in req.sampling.items() if k not in self.dropped})
         if self.token_param not in self.dropped:
-            body[self.token_param] = self.max_tokens(D)
+            body[self.token_param] = self.max_tokens(req)
         if seed is not None and "seed" not in self.dropped:
             body["seed"] = seed
-        if self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
+        if req.endpoint == ENDPOINT_CHAT and self.config.reasoning_effort and "reasoning_effort" not in self.dropped:
             body["reasoning_effort"] = self.config.reasoning_effort
-        if self.structured == "json_schema":
-            body["response_format"] = {
-                "type": "json_schema",
-                "json_schema": {"name": "policy_parameters", "schema": params_schema(D), "strict": True},
-            }
-        elif self.structured == "grammar":
-            body["grammar"] = params_grammar(D)
-        self._sent = frozenset(body) - {"model"}
+        body.update(self._constraint(req))
+        if req.stop and not self.grammar_ok and "stop" not in self.dropped:
+            body["stop"] = list(req.stop)
+        self._sent = tuple(k for k in body if k not in ("model", "messages", "prompt"))
         return body
-
-    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
-        """The whole chat-completions request body."""
-        fields = self.fields(D, seed)
-        return {"model": fields.pop("model"), "messages": messages, **fields}
-
-    def document_fields(self, D: int, seed: int | None, *, grammar: str | None,
-                        temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
-        """The fields of a completions request (the document form, ``wire.document``) other than
-        ``prompt``, in the order sent. ``grammar`` (GBNF, from ``wire.document.continuation_grammar``)
-        is sent under ``--structured grammar``, and under ``auto`` until the endpoint refuses it;
-        there is no JSON answer to constrain, so a JSON schema is never sent, nor
-        ``reasoning_effort``. ``temperature`` (the proposer's, per request:
-        ``wire.document.document_temperature``) wins over ``--temperature``. To any endpoint but the
-        embedded one, ``stop`` is ``["]"]`` (``DOCUMENT_STOP``): a base model that is not held by a
-        grammar writes on past the list until the token limit, and that answer is never used.
-        ``sampling`` (an exploratory request: ``wire.document.document_sampling``) adds its fields,
-        each until the endpoint refuses it."""
-        body: dict[str, Any] = {"model": self.model}
-        if "temperature" not in self.dropped:
-            body["temperature"] = temperature if temperature is not None else document_temperature(0, 0, self.config.temperature)
-        for key, value in (sampling or {}).items():
-            if key not in self.dropped:
-                body[key] = value
-        if self.token_param not in self.dropped:
-            body[self.token_param] = self.max_tokens(D, document=True)
-        if seed is not None and "seed" not in self.dropped:
-            body["seed"] = seed
-        if grammar is not None and self._grammar_on():
-            body["grammar"] = grammar
-        if not self.grammar_ok and "stop" not in self.dropped:
-            body["stop"] = list(DOCUMENT_STOP)
-        self._sent = frozenset(body) - {"model"}
-        return body
-
-    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
-                      temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
-        """The whole completions request body: the raw document, no chat wrapper."""
-        fields = self.document_fields(D, seed, grammar=grammar, temperature=temperature, sampling=sampling)
-        return {"model": fields.pop("model"), "prompt": prompt, **fields}
 
     def adapt(self, err: ServerError) -> tuple[str | None, str | None]:
         """After a refusal (``ADAPTABLE_KINDS``) of the last request built: (the change made, or
         None; a hint for the error text when no change is possible)."""
         if not _REFUSES.search(err.message):
             return None, None  # a parameter may be named, but not refused (e.g. "max_tokens is too large")
-        sent = set(self._sent)  # what the last request carried
-        named = [err.param] if err.param in _PARAM_NAMES else []
+        sent = sorted(self._sent, key=lambda p: _ORDER.index(p) if p in _ORDER else len(_ORDER))  # what the last request carried
+        named = [err.param] if err.param in sent else []
         if not named:
             low = err.message.lower()
-            named = [p for p, aliases in _PARAM_NAMES.items()
-                     if any(re.search(rf"(?<![a-z_]){a}(?![a-z_])", low) for a in aliases)]
-        named = [p for p in named if p in sent]
+            named = [p for p in sent if any(re.search(rf"(?<![a-z_]){a}(?![a-z_])", low) for a in _ALIASES.get(p, (p,)))]
         if not named:
             return None, None
         changes = []
@@ -427,26 +285,24 @@ class RequestShape:
         self.dropped.add(param)
         return f"dropped {param}"
 
-    def learn(self, content: str | None, reasoning: str | None, *, D: int, finish_reason: str | None = None,
-              reasoning_tokens: int | None = None, document: bool = False, latency_s: float | None = None,
-              completion_tokens: int | None = None) -> list[str]:
-        """After a usable answer: room for reasoning once the endpoint is seen to reason;
-        (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under
-        it (a ``document`` continuation is never under a JSON schema, so it does not count); and a
-        longer timeout when ``TIMEOUT_MARGIN`` times the budget at the slowest speed seen so far
-        (``completion_tokens`` in ``latency_s`` seconds, prompt time included; only answers that
-        took ``TIMED_SHARE`` of the timeout or more) is past the current one. Returns the changes
-        made, in words."""
+    def learn(self, req: FormRequest, content: str | None, reasoning: str | None, *, finish_reason: str | None = None,
+              reasoning_tokens: int | None = None, latency_s: float | None = None, completion_tokens: int | None = None) -> list[str]:
+        """After a usable answer to ``req``: room for reasoning once the endpoint is seen to reason;
+        (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under it
+        (only requests that carried the schema count); and a longer timeout when ``TIMEOUT_MARGIN``
+        times the budget at the slowest speed seen so far (``completion_tokens`` in ``latency_s``
+        seconds, prompt time included; only answers that took ``TIMED_SHARE`` of the timeout or
+        more) is past the current one. Returns the changes made, in words."""
         notes = []
         saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
-            before = self.max_tokens(D, document=document)
+            before = self.max_tokens(req)
             self.reasoning_seen = True
-            if self.max_tokens(D, document=document) != before:
-                notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(D, document=document)}: "
-                             "the endpoint returns reasoning")
-        if not document and self.structured == "json_schema" and self.config.structured == "auto" and finish_reason != "length":
-            usable = read_answer(content, reasoning, D, finish_reason=finish_reason).ok
+            if self.max_tokens(req) != before:
+                notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(req)}: the endpoint returns reasoning")
+        if (req.json_schema is not None and self.structured == "json_schema" and self.config.structured == "auto"
+                and finish_reason != "length"):
+            usable = read_answer(content, reasoning, req.D, finish_reason=finish_reason).ok
             self._schema_misses = 0 if usable else self._schema_misses + 1
             if self._schema_misses >= SCHEMA_MISSES:
                 self.structured = "none"
@@ -455,7 +311,7 @@ class RequestShape:
         if completion_tokens and latency_s and latency_s >= TIMED_SHARE * now:
             rate = completion_tokens / latency_s
             self.rate = rate if self.rate is None else min(self.rate, rate)
-            budget = self.max_tokens(D, document=document)
+            budget = self.max_tokens(req)
             if TIMEOUT_MARGIN * budget / self.rate > now:
                 need = self.fitted_timeout_s = _round_up(TIMEOUT_MARGIN * budget / self.rate)
                 notes.append(f"timeout set to {need:g} s (--timeout {self.config.timeout_s:g}): answers came at "
@@ -468,34 +324,55 @@ def _round_up(seconds: float) -> float:
     return float(math.ceil(seconds / TIMEOUT_STEP_S) * TIMEOUT_STEP_S)
 
 
-class ChatClient:
-    """The one recording client: every byte sent to an LLM endpoint goes through ``complete`` or
-    ``complete_document``.
+def read_api_key(llm: LLMConfig) -> str:
+    """The API key from the environment variable ``llm.api_key_env`` ("not-needed" when none is
+    named). Raises ConfigError when the named variable is empty or unset, before anything is sent."""
+    if not llm.api_key_env:
+        return "not-needed"
+    key = os.environ.get(llm.api_key_env, "")
+    if not key:
+        raise ConfigError(f"--api-key-env names {llm.api_key_env}, but that environment variable is empty or unset")
+    return key
 
-    An OpenAI-compatible client (chat completions, and completions for the document form) that
-    adapts to the endpoint (dropped parameters, grammar support, reasoning output), retries
-    transient faults with backoff, and returns each request and answer as an ``Exchange`` for the
-    run's store, so the audit sees all of it. ``shape`` (default: one made from ``model`` and
-    ``grammar_ok``) decides every request field but the messages or the document.
-    ``runner.chat_client(config)`` builds it (and starts the embedded model when asked).
+
+def _ignore(*args: object) -> None:
+    return None
+
+
+class EndpointClient:
+    """The ``LLM`` of an OpenAI-compatible endpoint: every byte sent to it goes through ``send``.
+
+    ``send`` builds the body of a form's request (``shape``: default one for ``model`` and
+    ``grammar_ok``), adapts it to the endpoint (dropped parameters, grammar support, reasoning
+    output), retries transient faults with backoff, and returns each try as an ``Exchange``; the
+    study's recording client stores them all, so the audit sees all of it. Without ``base_url``
+    the configured endpoint is used, and for the embedded model (``config.embedded``) the shipped
+    llama.cpp server is started on the first ``send`` (``on_loading()`` before, ``on_ready(seconds)``
+    after) and stopped by ``close``. ``gate`` (a grid's cap on concurrent requests) is held around
+    every request. The SDK is imported on the first request, not before.
 
     Raises:
-        TypeError: neither ``model`` nor ``shape`` given.
+        ConfigError: a named API-key variable that is empty or unset (at construction, before
+            anything is sent).
     """
 
-    def __init__(self, config: LLMConfig, *, base_url: str, api_key: str, model: str | None = None,
-                 grammar_ok: bool = False, shape: RequestShape | None = None) -> None:
-        from openai import OpenAI
+    endpoints = (ENDPOINT_CHAT, ENDPOINT_COMPLETIONS)
 
+    def __init__(self, config: LLMConfig, *, base_url: str | None = None, api_key: str | None = None, model: str | None = None,
+                 grammar_ok: bool = False, shape: RequestShape | None = None, gate: AbstractContextManager[object] | None = None,
+                 on_loading: Callable[[], None] = _ignore, on_ready: Callable[[float], None] = _ignore) -> None:  # fmt: skip
         if shape is None:
-            if model is None:
-                raise TypeError("ChatClient needs a model or a shape")
-            shape = RequestShape(config, model=model, grammar_ok=grammar_ok)
+            shape = RequestShape(config, model=model, grammar_ok=grammar_ok) if model is not None else RequestShape.for_config(config)
         self.config = config
         self.shape = shape
         self.model = shape.model
-        self.base_url = base_url
-        self._client = OpenAI(base_url=base_url, api_key=api_key, timeout=config.timeout_s, max_retries=0)
+        self.base_url = base_url if base_url is not None else (config.base_url or "")
+        self._key = api_key if api_key is not None else read_api_key(config)
+        self._start_server = base_url is None and config.embedded
+        self._on_loading, self._on_ready = on_loading, on_ready
+        self.gate = gate if gate is not None else nullcontext()
+        self._stack = ExitStack()
+        self._sdk: OpenAI | None = None
         self.sleep: Callable[[float], None] = time.sleep
         self._jitter = random.Random()
         self.adaptations: list[str] = []
@@ -510,48 +387,49 @@ class ChatClient:
         """The URL document continuations go to (the completions endpoint)."""
         return self.base_url.rstrip("/") + "/completions"
 
-    def max_tokens(self, D: int) -> int:
-        """The token budget sent now (``RequestShape.max_tokens``)."""
-        return self.shape.max_tokens(D)
+    def _client(self) -> OpenAI:
+        """The SDK client, made on first use (starting the embedded server first when this client runs it)."""
+        if self._sdk is None:
+            if self._start_server:
+                from .embedded import EmbeddedServer
 
-    def body(self, messages: list[dict[str, str]], *, D: int, seed: int | None) -> dict[str, Any]:
-        """The request body for ``messages`` (a dict in the chat-completions format); what ``complete`` sends."""
-        return self.shape.body(messages, D=D, seed=seed)
+                self._on_loading()
+                t0 = time.monotonic()
+                server = self._stack.enter_context(EmbeddedServer(context_size=self.config.context_size))
+                self._on_ready(time.monotonic() - t0)
+                self.base_url = server.base_url
+            from openai import OpenAI
 
-    def document_body(self, prompt: str, *, D: int, seed: int | None, grammar: str | None,
-                      temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
-        """A completions request body (``RequestShape.document_body``)."""
-        return self.shape.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature, sampling=sampling)
+            self._sdk = OpenAI(base_url=self.base_url, api_key=self._key, timeout=self.config.timeout_s, max_retries=0)
+            self._stack.callback(self._sdk.close)
+        return self._sdk
 
-    def complete(self, messages: list[dict[str, str]], *, D: int, seed: int | None = None) -> Exchange:
-        """One usable answer (``ok``), after adapting the request and retrying transient faults.
+    def body(self, req: FormRequest, *, seed: int | None = None) -> dict[str, Any]:
+        """The request body ``send`` would send now for ``req`` (``RequestShape.body``)."""
+        return self.shape.body(req, seed)
+
+    def send(self, request: FormRequest, *, seed: int | None = None) -> Exchange:
+        """One usable answer (``ok``) to ``request``, after adapting the request and retrying transient faults.
 
         The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
-        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries.
+        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries;
+        ``LLMError`` when the embedded server fails to start.
         """
-        return self._request(lambda: self.body(messages, D=D, seed=seed), D=D)
+        client = self._client()
+        with self.gate:
+            return self._request(request, seed, client)
 
-    def complete_document(self, prompt: str, *, D: int, seed: int | None = None, grammar: str | None = None,
-                          temperature: float | None = None, sampling: Mapping[str, float] | None = None) -> Exchange:
-        """One continuation of ``prompt`` from the completions endpoint (``/completions``), with
-        the same recording, adaptation and retries as ``complete``. The exchange's ``content`` is
-        the continuation text; ``wire.parse.read_continuation`` reads it."""
-        return self._request(lambda: self.document_body(prompt, D=D, seed=seed, grammar=grammar, temperature=temperature,
-                                                        sampling=sampling), D=D)
-
-    def _request(self, build: Callable[[], dict[str, Any]], *, D: int) -> Exchange:
+    def _request(self, req: FormRequest, seed: int | None, client: OpenAI) -> Exchange:
         failures: list[Exchange] = []
         transient = 0
         retry = 0
         stretch = 1.0  # each timed-out try of this request waits twice as long the next time
         while True:
-            body = build()
-            document = "prompt" in body
-            prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
-            wait = stretch * self.shape.timeout(D, prompt_chars=prompt_chars, document=document)
-            ex, retry_after, err = self._attempt(body, D=D, retry=retry, timeout_s=wait)
+            body = self.shape.body(req, seed)
+            wait = stretch * self.shape.timeout(req)
+            ex, retry_after, err = self._attempt(client, req, body, retry=retry, timeout_s=wait)
             if ex.ok:
-                return replace(self._after_answer(ex, D, document=document), failures=tuple(failures))
+                return replace(self._after_answer(req, ex), failures=tuple(failures))
             if ex.error_kind == "timeout":
                 stretch *= 2.0
             if err is not None and ex.error_kind in ADAPTABLE_KINDS:
@@ -567,9 +445,7 @@ class ChatClient:
             if not _retryable(ex.error_kind):
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
             if transient >= self.config.transport_retries:
-                raise LLMUnavailable(
-                    f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures)
-                )
+                raise LLMUnavailable(f"LLM endpoint failed {len(failures)} times in a row (last: {ex.error})", tuple(failures))
             self.sleep(self.backoff(transient, retry_after))
             transient += 1
             retry += 1
@@ -583,29 +459,27 @@ class ChatClient:
         d = min(cfg.retry_max_s, cfg.retry_base_s * (2.0**retry))
         return d / 2 + self._jitter.uniform(0.0, d / 2)
 
-    def _after_answer(self, ex: Exchange, D: int, *, document: bool = False) -> Exchange:
+    def _after_answer(self, req: FormRequest, ex: Exchange) -> Exchange:
         """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
-        notes = self.shape.learn(ex.content, ex.reasoning, D=D, finish_reason=ex.finish_reason,
-                                 reasoning_tokens=ex.reasoning_tokens, document=document, latency_s=ex.latency_s,
-                                 completion_tokens=ex.completion_tokens)
+        notes = self.shape.learn(req, ex.content, ex.reasoning, finish_reason=ex.finish_reason, reasoning_tokens=ex.reasoning_tokens,
+                                 latency_s=ex.latency_s, completion_tokens=ex.completion_tokens)
         if not notes:
             return ex
         self.adaptations += notes
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(self, body: dict[str, Any], *, D: int, retry: int,
-                 timeout_s: float | None = None) -> tuple[Exchange, float | None, ServerError | None]:
-        """One HTTP round trip of a chat (``messages``) or completions (``prompt``) body, waiting at
-        most ``timeout_s`` (default ``--timeout``) for the answer, never raising for endpoint
-        faults: (exchange, Retry-After seconds, what the server said when it refused)."""
-        wait = self.config.timeout_s if timeout_s is None else timeout_s
+    def _attempt(self, client: OpenAI, req: FormRequest, body: dict[str, Any], *, retry: int,
+                 timeout_s: float) -> tuple[Exchange, float | None, ServerError | None]:
+        """One HTTP round trip of ``body`` (a chat or completions body of ``req``), waiting at most
+        ``timeout_s`` for the answer, never raising for endpoint faults: (exchange, Retry-After
+        seconds, what the server said when it refused)."""
         import openai
 
-        document = "prompt" in body
+        document = req.endpoint == ENDPOINT_COMPLETIONS
         url = self.document_url if document else self.url
         request = json.dumps(body)
-        prompt_chars = len(body["prompt"]) if document else sum(len(m["content"]) for m in body["messages"])
+        prompt_chars = req.prompt_chars
         known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
         sdk_args = {k: v for k, v in body.items() if k in known}
         extra = {k: v for k, v in body.items() if k not in known} or None
@@ -624,12 +498,12 @@ class ChatClient:
             return failed(kind, text, response)
 
         try:
-            api = self._client.completions if document else self._client.chat.completions
-            raw = api.with_raw_response.create(**sdk_args, extra_body=extra, timeout=wait)
+            api: Any = client.completions if document else client.chat.completions
+            raw = api.with_raw_response.create(**sdk_args, extra_body=extra, timeout=timeout_s)
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
-            return failed("timeout", f"timeout: no answer within {wait:g} s from {url}"), None, None
+            return failed("timeout", f"timeout: no answer within {timeout_s:g} s from {url}"), None, None
         except openai.APIConnectionError as e:
             kind = "refused" if _is_refused(e) else "dropped"
             return failed(kind, f"{kind}: {_cause(e)} at {url}"), None, None
@@ -663,37 +537,33 @@ class ChatClient:
                                   if isinstance(v := extra_fields.get(k), str) and v.strip()), None)
         except Exception as e:  # a 200 whose body is not a completion (no choices, cut, wrong shape)
             what = "completion" if document else "chat completion"
-            return failed("bad_response", f"bad_response: not a {what} ({e.__class__.__name__}: {_short(e)})",
-                          text), None, None
+            return failed("bad_response", f"bad_response: not a {what} ({e.__class__.__name__}: {_short(e)})", text), None, None
         finish = choice.finish_reason
         if finish == "error":
-            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({url})",
-                          text), None, None
+            return failed("endpoint_error", f"endpoint_error: the answer ended with finish_reason error ({url})", text), None, None
         usage = completion.usage
         details = getattr(usage, "completion_tokens_details", None) if usage else None
         prompt_tokens = usage.prompt_tokens if usage else None
         completion_tokens = usage.completion_tokens if usage else None
         full = finish == "length" and context_full(body.get(self.shape.token_param), prompt_tokens, completion_tokens,
                                                    self.shape.context_size)
-        return Exchange(
-            request=request,
-            response=text,
-            content=content,
-            reasoning=reasoning,
-            prompt_chars=prompt_chars,
-            prompt_tokens=prompt_tokens,
-            completion_tokens=completion_tokens,
-            latency_s=latency,
-            ok=True,
-            retry=retry,
-            finish_reason=finish,
-            reasoning_tokens=getattr(details, "reasoning_tokens", None),
-            context_full=full,
-        ), None, None
+        return Exchange(request=request, response=text, content=content, reasoning=reasoning, prompt_chars=prompt_chars,
+                        prompt_tokens=prompt_tokens, completion_tokens=completion_tokens, latency_s=latency, ok=True, retry=retry,
+                        finish_reason=finish, reasoning_tokens=getattr(details, "reasoning_tokens", None),
+                        context_full=full), None, None
 
     def close(self) -> None:
-        """Close the HTTP connection pool."""
-        self._client.close()
+        """Close the HTTP connection pool, and stop the embedded server if this client started it."""
+        self._stack.close()
+        self._sdk = None
+
+
+def connect(config: LLMConfig, *, gate: AbstractContextManager[object] | None = None, on_loading: Callable[[], None] = _ignore,
+            on_ready: Callable[[float], None] = _ignore) -> EndpointClient:
+    """The ``LLM`` a study talks to when it is given none: the configured endpoint's client, or the
+    embedded model's, started on the first request. Raises ConfigError when the named API-key
+    variable is empty or unset."""
+    return EndpointClient(config, gate=gate, on_loading=on_loading, on_ready=on_ready)
 
 
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.

@@ -1,8 +1,8 @@
 """The one recording client: every try of every request goes to the store as it happens.
 
-``RecordingChat`` wraps whatever answers (the ``ChatClient`` of an endpoint, the embedded
-model's, or a user's own chat object) and is the only way a proposer reaches it: ``send`` takes a
-form's request (``wire.forms.FormRequest``), sends it, and records each HTTP try, failed ones
+``RecordingLLM`` wraps the study's ``LLM`` (an endpoint's client, the embedded model's, or a
+user's own model) and is the only way a proposer reaches it. It is an ``LLM`` itself: ``send``
+takes a form's request (``wire.forms.FormRequest``), sends it, and records each try, failed ones
 included, with the iteration and attempt it belongs to, the form's name and the public decisions
 the form took. A proposer cannot forget to record: it never sees an unrecorded exchange. After
 reading an answer it may add its verdict (``judged``: the parse error, where the answer came
@@ -11,20 +11,22 @@ from), which updates the recorded row.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
-from ..wire.forms import COMPLETIONS, FormRequest
-from .client import Exchange, LLMUnavailable
+from .protocol import LLM, Exchange, LLMUnavailable
+
+if TYPE_CHECKING:
+    from ..wire.forms import FormRequest
 
 
 class CallLog(Protocol):
     """Where calls are recorded (``store.RunStore``)."""
 
-    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str | None = None,
+    def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str,
                      decisions: Mapping[str, Any] | None = None) -> int:
-        """Record one HTTP try; returns its row id."""
+        """Record one try; returns its row id."""
         ...
 
     def annotate_llm_call(self, call_id: int, *, parse_error: str | None, answer_source: str | None) -> None:
@@ -32,54 +34,47 @@ class CallLog(Protocol):
         ...
 
 
-class RecordingChat:
-    """Sends form requests through ``inner`` and records every try in ``log``.
+class RecordingLLM:
+    """An ``LLM`` that sends through ``inner`` and records every try in ``log``.
 
-    ``inner`` has ``complete(messages, *, D, seed)`` (chat completions) and, to serve the
-    completions endpoint, ``complete_document(prompt, *, D, seed, grammar, temperature)``; both
-    return an ``Exchange`` (its failed tries in ``failures``) or raise ``LLMUnavailable`` /
-    ``LLMRejected`` carrying them. ``on_first_use`` runs before the first request (the study marks
-    where a new client session begins, so the audit replays its request shape from there).
+    ``on_first_use`` runs before the first request (the study marks where a new client session
+    begins, so the audit replays its request shape from there).
     """
 
-    def __init__(self, inner: Any, log: CallLog, *, on_first_use: Any = None) -> None:
+    def __init__(self, inner: LLM, log: CallLog, *, on_first_use: Callable[[], None] | None = None) -> None:
         self.inner = inner
         self.log = log
         self._on_first_use = on_first_use
         self._ids: dict[int, int] = {}  # id(exchange) -> recorded row
 
     @property
-    def completes_documents(self) -> bool:
-        """True when the wrapped model can continue documents (the completions endpoint)."""
-        return callable(getattr(self.inner, "complete_document", None))
+    def endpoints(self) -> Collection[str]:
+        """The endpoints the wrapped model serves."""
+        return self.inner.endpoints
 
-    def send(self, req: FormRequest, *, D: int, seed: int | None, iteration: int, attempt: int) -> Exchange:
-        """Send one request for ``D`` numbers and record it (and each failed try before it).
+    def send(self, request: FormRequest, *, seed: int | None = None) -> Exchange:
+        """Send ``request`` and record it (and each failed try before it).
 
-        Returns the exchange as recorded (``ok`` or not: a chat object may return a refused one);
-        raises ``LLMUnavailable``/``LLMRejected`` as the inner client does, after recording the tries.
+        Returns the exchange as recorded (``ok`` or not: a model may return a refused one);
+        raises ``LLMUnavailable``/``LLMRejected`` as the wrapped model does, after recording the tries.
         """
         if self._on_first_use is not None:
             hook, self._on_first_use = self._on_first_use, None
             hook()
         try:
-            if req.endpoint == COMPLETIONS:
-                more = {"sampling": dict(req.sampling)} if req.sampling else {}  # only when the form asks: older chat objects
-                ex = self.inner.complete_document(req.prompt, D=D, seed=seed, grammar=req.grammar, temperature=req.temperature, **more)
-            else:
-                ex = self.inner.complete(req.messages, D=D, seed=seed)
+            ex = self.inner.send(request, seed=seed)
         except LLMUnavailable as e:
             for t in e.failures:
-                self._record(t, req, iteration, attempt)
+                self._record(t, request)
             raise
         for t in ex.failures:
-            self._record(t, req, iteration, attempt)
+            self._record(t, request)
         ex = replace(ex, failures=())  # recorded: the proposer needs the answer, not the tries
-        self._ids[id(ex)] = self._record(ex, req, iteration, attempt)
+        self._ids[id(ex)] = self._record(ex, request)
         return ex
 
-    def _record(self, ex: Exchange, req: FormRequest, iteration: int, attempt: int) -> int:
-        return self.log.add_llm_call(iteration, attempt, ex, None, form=req.form, decisions=dict(req.decisions))
+    def _record(self, ex: Exchange, req: FormRequest) -> int:
+        return self.log.add_llm_call(req.iteration, req.attempt, ex, None, form=req.form, decisions=dict(req.decisions))
 
     def judged(self, ex: Exchange, *, parse_error: str | None, answer_source: str | None) -> None:
         """Record the proposer's verdict on ``ex`` (an exchange ``send`` returned)."""
@@ -87,9 +82,5 @@ class RecordingChat:
         if call_id is not None:
             self.log.annotate_llm_call(call_id, parse_error=parse_error, answer_source=answer_source)
 
-    def count_tokens(self, text: str) -> int:
-        """The wrapped model's token estimate (R2PO's context check); nothing is sent."""
-        return int(self.inner.count_tokens(text))
-
     def close(self) -> None:
-        """Nothing of its own: the study closes the wrapped client."""
+        """Nothing of its own: the study closes the wrapped model."""

@@ -38,12 +38,12 @@ from ..errors import ConfigError
 from ..plugins import load_plugins
 from ..proposers.llm import FALLBACK_SIGMA
 from . import simfit
+from .requests import Request
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
 from .runseed import RANGE_STATED as _RANGE
 from .runseed import find_run_seed, replay_scale
 from .simfit import SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a
 from .tokens import token_value
-from .transcript import Request
 from .view import Estimate, Shown, View, same_marker, view_of
 
 if TYPE_CHECKING:

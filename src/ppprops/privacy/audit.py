@@ -40,7 +40,7 @@ import itertools
 import json
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,25 +54,27 @@ from ..errors import KeyFileError, StoreError
 from ..methods import Mechanisms
 from ..proposers.llm import stall_count
 from ..store import Candidate, open_store
-from ..wire.document import continuation_grammar, document_sampling, document_target, document_temperature
-from ..wire.forms import FORMS
-from ..wire.transcript import ShownEntry, history_entries, number_tokens, open_target, outside_entries
-from ..wire.turns import judge_answer
+from ..wire.encoded import EncodedEntry
+from ..wire.forms import CHAT, CRITIC, ENDPOINT_COMPLETIONS, FORMS, FormRequest, PromptForm
+from ..wire.transcript import ShownEntry, number_tokens, outside_entries
+from ..wire.turns import REPEATS_HISTORY
 from . import reconstruct as rc
 from . import simfit
 from .exposure import Assessment, assess
 from .knowledge import facts_for
+from .requests import Request, message_text, parse_request
 from .runseed import find_run_seed
 from .simfit import SimLimits
 from .simulator import env_is_public
 from .tokens import renders, token_value
-from .transcript import Request, message_text, parse_request
 from .view import Estimate, view_of
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
-# Every top-level field the client may send in some state of its request shape (``RequestShape``).
+# Every top-level field the client may send in some state of its request shape (``RequestShape``),
+# besides the sampling fields the forms choose; and the fields the shape alone decides.
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
                          "response_format", "grammar", "stop", "top_p", "min_p", "top_k"})
+_SHAPE_FIELDS = frozenset({"model", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort"})
 NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
                "token counts, and the provider's own answers")
 
@@ -233,11 +235,11 @@ class _Auditor:
         self.task = config.make_task()
         self.cands = list(candidates)
         self.calls = list(calls)
-        self.requests = [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"))
-                         for c in self.calls]
+        self.requests = [parse_request(int(c["id"]), int(c["iteration"]), int(c["attempt"]), str(c["request"]), c.get("content"),
+                                       c.get("form")) for c in self.calls]
         self.secrets = secrets
         self.codec = rc.client_codec(self.task, config, secrets)
-        self.ctx = rc.context(self.task, config, self.codec)
+        self.ctx = rc.context(self.task, config, self.codec, FORMS[config.form])  # the context of the call being read (``body``)
         self.replay = rc.ClientReplay(config.llm, self.task.D, sessions, endpoint_changes)
         self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # (iteration, attempt) -> its latest usable answer
         self.adaptations = [str(a.get("change")) for a in adaptations]
@@ -368,32 +370,15 @@ class _Auditor:
         return c
 
     # -- prose: everything outside the history entries --------------------------------------------
-    def target(self, req: Request, text: str, shown: list[Candidate | None]) -> int | None:
-        """The document form's open block: its return must be ``wire.document.document_target`` of
-        the shown candidates' encoded returns (a derived encoded value). Returns its offset when
-        it is, so the prose check skips it; otherwise it is unverified and read like any prose."""
-        found = open_target(text)
-        if found is None:
-            self.finding("unverified", "target", "a document prompt that does not end in an open block", req.where)
-            return None
-        at, tok = found
-        parsed = token_value(tok)
-        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
-        if parsed is not None and entries and len(entries) == len(shown) and renders(document_target(entries), *parsed):
-            return at
-        self.finding("unverified", "target", "the open block's return is not the target computed from the shown "
-                     "encoded returns", f"{req.where}, prose at character {at}")
-        return None
-
-    def prose(self, req: Request, text: str, entries: list[ShownEntry], skip: int | None = None) -> None:
+    def prose(self, req: Request, text: str, entries: list[ShownEntry], skips: Sequence[int] = ()) -> None:
         optimum = self.task.optimal_return
         by_design = self.mech.disclose_optimum or self.mech.disclose_reward_structure
         # raw returns and components outside the entries are found by the rebuild (``spans``): text the
         # templates produce is public, and comparing it with raw values would only find coincidences
         for offset, part in outside_entries(text, entries):
             for pos, tok in number_tokens(part):
-                if skip is not None and offset + pos == skip:
-                    continue  # the document's target, checked by ``target``
+                if offset + pos in skips:
+                    continue  # a number the form derives from the shown entries, checked by ``prompt``
                 parsed = token_value(tok)
                 if parsed is None:
                     continue
@@ -463,110 +448,73 @@ class _Auditor:
 
     # -- every byte of a request body -----------------------------------------------------------
     def body(self, row: dict[str, Any], req: Request) -> None:
+        """One recorded call, read as the prompt form it was recorded under (``wire.forms.FORMS``):
+        its payload (the messages or the document) rebuilt and compared (``messages``, ``prompt``),
+        every other field compared with the body the client builds for the request the form makes
+        from public values (``FormRequest``, through the replayed ``RequestShape``), and the
+        decisions recorded with the call checked by the form."""
         where = req.where
-        expected = self.replay.fields()  # what the client's request shape held at this call
-        document = False
+        form = FORMS.get(str(row.get("form")))
+        self.ctx = rc.context(self.task, self.config, self.codec, form or CHAT)
         try:
             doc = json.loads(str(row["request"]))
         except json.JSONDecodeError:
             doc = None
+        if form is None:
+            self.finding("unverified", "request", f"a call recorded under an unknown prompt form {row.get('form')!r}", where)
+            self.free(doc if doc is not None else str(row["request"]), "", where)
+            self.replay.observe(row, self._request(CHAT, req, []))
+            return
         if not isinstance(doc, dict):
             self.free(str(row["request"]), "a request body that is not a JSON object", where)
-        elif "prompt" in doc and "messages" not in doc:
-            self.document_body(doc, req, row.get("decisions"))
-            document = True
-        else:
-            for key, value in doc.items():
-                at = f"{where}, field {key}"
-                if key == "messages":
-                    self.messages(value, req)
-                elif key == "seed" and key in expected:
-                    self.seed(value, req)
-                elif key in expected:
-                    if value != expected[key]:
-                        self.free(value, f"field {key} differs from what the client sends", at)
-                elif key in SENT_FIELDS:
-                    self.free(value, f"field {key}, which the client does not send at this point (its endpoint adaptations)", at)
-                else:
-                    self.free(value, f"field {key}, which the client never sends", at)
-            if "messages" not in doc:
-                self.finding("unverified", "request", "a request without messages", where)
-            missing = [k for k in expected if k not in doc]
-            if missing:
-                self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
-        self.replay.observe(row, document=document)
-        if row.get("ok"):
-            self.answered[(req.iteration, req.attempt)] = row
-
-    def document_body(self, doc: dict[str, Any], req: Request, decisions: dict[str, Any] | None = None) -> None:
-        """A document-form request (the completions endpoint, ``wire.document``): ``prompt`` is the
-        document, rebuilt and compared; ``grammar`` must be the continuation grammar of the history
-        it shows and ``temperature`` the form's for this iteration, attempt and stall count (the
-        audit's own count from the shown returns); the other fields as the client's request shape
-        holds them at this call (``ClientReplay.document_fields``). The decisions recorded with the
-        call (``wire.forms.DocumentForm.check_decisions``) must be the ones the form makes from
-        public values."""
-        where = req.where
-        text = doc["prompt"]
+            self.replay.observe(row, self._request(form, req, []))
+            return
+        key = "prompt" if form.endpoint == ENDPOINT_COMPLETIONS else "messages"
         shown: list[Candidate | None] = []
-        if isinstance(text, str):
-            shown = self.document(text, req)
+        if key not in doc:
+            self.finding("unverified", "request", f"a request without {key}", where)
+        elif key == "messages":
+            shown = self.messages(doc[key], req, form)
+        elif isinstance(doc[key], str):
+            shown = self.prompt(doc[key], req, form)
         else:
-            self.free(text, "a document prompt that is not a string", f"{where}, field prompt")
+            self.free(doc[key], f"a {form.name} prompt that is not a string", f"{where}, field {key}")
         verified = bool(shown) and all(c is not None for c in shown)
-        grammar = continuation_grammar(self.task.D, [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None],
-                                       self.ctx) if verified else None
-        # as the proposer counted it (0 with --explore off)
+        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if verified else []
         stalled = stall_count(self.cands[: self.config.warmup + req.iteration]) if self.config.explore is not False else 0
-        expected = self.replay.document_fields(grammar, document_temperature(req.iteration, req.attempt,
-                                                                             self.config.llm.temperature, stalled),
-                                               document_sampling(stalled, self.config.llm.temperature))
+        want = self._request(form, req, entries, stalled)
+        expected = self.replay.fields(want)  # what the client's request shape sends for it at this call
+        decisions = row.get("decisions")
         if decisions is not None and verified:
-            entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
-            for problem in FORMS["document"].check_decisions(decisions, self.ctx, entries, iteration=req.iteration, attempt=req.attempt,
-                                                             temperature=self.config.llm.temperature, stalled=stalled):
-                self.finding("unverified", "decisions", f"a recorded decision of the document form: {problem}", where)
-        for key, value in doc.items():
-            at = f"{where}, field {key}"
-            if key == "prompt":
+            for problem in form.check_decisions(decisions, self.ctx, entries, iteration=req.iteration, attempt=req.attempt,
+                                                temperature=self.config.llm.temperature, stalled=stalled):
+                self.finding("unverified", "decisions", f"a recorded decision of the {form.name} form: {problem}", where)
+        unrebuilt = "" if verified else " (the history it shows is not verified, so it cannot be rebuilt)"
+        for name, value in doc.items():
+            at = f"{where}, field {name}"
+            if name == key:
                 continue
-            if key == "seed" and key in expected:
+            if name == "seed" and name in expected:
                 self.seed(value, req)
-            elif key in expected:
-                if value != expected[key]:
-                    self.free(value, f"field {key} differs from what the client sends", at)
-            elif key == "grammar" and not verified:
-                self.free(value, "a grammar that cannot be rebuilt (the history it shows is not verified)", at)
-            elif key in SENT_FIELDS:
-                self.free(value, f"field {key}, which the client does not send at this point (its endpoint adaptations)", at)
+            elif name in expected:
+                if value != expected[name]:
+                    self.free(value, f"field {name} differs from what the client sends{'' if name in _SHAPE_FIELDS else unrebuilt}", at)
+            elif name in SENT_FIELDS:
+                self.free(value, f"field {name}, which the client does not send at this point (its endpoint adaptations)", at)
             else:
-                self.free(value, f"field {key}, which the client never sends", at)
+                self.free(value, f"field {name}, which the client never sends", at)
         missing = [k for k in expected if k not in doc]
         if missing:
             self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
+        self.replay.observe(row, want)
+        if row.get("ok"):
+            self.answered[(req.iteration, req.attempt)] = row
 
-    def document(self, text: str, req: Request) -> list[Candidate | None]:
-        """A document-form prompt: its entries matched and checked, its open block's target
-        checked (``target``), the rest read as prose, and the whole rebuilt from the shown
-        candidates (``reconstruct.document_spans``). Returns the candidates shown."""
-        entries = history_entries(text, "document")
-        shown: list[Candidate | None] = []
-        flagged: list[tuple[int, int]] = []
-        for k, e in enumerate(entries):
-            before = sum(f.count for f in self.report.findings if f.severity != "channel")
-            c = self.entry(req, k, e)
-            shown.append(c)
-            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before:
-                flagged.append((e.start, e.end))
-        skip = self.target(req, text, shown)
-        self.prose(req, text, entries, skip)
-        for a, b in rc.document_spans(self.codec, self.ctx, text, entries, shown):
-            if any(s <= a and b <= e for s, e in flagged):
-                continue  # inside an entry already reported
-            if skip is not None and a <= skip < b:
-                continue  # the target, checked by ``target``
-            self.free(text[a:b], f"text the document template does not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
-        return shown
+    def _request(self, form: PromptForm, req: Request, entries: list[EncodedEntry], stalled: int = 0) -> FormRequest:
+        """The request ``form`` makes at this call from public values (its payload is a placeholder:
+        the payload is compared by ``messages`` / ``prompt``)."""
+        return form.request(rc.PROMPT_MARK, ctx=self.ctx, shown=entries, iteration=req.iteration, attempt=req.attempt,
+                            temperature=self.config.llm.temperature, stalled=stalled)
 
     def seed(self, value: object, req: Request) -> None:
         at = f"{req.where}, field seed"
@@ -577,21 +525,22 @@ class _Auditor:
             return
         if value == seeding.llm_seed(self.config.seed, req.iteration, req.attempt):
             self.finding("channel", "run_seed", "the request's sampling seed derives from the run seed (runs made before "
-                         "issue 16): trying run seeds finds it", at)
+                         "sampling seeds were keyed by the secrets): trying run seeds finds it", at)
             return
         if self.secrets is not None and value != self.codec.sampling_seed(self.config.seed, req.iteration, req.attempt):
             self.free(value, "field seed that is not the key-derived sampling seed", at)
         elif self.secrets is None:
             self.free(value, "", at)  # not verifiable without the key file: still read for raw values
 
-    def messages(self, value: object, req: Request) -> None:
-        """The messages the proposer sends (``wire.turns``), rebuilt: the prompt, or after an unusable
-        answer the prompt, that answer's final text and the correction (or prompt and correction in
-        one user turn). Every message is compared with its rebuilt text and what differs is read;
-        messages in any other arrangement are read whole."""
+    def messages(self, value: object, req: Request, form: PromptForm) -> list[Candidate | None]:
+        """The messages of a chat-endpoint form, rebuilt as the form builds them (``form.request``):
+        the prompt, or after an unusable answer the prompt, that answer's final text and the
+        correction (or prompt and correction in one user turn). Every message is compared with its
+        rebuilt text and what differs is read; messages in any other arrangement are read whole.
+        Returns the candidates the prompt shows."""
         if not isinstance(value, list):
             self.free(value, "messages that are not a list", f"{req.where}, messages")
-            return
+            return []
         sent: list[tuple[int, object, str]] = []  # (position, role, text) of every readable message
         for i, m in enumerate(value):
             at = f"{req.where}, message {i + 1}"
@@ -609,53 +558,76 @@ class _Auditor:
                 self.free(content, "message content that is not a string", at)
                 continue
             sent.append((i, role, content))
-        turns = rc.expected_turns(req.attempt, self.answered.get((req.iteration, req.attempt - 1)), self.task.D)
-        if turns is None or len(sent) != len(value) or [r for _, r, _ in sent] != [m["role"] for m in turns.messages]:
-            self._unexpected_turns(sent, req, turns is None)
-            return
+        want, repeated = self._turns(form, req)
+        if want is None or len(sent) != len(value) or [r for _, r, _ in sent] != [m["role"] for m in want]:
+            return self._unexpected_turns(sent, req, form, want is None)
         shown: list[Candidate | None] = []
-        for (i, _, text), want in zip(sent, turns.messages, strict=True):
+        for (i, _, text), message in zip(sent, want, strict=True):
             at = f"{req.where}, message {i + 1}"
-            if rc.PROMPT_MARK in want["content"]:
-                before, after = want["content"].split(rc.PROMPT_MARK)
-                shown = self.prompt(text, req, before, after)
-            elif want["role"] == "assistant":
-                self.spans(want["content"], text, [], at, "an assistant turn that is not the provider's own final text")
+            if rc.PROMPT_MARK in message["content"]:
+                before, after = message["content"].split(rc.PROMPT_MARK)
+                shown = self.prompt(text, req, form, before, after)
+            elif message["role"] == "assistant":
+                self.spans(message["content"], text, [], at, "an assistant turn that is not the provider's own final text")
             else:
-                self.spans(want["content"], text, [], at, "text the correction template does not produce")
-        if turns.repeated is not None:
-            prev = turns.repeated
-            finish, _ = rc.response_facts(prev.get("response"))
+                self.spans(message["content"], text, [], at, "text the correction template does not produce")
+        if repeated is not None:
+            finish, _ = rc.response_facts(repeated.get("response"))
             entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
-            verdict = judge_answer(prev.get("content"), prev.get("reasoning"), self.ctx, entries, finish_reason=finish)
+            verdict = form.judge(repeated.get("content"), repeated.get("reasoning"), self.ctx, entries, finish_reason=finish)
             if verdict.error != "repeats_history":
                 self.finding("unverified", "request", "a correction after an answer the client takes (it repeats no policy "
                              "of the history shown)", req.where)
+        return shown
 
-    def _unexpected_turns(self, sent: list[tuple[int, object, str]], req: Request, unknown: bool) -> None:
-        """Messages not in the client's arrangement: the first user message is read as the prompt,
+    def _turns(self, form: PromptForm, req: Request) -> tuple[list[Mapping[str, str]] | None, dict[str, Any] | None]:
+        """The messages ``form`` sends at this call, with ``rc.PROMPT_MARK`` where the prompt goes:
+        the prompt, or after the recorded answer of the previous attempt the correction with the fault
+        ``form.read`` finds in it, or ``REPEATS_HISTORY`` when it holds a proposal (then that answer
+        is returned too: the correction is the client's only if it repeats the history shown, which
+        the caller checks once it knows the history). None when that answer is not recorded."""
+        previous = self.answered.get((req.iteration, req.attempt - 1)) if req.attempt > 0 else None
+        if req.attempt > 0 and previous is None:
+            return None, None
+        detail, repeated = "", None
+        if previous is not None:
+            finish, _ = rc.response_facts(previous.get("response"))
+            result = form.read(previous.get("content"), self.task.D, reasoning=previous.get("reasoning"), finish_reason=finish)
+            detail, repeated = (REPEATS_HISTORY, previous) if result.ok else (result.detail, None)
+        req_form = form.request(rc.PROMPT_MARK, ctx=self.ctx, shown=[], iteration=req.iteration, attempt=req.attempt,
+                                previous=None if previous is None else previous.get("content"), detail=detail)
+        return list(req_form.messages or ()), repeated
+
+    def _unexpected_turns(self, sent: list[tuple[int, object, str]], req: Request, form: PromptForm,
+                          unknown: bool) -> list[Candidate | None]:
+        """Messages not in the form's arrangement: the first user message is read as the prompt,
         every other message whole, numbers and all."""
         if unknown:
             self.finding("unverified", "request", "a correction after an answer that is not recorded", req.where)
         prompt_seen = False
+        shown: list[Candidate | None] = []
         for i, role, text in sent:
             if role == "user" and not prompt_seen:
                 prompt_seen = True
-                self.prompt(text, req)
+                shown = self.prompt(text, req, form)
             else:
                 self.free(text, f"a {role} message at position {i + 1}, which the client does not send there",
                           f"{req.where}, message {i + 1}")
+        return shown
 
-    def prompt(self, text: str, req: Request, before: str = "", after: str = "") -> list[Candidate | None]:
-        """A message holding the ProPS prompt (or R2PO's critic prompt), with ``before``/``after``
-        what the client puts around it in the same message, rebuilt and compared. Returns the
-        candidates its history entries show (None for an entry that matches none)."""
-        inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
-            and len(text) >= len(before) + len(after) else text
-        if inner.startswith(rc.CRITIC_HEAD):
+    def prompt(self, text: str, req: Request, form: PromptForm, before: str = "", after: str = "") -> list[Candidate | None]:
+        """A prompt of ``form`` (the chat prompt in a message, or a document), with ``before``/``after``
+        what the client puts around it in the same message: each history entry the form prints
+        matched and checked (``entry``), each number the form derives from them checked
+        (``form.derived``), the rest read as prose, and the whole rebuilt from the shown candidates
+        (``reconstruct.prompt_spans``). R2PO's critic prompt is checked by ``critic``. Returns the
+        candidates shown (None for an entry that matches none)."""
+        if form is CRITIC:
             self.critic(text, req, before, after)
             return []
-        entries = history_entries(text, "chat")
+        inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
+            and len(text) >= len(before) + len(after) else text
+        entries = form.entries(text)
         shown: list[Candidate | None] = []
         flagged: list[tuple[int, int]] = []
         for k, e in enumerate(entries):
@@ -664,11 +636,19 @@ class _Auditor:
             shown.append(c)
             if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before_count:
                 flagged.append((e.start, e.end))
-        self.prose(req, inner, entries if inner == text else history_entries(inner, "chat"))
-        for a, b in rc.prompt_spans(self.codec, self.ctx, text, entries, shown, before, after):
-            if any(s <= a and b <= e for s, e in flagged):
-                continue  # inside an entry already reported
-            self.free(text[a:b], f"text the prompt templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
+        verified = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if all(c is not None for c in shown) else []
+        skips = []
+        for d in form.derived(text, verified):
+            parsed = token_value(d.token) if d.token else None
+            if d.value is not None and parsed is not None and renders(d.value, *parsed):
+                skips.append(d.offset)  # derived from the shown encoded values, as the form computes it
+            else:
+                self.finding("unverified", d.kind, d.detail, f"{req.where}, prose at character {d.offset}" if d.token else req.where)
+        self.prose(req, inner, entries if inner == text else form.entries(inner), skips)
+        for a, b in rc.prompt_spans(form, self.codec, self.ctx, text, entries, shown, before, after):
+            if any(s <= a and b <= e for s, e in flagged) or any(a <= at < b for at in skips):
+                continue  # inside an entry already reported, or a derived number checked above
+            self.free(text[a:b], f"text the {form.name} form's templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
         return shown
 
     def critic(self, text: str, req: Request, before: str = "", after: str = "") -> None:

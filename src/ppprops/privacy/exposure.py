@@ -21,9 +21,9 @@ from ..client.secrets import Secrets
 from ..methods import Mechanisms
 from ..values import Candidate
 from .attacks import SIMULATOR_ATTACKS, TARGET, run_attacks
+from .requests import Request
 from .simfit import SimLimits
 from .tokens import renders
-from .transcript import Request
 from .view import Estimate, RawGuess
 
 if TYPE_CHECKING:

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from .requests import load_requests
 from .simfit import DEFAULT_LIMITS, SimLimits, fit_view
-from .transcript import load_requests
 from .view import view_of
 
 PINNED = 0.01

@@ -16,7 +16,7 @@ import json
 import math
 import re
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -29,15 +29,11 @@ from ..config import LLMConfig, RunConfig
 from ..llm.client import ADAPTABLE_KINDS, RequestShape, server_error
 from ..tasks.base import Task
 from ..values import Candidate
-from ..wire import EncodedEntry, PromptContext, build_prompt
-from ..wire.document import build_document, document_entry
-from ..wire.parse import read_answer
-from ..wire.prompt import history_entry, template
+from ..wire import EncodedEntry, PromptContext
+from ..wire.forms import FormRequest, PromptForm
 from ..wire.r2po import Evidence, build_critic_prompt
-from ..wire.transcript import ShownEntry, history_entries
-from ..wire.turns import REPEATS_HISTORY, correction_messages, prompt_messages
+from ..wire.transcript import ShownEntry
 
-CRITIC_HEAD = template("r2po_critic").template.split("$", 1)[0]
 _ROLLOUT_LINE = re.compile(r"(\d+): \[([^\]]*)\] -> (.*)")
 
 
@@ -49,9 +45,9 @@ def client_codec(task: Task, config: RunConfig, secrets: Secrets | None) -> Code
     return codec_for(secrets, task, config.encoding)
 
 
-def context(task: Task, config: RunConfig, codec: Codec) -> PromptContext:
-    """The public prompt context of the run (``client.context.prompt_context``), as the proposer built it."""
-    return prompt_context(task, config.prompt, codec)
+def context(task: Task, config: RunConfig, codec: Codec, form: PromptForm) -> PromptContext:
+    """The public prompt context of the run's prompts in ``form`` (``client.context.prompt_context``), as the proposer built it."""
+    return prompt_context(task, config.prompt_settings(form.name), codec)
 
 
 def _finite_components(components: Mapping[str, float]) -> dict[str, float]:
@@ -70,32 +66,23 @@ def entry_for(codec: Codec, ctx: PromptContext, c: Candidate) -> EncodedEntry:
                        _finite_diagnostics(fb.diagnostics) if detailed else {})
 
 
-def prompt_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
+def prompt_spans(form: PromptForm, codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
                  shown: list[Candidate | None], before: str = "", after: str = "") -> list[tuple[int, int]]:
-    """Spans of a recorded ProPS prompt that the templates do not produce from the shown candidates.
+    """Spans of a recorded prompt of ``form`` that its templates do not produce from the shown candidates.
 
     The prose around the entries is compared as a skeleton (each entry one placeholder, so a
     missing or extra entry cannot shift the comparison); each matched entry is compared with the
-    entry the proposer builds for its candidate. Unmatched entries are the caller's to report.
+    entry the form prints for its candidate. Unmatched entries are the caller's to report.
     ``before`` and ``after`` are text the client puts around the prompt in the same message (a
     correction after it, ``wire.turns``).
     """
     built = [entry_for(codec, ctx, c) if c is not None else _dummy(ctx) for c in shown]
-    expected = before + build_prompt(ctx, built) + after
-    return _spans(text, entries, shown, built, expected, history_entries(expected, "chat"),
-                  lambda e: history_entry(ctx, e))
-
-
-def document_spans(codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
-                   shown: list[Candidate | None]) -> list[tuple[int, int]]:
-    """Spans of a recorded document-form prompt (``wire.document.build_document``) that the
-    document templates do not produce from the shown candidates: the header and the open block
-    as a skeleton (each entry one placeholder), each matched entry against the entry built for its
-    candidate. With an unmatched entry the target cannot be rebuilt; it is the caller's to report."""
-    built = [entry_for(codec, ctx, c) if c is not None else _dummy(ctx) for c in shown]
-    expected = build_document(ctx, built or [_dummy(ctx)])
-    return _spans(text, entries, shown, built, expected, history_entries(expected, "document") if shown else [],
-                  lambda e: document_entry(ctx, e))
+    try:
+        expected = before + form.prompt(ctx, built) + after
+        expected_entries = form.entries(expected)
+    except ValueError:  # a form that cannot write a prompt without an entry (the document form's target)
+        expected, expected_entries = before + form.prompt(ctx, [_dummy(ctx)]) + after, []
+    return _spans(text, entries, shown, built, expected, expected_entries, lambda e: form.render_entry(ctx, e))
 
 
 def _dummy(ctx: PromptContext) -> EncodedEntry:
@@ -173,7 +160,7 @@ def critic_params(text: str) -> str | None:
     return m.group(1) if m else None
 
 
-# Where the prompt goes in the messages ``wire.turns`` builds; the audit rebuilds the prompt itself.
+# Where the prompt goes in the messages a form builds; the audit rebuilds the prompt itself.
 PROMPT_MARK = "\x00prompt\x00"
 
 
@@ -196,34 +183,7 @@ def response_facts(response: str | None) -> tuple[str | None, int | None]:
     return finish, tokens if isinstance(tokens, int) and not isinstance(tokens, bool) else None
 
 
-@dataclass(frozen=True)
-class Turns:
-    """The messages the client sends for one request, with ``PROMPT_MARK`` where the prompt goes.
-
-    ``repeated`` is the previous answer when the correction says it repeated a policy of the
-    history: true only if it does, which the caller checks once it knows the history shown.
-    """
-
-    messages: list[dict[str, str]]
-    repeated: dict[str, Any] | None = None
-
-
-def expected_turns(attempt: int, previous: dict[str, Any] | None, D: int) -> Turns | None:
-    """What the proposer sends at ``attempt`` of an iteration (``wire.turns``): the prompt, or after
-    the recorded answer ``previous`` (a store row) the correction turns with the fault
-    ``read_answer`` finds in it, or ``REPEATS_HISTORY`` when it holds a proposal. None when a
-    correction's answer is not recorded."""
-    if attempt == 0:
-        return Turns(prompt_messages(PROMPT_MARK))
-    if previous is None:
-        return None
-    finish, _ = response_facts(previous.get("response"))
-    result = read_answer(previous.get("content"), previous.get("reasoning"), D, finish_reason=finish)
-    detail = REPEATS_HISTORY if result.ok else result.detail
-    return Turns(correction_messages(PROMPT_MARK, previous.get("content"), detail, D), previous if result.ok else None)
-
-
-# Status each adaptable error kind came with (``ChatClient._attempt``; a 200 with an error body
+# Status each adaptable error kind came with (``EndpointClient._attempt``; a 200 with an error body
 # carries its code as the status, so the same).
 _STATUS = {"bad_request": 400, "http_422": 422}
 assert set(_STATUS) == set(ADAPTABLE_KINDS)
@@ -247,6 +207,8 @@ class ClientReplay:
         self.n = 0
         self.shape: RequestShape | None = None
         self.changes: list[str] = []
+        self._built = -1  # the call whose body ``fields`` built last
+        self._fresh_at = -1  # the call the current shape was made fresh for
 
     def config_at(self, n: int) -> LLMConfig:
         """The LLM settings in force for call ``n`` (0-based): the run's, or before a later
@@ -259,35 +221,33 @@ class ClientReplay:
         return llm
 
     def _shape(self) -> RequestShape:
-        if self.shape is None or self.n in self.starts:
+        """The shape of call ``n``: a fresh one where a client session began there, else the one so far."""
+        if self.shape is None or (self.n in self.starts and self._fresh_at != self.n):
             self.shape = RequestShape.for_config(self.config_at(self.n))
+            self._fresh_at = self.n
         return self.shape
 
-    def fields(self) -> dict[str, Any]:
-        """The fields (all but ``messages``) the client sends at the next recorded call; ``seed``
-        is present when it is sent, with a placeholder value (the audit checks the value itself)."""
-        return self._shape().fields(self.D, seed=0)
+    def fields(self, req: FormRequest) -> dict[str, Any]:
+        """The fields (all but the payload) the client sends for ``req`` at the next recorded call;
+        ``seed`` is present when it is sent, with a placeholder value (the audit checks the value itself)."""
+        body = self._shape().body(req, seed=0)
+        self._built = self.n
+        return {k: v for k, v in body.items() if k not in req.payload}
 
-    def document_fields(self, grammar: str | None, temperature: float, sampling: Mapping[str, float] | None = None) -> dict[str, Any]:
-        """The fields (all but ``prompt``) of the next recorded call when it is a document-form
-        request (``RequestShape.document_fields``), for the continuation ``grammar``, the
-        ``temperature`` and the exploratory ``sampling`` the proposer asked for; ``seed`` as in ``fields``."""
-        return self._shape().document_fields(self.D, seed=0, grammar=grammar, temperature=temperature, sampling=sampling)
-
-    def observe(self, row: dict[str, Any], *, document: bool = False) -> None:
-        """Feed the recorded outcome of that call to the shape, as ``ChatClient.complete`` (or
-        ``complete_document``, for a ``document`` request) did."""
-        assert self.shape is not None, "fields() first"
+    def observe(self, row: dict[str, Any], req: FormRequest) -> None:
+        """Feed the recorded outcome of that call (made for ``req``) to the shape, as ``EndpointClient.send`` did."""
+        if self._built != self.n:  # the call's body was not built (an unreadable request): build it, as the client did
+            self.fields(req)
+        shape = self._shape()
         self.n += 1
         if row.get("ok"):
             finish, tokens = response_facts(row.get("response"))
-            notes = self.shape.learn(row.get("content"), row.get("reasoning"), D=self.D, finish_reason=finish,
-                                     reasoning_tokens=tokens, document=document, latency_s=row.get("latency_s"),
-                                     completion_tokens=row.get("completion_tokens"))
+            notes = shape.learn(req, row.get("content"), row.get("reasoning"), finish_reason=finish, reasoning_tokens=tokens,
+                                latency_s=row.get("latency_s"), completion_tokens=row.get("completion_tokens"))
             if notes:
                 self.changes.append("; ".join(notes))
         elif row.get("error_kind") in _STATUS:
-            change, _ = self.shape.adapt(server_error(_STATUS[row["error_kind"]], row.get("response")))
+            change, _ = shape.adapt(server_error(_STATUS[row["error_kind"]], row.get("response")))
             if change is not None:
                 self.changes.append(change)
 

@@ -26,8 +26,8 @@ from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
 from .audit import audit_run, search_config
 from .exposure import EXPOSED_WITHIN, shown_candidate
+from .requests import load_requests
 from .simfit import SimLimits
-from .transcript import load_requests
 
 SCHEMES = ("pp", "pp-hardened")
 PRIOR = 1.0  # geometric mean of the priors of c and a_j, in both schemes
@@ -156,12 +156,10 @@ def run_matrix(
     directories. Raises ConfigError for an unfinished run in the way, UnknownTaskError for a name
     that names no task.
     """
-    from contextlib import nullcontext
-
     from ..runner import start
     from ..settings import build_config
     from ..tasks import get_task
-    from .simulate import offline_llm
+    from .simulate import EchoOptimizer
 
     tasks = [env if isinstance(env, Task) else get_task(env) for env in envs]
     dirs = []
@@ -177,8 +175,7 @@ def run_matrix(
                 t0 = time.time()
                 cfg = build_config({"method": scheme, "warmup": warmup, "iterations": iterations,
                                     "final_episodes": final_episodes, "seed": seed}, task=task)  # fmt: skip
-                with offline_llm() if offline else nullcontext():
-                    start(cfg, d)
+                start(cfg, d, llm=EchoOptimizer(cfg.llm) if offline else None)
                 log(f"{d}: done in {time.time() - t0:.0f} s")
     return dirs
 

@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from .. import seeding
 from ..client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW
+from ..wire.forms import CHAT, FORMS
 from .simulator import Budget, OverBudget, Simulator, simulator_for
 from .tokens import token_value
 from .view import Estimate, RawGuess, View
@@ -114,7 +115,8 @@ def schemes_of(v: View) -> list[Scheme]:
     rewards = next((k for k, w in _REWARD_WORDS if w in text), None)
     if params and rewards:
         return [Scheme(params, rewards, step if rewards == "warp" else 0.0)]
-    if "params: [" in text and "return:" in text and "encoded" not in text and v.requests[0].form == "document":
+    form = FORMS.get(v.requests[0].form) if v.requests else None
+    if form is not None and not form.describes_encoding and form.entries(text) and "encoded" not in text:
         return [Scheme("scale", "scale"), Scheme("warp", "warp", step)]
     return []
 
@@ -140,12 +142,9 @@ class Data:
 
 def _answers(v: View) -> dict[int, NDArray[np.float64]]:
     """iteration -> the vector of the provider's last usable answer in that iteration."""
-    from ..wire import parse_answer
-    from ..wire.parse import read_continuation
-
     out: dict[int, NDArray[np.float64]] = {}
     for r in v.requests:
-        res = read_continuation(r.answer, v.D) if r.form == "document" else parse_answer(r.answer or "", v.D)
+        res = FORMS.get(r.form, CHAT).read(r.answer, v.D)
         if res.values is not None:
             out[r.iteration] = np.array(res.values, dtype=np.float64)
     return out

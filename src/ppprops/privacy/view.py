@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .knowledge import PublicFacts, facts_for
+from .requests import Request
 from .tokens import token_value
-from .transcript import Request
 
 if TYPE_CHECKING:
     from ..tasks.base import Task

@@ -1,4 +1,4 @@
-"""Proposers speak ask/tell; ``ppprops.loop`` evaluates, records and reports for all of them."""
+"""Proposers speak ask/tell; the study (``ppprops.study``) evaluates, records and reports for all of them."""
 
 from .base import Proposal, Proposer
 from .llm import LLMProposer

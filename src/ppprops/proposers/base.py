@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     from ..client.codec import Codec
     from ..client.context import PromptSettings
     from ..evaluation import Evaluator
+    from ..llm.recording import RecordingLLM
     from ..llm.settings import LLMConfig
     from ..seeding import Streams
     from ..tasks.base import Task
@@ -44,7 +45,7 @@ class Proposal:
 class Proposer(Protocol):
     """The ask/tell interface of every search (warm-up sampler, LLM, R2PO, random, CMA-ES).
 
-    ``ask`` may raise StopSearch to end the run on purpose; the loop (``ppprops.loop.run_loop``)
+    ``ask`` may raise StopSearch to end the run on purpose; the study (``ppprops.study.Study``)
     evaluates and records each proposal and tells every proposer every candidate.
     """
 
@@ -88,8 +89,9 @@ class SearchSetup:
     ``prompt`` (how prompts are written, the resolved form included), ``llm`` (the endpoint's
     settings: context window, token budget, temperature), ``options`` (the method's own options,
     ``Method.parse_options``: a pydantic model or None), ``on_llm_failure`` and
-    ``parse_retries``. ``chat()`` returns the run's recording LLM client (started on first use,
-    closed by the study; None for methods that send no prompt); ``evaluator`` runs episodes of the
+    ``parse_retries``. ``llm_client()`` returns the run's recording LLM client
+    (``llm.recording.RecordingLLM``; its model is started on the first request and closed by the
+    study; None for methods that send no prompt); ``evaluator`` runs episodes of the
     task's env (R2PO's rollouts; None for a task without an env).
     """
 
@@ -104,6 +106,6 @@ class SearchSetup:
     options: Any = None
     on_llm_failure: str = "stop"
     parse_retries: int = 2
-    chat: Callable[[], Any] | None = None
+    llm_client: Callable[[], RecordingLLM] | None = None
     evaluator: Evaluator | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)

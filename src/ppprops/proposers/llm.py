@@ -22,7 +22,7 @@ wrong (``wire.turns.correction_messages``, which the audit rebuilds too); an HTT
 endpoint that stays down past the client's retry bound either stops the run (``stop``,
 resumable) or, with ``skip``, yields a fallback candidate noted ``llm_unavailable``; a request
 the endpoint rejects for good always stops the run. Every HTTP try, failed ones included, is
-recorded by the recording client it goes through (``llm.recording.RecordingChat``).
+recorded by the recording client it goes through (``llm.recording.RecordingLLM``).
 
 Numerical faults never reach the prompt: a candidate with a non-finite return is left out of
 the history (and never becomes the best), non-finite components are dropped and non-finite
@@ -35,18 +35,21 @@ import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .. import seeding
 from ..client.codec import Codec
-from ..llm.client import Exchange, LLMRejected, LLMUnavailable
+from ..llm.protocol import Exchange, LLMRejected, LLMUnavailable
 from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, top_k
 from ..wire.forms import FORMS, PromptForm
 from ..wire.turns import repeats_history
 from .base import Proposal, clip_to_box
+
+if TYPE_CHECKING:
+    from ..llm.recording import RecordingLLM
 
 FALLBACK_SIGMA = 0.05  # of the box width
 # What the user can do about an answer failure, in the fallback note ("after KIND (HINT)").
@@ -60,13 +63,45 @@ HINTS = {
 }
 
 
+class StallCounter:
+    """LLM-phase candidates in a row that did not raise the best finite encoded return told so far.
+
+    Told every candidate of a run in order (``tell``): a search candidate (source ``llm`` or
+    ``fallback``) that raised the best resets ``count`` to 0, one that did not adds 1; every finite
+    candidate (warm-up ones too) moves the best. The proposer counts with one, and the audit counts
+    the same way from the stored candidates (``stall_count``) to check a document request's
+    temperature, so the count is a public function of the shown returns.
+    """
+
+    def __init__(self) -> None:
+        self.best = -math.inf
+        self.count = 0
+
+    def tell(self, candidate: Candidate) -> None:
+        """Count ``candidate`` (the next candidate of the run)."""
+        fb = candidate.feedback_enc
+        finite = math.isfinite(fb.ret) and math.isfinite(candidate.ret)
+        if candidate.source in ("llm", "fallback"):
+            self.count = 0 if finite and fb.ret > self.best else self.count + 1
+        if finite:
+            self.best = max(self.best, fb.ret)
+
+
+def stall_count(candidates: Sequence[Candidate]) -> int:
+    """``StallCounter.count`` after telling it ``candidates`` in order."""
+    counter = StallCounter()
+    for c in candidates:
+        counter.tell(c)
+    return counter.count
+
+
 class LLMProposer:
     """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
 
     The prompt is built on the wire side by the run's prompt ``form`` (``wire.forms``) from
     ``context`` and the encoded entries only; an answer is read by the same form into D encoded
-    numbers and decoded (theta = A^-1 theta~) into the box. Every request goes through ``chat``,
-    the run's recording client (``llm.recording.RecordingChat``), which records each try as it is
+    numbers and decoded (theta = A^-1 theta~) into the box. Every request goes through ``llm``,
+    the run's recording client (``llm.recording.RecordingLLM``), which records each try as it is
     sent. An unusable answer is corrected (chat form; the document form asks the same document
     again) up to ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian
     noise of ``FALLBACK_SIGMA`` x box width in the encoded space (source ``fallback``, with the
@@ -76,7 +111,7 @@ class LLMProposer:
     def __init__(
         self,
         *,
-        chat: Any,
+        llm: RecordingLLM,
         codec: Codec,
         context: PromptContext,
         top_k: int,
@@ -89,8 +124,8 @@ class LLMProposer:
         on_answer: Callable[[Exchange], None] | None = None,
         explore: bool = True,
     ) -> None:
-        """``chat``: a ``RecordingChat`` (``send(request, D, seed, iteration, attempt)``, ``judged``).
-        ``form``: a ``wire.forms`` form or its name (``chat``, ``document``). ``temperature`` is
+        """``llm``: the run's ``RecordingLLM`` (``send``, ``judged``). ``form``: a ``wire.forms`` form or
+        its name. ``temperature`` is
         ``--temperature`` (None: the form's own schedule). ``on_answer`` sees every answer
         received (R2PO measures its prompts' tokens per character from them). ``explore``: pass the
         stall count to the form (the document form then samples hotter when stuck), else 0."""
@@ -102,7 +137,7 @@ class LLMProposer:
                 raise ValueError(f"unknown prompt form {form!r} (known: {', '.join(FORMS)})")
             form = FORMS[form]
         self.form: PromptForm = form
-        self.chat = chat
+        self.llm = llm
         self.codec = codec
         self.ctx = context
         self.k = top_k
@@ -116,8 +151,7 @@ class LLMProposer:
         self.failures: Counter[str] = Counter()
         self.last_latency: float | None = None
         self.last_exchange: Exchange | None = None
-        self._best_enc = -math.inf  # the best encoded return told so far (the last entry the prompt shows)
-        self.stalled = 0  # LLM-phase candidates in a row that did not raise it (``wire.document.STALL_AFTER``)
+        self.stall = StallCounter()  # LLM-phase candidates in a row that did not raise the best shown return
 
     @property
     def D(self) -> int:
@@ -127,13 +161,10 @@ class LLMProposer:
     def tell(self, candidate: Candidate) -> None:
         """Add the candidate's encoded entry to the history (a non-finite return is never shown) and track the best."""
         fb = candidate.feedback_enc
-        if candidate.source in ("llm", "fallback"):  # the search's own candidates: did this one raise the best shown?
-            raised = math.isfinite(fb.ret) and math.isfinite(candidate.ret) and fb.ret > self._best_enc
-            self.stalled = 0 if raised else self.stalled + 1
+        self.stall.tell(candidate)
         if not (math.isfinite(fb.ret) and math.isfinite(candidate.ret)):
             self.nonfinite_skipped += 1  # a numerical fault: never shown, never the best
             return
-        self._best_enc = max(self._best_enc, fb.ret)
         detailed = self.ctx.detailed_feedback
         self.entries.append(
             self.codec.entry(
@@ -172,16 +203,16 @@ class LLMProposer:
         detail = ""
         for attempt in range(1 + self.parse_retries):
             req = self.form.request(prompt, ctx=self.ctx, shown=shown, iteration=iteration, attempt=attempt, previous=previous,
-                                    detail=detail, temperature=self.temperature, stalled=self.stalled if self.explore else 0)
+                                    detail=detail, temperature=self.temperature, stalled=self.stall.count if self.explore else 0)
             seed = self.codec.sampling_seed(self.streams.seed, iteration, attempt)  # keyed: not derivable from the run seed
             try:
-                ex = self.chat.send(req, D=self.D, seed=seed, iteration=iteration, attempt=attempt)
+                ex = self.llm.send(req, seed=seed)
             except LLMUnavailable as e:
                 if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
                     raise
                 self.failures["llm_unavailable"] += 1
                 return self._fallback(iteration, f"llm_unavailable ({e.kind})")
-            if not ex.ok:  # a Chat must raise instead; an HTTP error is never an answer to correct
+            if not ex.ok:  # an LLM must raise instead; an HTTP error is never an answer to correct
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", (ex,))
             self.last_latency = ex.latency_s
             self.last_exchange = ex
@@ -190,7 +221,7 @@ class LLMProposer:
             result = self.form.judge(ex.content, ex.reasoning, self.ctx, shown, finish_reason=ex.finish_reason)
             if result.error == "length" and ex.context_full:  # the server's context filled up, not the answer budget
                 result = replace(result, error="context_full")
-            self.chat.judged(ex, parse_error=result.error, answer_source=result.source if result.ok else "content")
+            self.llm.judged(ex, parse_error=result.error, answer_source=result.source if result.ok else "content")
             if result.values is not None:
                 with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box
                     theta = self.codec.decode(np.asarray(result.values))
@@ -223,21 +254,6 @@ class LLMProposer:
             theta = self.codec.decode(self.best.params_enc + noise)
         theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
-
-
-def stall_count(candidates: Sequence[Candidate]) -> int:
-    """The search's candidates (source ``llm`` or ``fallback``) in a row at the end of ``candidates``
-    that did not raise the best finite encoded return before them: ``LLMProposer.stalled`` once it
-    was told ``candidates`` (the audit recomputes a document request's temperature with it)."""
-    best, stalled = -math.inf, 0
-    for c in candidates:
-        fb = c.feedback_enc
-        finite = math.isfinite(fb.ret) and math.isfinite(c.ret)
-        if c.source in ("llm", "fallback"):
-            stalled = 0 if finite and fb.ret > best else stalled + 1
-        if finite:
-            best = max(best, fb.ret)
-    return stalled
 
 
 def _finite_components(components: Mapping[str, float]) -> dict[str, float]:

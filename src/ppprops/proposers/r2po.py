@@ -11,7 +11,7 @@ Before each call the prompt's size is checked against the model's context window
 that would not fit stops the run (``StopSearch``), which then reports the best policy found.
 The size is estimated locally, never by sending the prompt anywhere: from the tokens-per-character
 ratio of the server's own usage counts of earlier answers (with a 5% margin), and before the first
-answer by ``count_tokens`` (the runner's conservative estimate).
+answer by ``estimate_tokens`` (a conservative estimate: one token per two characters).
 
 Privacy: the critic is shown raw states and actions, so R2PO runs without any privacy mechanism
 (``methods.check_method`` refuses them; docs/threat-model.md says why encoding them would not hold).
@@ -21,25 +21,33 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .. import seeding
 from ..client.codec import Codec
-from ..llm.client import Exchange
+from ..llm.protocol import Exchange
 from ..values import Candidate
 from ..wire import PromptContext
-from ..wire.forms import FORMS
+from ..wire.forms import CHAT, CRITIC
 from ..wire.r2po import Evidence, build_critic_prompt
 from .base import Proposal, StopSearch
 from .llm import LLMProposer
 
-Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
-CountTokens = Callable[[str], int]
+if TYPE_CHECKING:
+    from ..llm.recording import RecordingLLM
 
-SEARCH, CRITIC = "r2po-search", "r2po-critic"
+Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
+
+SEARCH, CRITIC_SOURCE = "r2po-search", "r2po-critic"
 TEMPLATE_MARGIN = 32  # tokens a chat template adds around the messages
+
+
+def estimate_tokens(text: str) -> int:
+    """A prompt's tokens before any answer says better: one per two characters (digit-heavy prompts
+    tokenize densely; no tokenizer of the endpoint's model is known here), plus the chat template's."""
+    return len(text) // 2 + TEMPLATE_MARGIN
 
 
 class _Critic(LLMProposer):
@@ -61,26 +69,26 @@ class R2POProposer:
     def __init__(
         self,
         *,
-        chat: Any,
+        llm: RecordingLLM,
         codec: Codec,
         context: PromptContext,
         top_k: int,
         box: tuple[float, float],
         streams: seeding.Streams,
         rollout: Rollout,
-        count_tokens: CountTokens,
         context_window: int,
         max_tokens: int,
         parse_retries: int = 2,
+        count_tokens: Callable[[str], int] = estimate_tokens,
     ) -> None:
-        """``chat`` is the run's recording client (``llm.recording.RecordingChat``); ``rollout(theta,
-        seed)`` re-runs one episode for the critic's evidence; ``count_tokens`` estimates a prompt
-        before the first answer; ``context_window`` and ``max_tokens`` bound a request."""
+        """``llm`` is the run's recording client (``llm.recording.RecordingLLM``); ``rollout(theta,
+        seed)`` re-runs one episode for the critic's evidence; ``context_window`` and ``max_tokens``
+        bound a request; ``count_tokens`` estimates a prompt before the first answer's usage counts."""
         self._ratio: float | None = None  # prompt tokens per character, from the usage counts so far
-        common: dict[str, Any] = dict(chat=chat, codec=codec, context=context, box=box, streams=streams, parse_retries=parse_retries,
+        common: dict[str, Any] = dict(llm=llm, codec=codec, context=context, box=box, streams=streams, parse_retries=parse_retries,
                                       on_answer=self._observe)
-        self.search = LLMProposer(top_k=top_k, form="chat", **common)
-        self.critic = _Critic(top_k=top_k, form=FORMS["r2po-critic"], **common)
+        self.search = LLMProposer(top_k=top_k, form=CHAT, **common)
+        self.critic = _Critic(top_k=top_k, form=CRITIC, **common)
         self.rollout = rollout
         self.count_tokens = count_tokens
         self.context_window = context_window
@@ -143,7 +151,7 @@ class R2POProposer:
         self.critic.best = self.pending  # a failed revision falls back to a perturbation of the proposal
         self._check_fits(self.critic.prompt(), iteration)
         p = self.critic.ask(iteration)
-        return Proposal(p.theta, CRITIC if p.source == "llm" else p.source, p.clipped, p.note)
+        return Proposal(p.theta, CRITIC_SOURCE if p.source == "llm" else p.source, p.clipped, p.note)
 
     def tell(self, candidate: Candidate) -> None:
         """Warm-up goes to the search history; of each proposal/revision pair only the better enters it."""

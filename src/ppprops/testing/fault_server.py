@@ -62,7 +62,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..wire.transcript import history_entries
+from ..wire.forms import DOCUMENT
 from .personas import DOCUMENT_PERSONAS, PERSONAS, QUIRK_PERSONAS, Reply, labelled_list, read_turn, text_completion
 
 CHAT_PERSONAS = {**PERSONAS, **QUIRK_PERSONAS}
@@ -191,7 +191,7 @@ def requested_dim(body: dict[str, Any], default: int | None = None) -> int | Non
         return int(m.group(1)) + 1 if m else 1
     prompt = body.get("prompt")
     if isinstance(prompt, str):
-        entries = history_entries(prompt, "document")
+        entries = DOCUMENT.entries(prompt)
         return len(entries[-1].params) if entries else default
     for msg in reversed(body.get("messages") or []):
         content = msg.get("content") if isinstance(msg, dict) else None

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..wire.forms import DOCUMENT
 from ..wire.transcript import history_entries
 
 # What a persona's reasoning costs out of the token budget: more than a chat request's default
@@ -81,7 +82,7 @@ def read_turn(body: dict[str, Any], D: int, answer: list[float], rng: random.Ran
     the ``answer`` to propose, and what the first message (or the document) shows (the best history
     entry of length D, the indexed form, whether a correction was already made)."""
     if isinstance(body.get("prompt"), str):  # the document form: history lowest return first, best last
-        entries = [e for e in history_entries(body["prompt"], "document") if len(e.params) == D]
+        entries = [e for e in DOCUMENT.entries(body["prompt"]) if len(e.params) == D]
         return Turn(body=body, D=D, answer=answer, rng=rng, n=n, best=entries[-1].params if entries else None,
                     model=str(body.get("model") or "fault-synthetic"), document=True)
     messages = [m for m in body.get("messages") or [] if isinstance(m, dict)]

@@ -9,6 +9,7 @@ Standard library only, like the rest of ``ppprops.wire``.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from .prompt import COMPONENTS_PREFIX, DIAGNOSTICS_PREFIX, template
@@ -25,8 +26,6 @@ _PARAMS_RX = {
     "history_entry_indexed": r"(?P<indexed>params\[\d+\]: [^,\n]+(?:, params\[\d+\]: [^,\n]+)*)",
     "document_entry": _LIST_RX,  # wire.document: return first, then the list
 }
-# Which entry templates each prompt form writes (chat: the instruction prompt, in either parameter style).
-FORMS = {"chat": ("history_entry", "history_entry_indexed"), "document": ("document_entry",)}
 
 
 def _entry_pattern(name: str) -> re.Pattern[str]:
@@ -96,11 +95,11 @@ def _labelled_params(text: str) -> tuple[str, ...]:
     return tuple(out)
 
 
-def history_entries(text: str, form: str | None = None) -> list[ShownEntry]:
-    """Every history entry in a prompt, in the order printed: of the prompt ``form`` (``chat``,
-    in either parameter style, or ``document``), or of any form when None."""
+def history_entries(text: str, templates: Sequence[str] | None = None) -> list[ShownEntry]:
+    """Every history entry in a prompt, in the order printed: of the entry ``templates`` (a prompt
+    form's, ``wire.forms.PromptForm.entry_templates``), or of every known template when None."""
     out: list[ShownEntry] = []
-    names = FORMS[form] if form is not None else tuple(_PARAMS_RX)
+    names = tuple(templates) if templates is not None else tuple(_PARAMS_RX)
     for name in names:
         for m in _entry_pattern(name).finditer(text):
             groups = m.groupdict()
