@@ -10,7 +10,7 @@ import pytest
 
 from ppprops.cli import main
 from ppprops.privacy.simulate import offline_llm
-from ppprops.report import format_summary, run_summary
+from ppprops.summary import format_summary, run_summary
 
 TINY = ["--method", "random", "--warmup", "2", "--iterations", "1", "--final-episodes", "0", "--select-top", "0"]
 

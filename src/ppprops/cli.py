@@ -164,7 +164,7 @@ def _say(text: str) -> None:
 def _finished(run_dir: Path, as_json: bool) -> int:
     """What `run` and `resume` print at the end: the summary (or one JSON object) and the audit verdict."""
     from .privacy.commands import self_audit_line
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     summary = run_summary(run_dir)
     audit = self_audit_line(run_dir)  # the run checks its own transcript
@@ -207,7 +207,7 @@ def _cmd_resume(a: argparse.Namespace) -> int:
 
 
 def _cmd_show(a: argparse.Namespace) -> int:
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     s = run_summary(a.dir)
     print(json.dumps(s) if a.json else format_summary(s))
@@ -242,7 +242,7 @@ def _cmd_policy(a: argparse.Namespace) -> int:
 
 def _cmd_baseline(a: argparse.Namespace) -> int:
     from .baselines.rl import RLConfig, default_run_dir, run_baseline
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     config = RLConfig(task=a.env, algo=a.algo, timesteps=a.timesteps, seed=a.seed, final_episodes=a.final_episodes,
                       device=a.device, threads=a.threads)  # fmt: skip

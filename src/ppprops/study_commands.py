@@ -168,7 +168,7 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
                               "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
         return 0
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     with Study.load(a.dir) as study:
         told, total = study.store.candidate_count(), study.total

@@ -75,7 +75,7 @@ def column_name(method: str, top_k: int | None, kind: str) -> str:
 
 # -- reading ---------------------------------------------------------------------------------
 def read_run(path: Path) -> RunRecord:
-    """The RunRecord of the run directory ``path``, read through ``ppprops.report.run_summary``.
+    """The RunRecord of the run directory ``path``, read through ``ppprops.summary.run_summary``.
 
     Returns are raw reward units. ``D`` is None when the task's size cannot be known (neither a
     stored task declaration nor a task of that name).
@@ -83,7 +83,7 @@ def read_run(path: Path) -> RunRecord:
     Raises:
         StoreError: ``path`` holds no readable run.
     """
-    from ..report import run_summary
+    from ..summary import run_summary
 
     s = run_summary(path)
     cfg = s["config"]

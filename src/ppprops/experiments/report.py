@@ -1,6 +1,6 @@
 """``ppprops report DIR``: the paper's tables and figures from a grid's runs, into ``DIR/report/``.
 
-Every run is read through ``ppprops.report.run_summary`` (the ``show --json`` object). Runs are
+Every run is read through ``ppprops.summary.run_summary`` (the ``show --json`` object). Runs are
 grouped by (task, method, top-K): K = 10 is the paper's default and needs no mark; other K are
 their own column ("vanilla (unbounded)" for K = 0). Over the seeds of a group we report the mean
 and the population standard deviation (numpy's default) of

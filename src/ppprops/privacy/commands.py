@@ -102,7 +102,7 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         LLMError: the embedded model could not serve a new run.
     """
     from ..store import DB_NAME, KEY_NAME, find_runs
-    from .report import privacy_report, run_matrix, write_report
+    from .matrix import privacy_report, run_matrix, write_report
 
     if a.runs is not None:
         dirs = find_runs(a.runs, recursive=True, with_key=True)

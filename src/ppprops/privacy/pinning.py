@@ -42,7 +42,7 @@ def measure(out: Path, envs: Sequence[str], seeds: int, shown: Sequence[int], wa
     from ..client.secrets import Secrets
     from ..store import open_store
     from .audit import search_config
-    from .report import run_matrix
+    from .matrix import run_matrix
 
     dirs = run_matrix(out, envs=envs, seeds=range(seeds), warmup=warmup, iterations=iterations, final_episodes=0,
                       log=log, offline=True)
