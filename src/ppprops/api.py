@@ -33,13 +33,13 @@ from numpy.typing import NDArray
 from .config import RunConfig
 from .errors import ConfigError
 from .policy_file import Policy, load_policy
+from .rundir import POLICY_NAME
 from .status import RunKind
 from .study import Study
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
 TaskLike = Any  # str | os.PathLike | Callable[..., gymnasium.Env] | TaskSpec | Task (see ppprops.tasks.load_task)
-POLICY_NAME = "best_policy.json"
 
 
 @dataclass(frozen=True)

@@ -22,9 +22,9 @@ from .evaluation import check_parallel
 from .events import NO_EVENTS, RunEvents
 from .llm.client import ChatClient, Exchange
 from .llm.session import LazyChat, open_client
-from .rundir import create_run, final_returns, load_run, new_run_id
+from .rundir import POLICY_NAME, create_run, final_returns, load_run, new_run_id
 from .store import RunStore
-from .study import POLICY_NAME, Callback, Study, chat_factory_active, use_chat
+from .study import Callback, Study, chat_factory_active, use_chat
 from .values import FinalEval
 
 __all__ = ["ChatModel", "Endpoint", "LazyChat", "POLICY_NAME", "RunEvents", "change_endpoint", "chat_client", "create_run",

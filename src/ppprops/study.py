@@ -53,14 +53,13 @@ from .methods import Method, get_method
 from .policy_file import Policy, policy_document
 from .proposers.base import Phase, SearchSetup, StopSearch
 from .proposers.uniform import warmup_sampler
-from .rundir import create_run, final_returns, load_run
+from .rundir import POLICY_NAME, create_run, final_returns, load_run
 from .status import RunStatus
 from .store import RunStore
 from .strategies import search_phase
 from .tasks import FeedbackKeyError, Task
 from .values import Candidate, Feedback, FinalEval, Trial
 
-POLICY_NAME = "best_policy.json"
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 

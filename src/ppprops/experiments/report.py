@@ -257,14 +257,14 @@ def write_report(root: Path, out: Path | None = None) -> Path:
         MissingExtraError: matplotlib (the ``report`` extra) is not installed.
     """
     require_matplotlib()
-    from ..store import find_runs
+    from ..rundir import DB_NAME, find_runs
     from . import html as html_page
     from . import plots
 
     root = Path(root)
     paths = find_runs(root)
     if not paths:
-        raise ConfigError(f"{root} holds no run directories (no run.sqlite under it, nor under {root}/runs)")
+        raise ConfigError(f"{root} holds no run directories (no {DB_NAME} under it, nor under {root}/runs)")
     runs: list[RunRecord] = []
     unreadable: list[str] = []
     for p in paths:
