@@ -220,15 +220,15 @@ def _cmd_policy(a: argparse.Namespace) -> int:
 
         return cmd_policy_show(a)
     from .api import evaluate_policy
-    from .store import DB_NAME
+    from .rundir import DB_NAME, POLICY_NAME, is_run_dir, policy_path
 
     path = Path(a.file)
     if path.is_dir():
-        if not (path / DB_NAME).exists():
+        if not is_run_dir(path):
             raise ConfigError(f"{path} is a directory but not a run or study directory (no {DB_NAME})")
-        path = path / "best_policy.json"
+        path = policy_path(path)
         if not path.exists():
-            raise ConfigError(f"{a.file} has no best_policy.json yet: finish the run ('ppprops resume') or the study "
+            raise ConfigError(f"{a.file} has no {POLICY_NAME} yet: finish the run ('ppprops resume') or the study "
                               f"('ppprops study finalize {a.file}')")  # fmt: skip
     ev = evaluate_policy(path, episodes=a.episodes, seed=a.seed, progress=not a.quiet)
     result: dict[str, Any] = {"task": ev.task, "mean": ev.mean, "std": ev.std, "episodes": len(ev.returns), "seed": ev.seed,

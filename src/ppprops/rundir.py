@@ -115,11 +115,16 @@ def is_run_dir(path: Path) -> bool:
     return (Path(path) / DB_NAME).exists()
 
 
+def policy_path(run_dir: Path) -> Path:
+    """Where a run directory keeps its policy file (``POLICY_NAME``), whether or not it is there yet."""
+    return Path(run_dir) / POLICY_NAME
+
+
 class StoredRun:
     """A run directory opened for reading (``open_run``): its store, kind, configuration, task,
     secrets and policy file.
 
-    ``store`` is open until the ``with`` block ends (or ``close``); ``stored`` is the configuration
+    ``store`` is open until the ``with`` block ends (or ``store.close()``); ``stored`` is the configuration
     as stored (JSON), ``kind`` the run's kind (a search or an RL baseline). ``config`` and ``task``
     are read on first use; ``secrets`` holds the key file's secrets once loaded (``open_run``'s
     ``secrets``, or ``load_secrets``), else None.
@@ -157,8 +162,8 @@ class StoredRun:
 
     @property
     def policy_path(self) -> Path:
-        """The run's policy file (``POLICY_NAME``); it exists once the run has finished."""
-        return self.path / POLICY_NAME
+        """The run's policy file (``policy_path``); it exists once the run has finished."""
+        return policy_path(self.path)
 
     @overload
     def load_secrets(self) -> Secrets: ...
@@ -190,15 +195,11 @@ class StoredRun:
                 raise
         return self.secrets
 
-    def close(self) -> None:
-        """Close the store."""
-        self.store.close()
-
     def __enter__(self) -> StoredRun:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        self.store.close()
 
 
 def open_run(run_dir: Path | str, *, secrets: bool | Literal["optional"] = False) -> StoredRun:

@@ -53,7 +53,7 @@ from .methods import Method, get_method
 from .policy_file import Policy, policy_document
 from .proposers.base import Phase, SearchSetup, StopSearch
 from .proposers.uniform import warmup_sampler
-from .rundir import POLICY_NAME, create_run, final_returns, load_run
+from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
 from .status import RunStatus
 from .store import RunStore
 from .strategies import search_phase
@@ -493,7 +493,7 @@ class Study:
         return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
 
     def _write_policy(self, best: Candidate, fe: FinalEval | None) -> None:
-        path = self.run_dir / POLICY_NAME
+        path = policy_path(self.run_dir)
         for stale in self.run_dir.glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
             stale.unlink(missing_ok=True)
         try:

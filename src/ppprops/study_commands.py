@@ -185,10 +185,10 @@ def cmd_policy_show(a: argparse.Namespace) -> int:
     """``ppprops policy show DIR|FILE``: the best policy so far of a run or study directory (or a
     policy file) as one JSON object: W, b, theta, the observation and action rules."""
     from .policy_file import load_policy
-    from .store import DB_NAME
+    from .rundir import DB_NAME, is_run_dir
 
     path = Path(a.path)
-    if path.is_dir() and not (path / DB_NAME).exists():
+    if path.is_dir() and not is_run_dir(path):
         raise ConfigError(f"{path} is not a ppprops run directory (no {DB_NAME}) nor a policy file")
     if path.is_dir():
         from .study import Study
