@@ -36,8 +36,8 @@ from ppprops.config import RunConfig
 from ppprops.evaluation import Evaluator
 from ppprops.loop import best_candidate, search_candidates
 from ppprops.privacy.audit import audit_run
-from ppprops.report import run_summary
 from ppprops.store import open_store
+from ppprops.summary import run_summary
 
 SPEC = Path(__file__).with_name("quality.toml")
 ARMS = (("pp", "PP-ProPS (embedded Gemma 3 270M)"), ("random", "random search"), ("cmaes", "CMA-ES"))

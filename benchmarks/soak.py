@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         print(done.stderr.strip(), file=sys.stderr)
         return 1
 
-    from ppprops.report import run_summary
+    from ppprops.summary import run_summary
 
     s = run_summary(out)
     with sqlite3.connect(out / "run.sqlite") as con:

@@ -15,7 +15,7 @@ import pytest
 from ppprops.cli import main
 from ppprops.client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 from ppprops.privacy.attacks import run_attacks
-from ppprops.privacy.report import analyse_run, privacy_report
+from ppprops.privacy.matrix import analyse_run, privacy_report
 from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simfit import SimLimits
 from ppprops.runner import start

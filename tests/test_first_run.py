@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from ppprops.cli import main
-from ppprops.report import format_summary, run_summary
+from ppprops.summary import format_summary, run_summary
 
 from support import offline_llm
 

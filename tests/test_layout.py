@@ -127,7 +127,7 @@ def test_the_checks_can_fail(toy_package: Path) -> None:
 
 # The study is the composition root: it builds everything below it from the run's stored config and
 # hands each layer the narrow settings it needs. These modules may take the whole RunConfig; no other.
-RUN_CONFIG_USERS = {"config", "settings", "study", "rundir", "runner", "api", "cli", "report", "study_commands"}
+RUN_CONFIG_USERS = {"config", "settings", "study", "rundir", "runner", "api", "cli", "study_commands"}
 RUN_CONFIG_PACKAGES = ("experiments", "privacy", "baselines")  # grids, reports and the audit read stored runs whole
 
 

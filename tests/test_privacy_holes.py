@@ -25,7 +25,7 @@ from ppprops.experiments.spec import build_spec, flags_table
 from ppprops.methods import HARDENING, check_method, resolve
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.audit import audit_run
-from ppprops.privacy.report import privacy_report
+from ppprops.privacy.matrix import privacy_report
 from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simulate import EchoOptimizer
 from ppprops.runner import start

@@ -113,7 +113,7 @@ def test_a_full_context_is_classified_context_full_with_its_own_hint(tmp_path: P
 
 
 def test_the_summary_says_when_most_search_candidates_were_fallbacks() -> None:
-    from ppprops.report import format_summary
+    from ppprops.summary import format_summary
 
     counts = {"candidates": 13, "warmup": 3, "llm": 4, "fallback": 6, "by_source": {"warmup": 3, "llm": 4, "fallback": 6},
               "llm_calls": 22, "answer_failures": {"length": 18}, "fallback_reasons": {"length": 6}}

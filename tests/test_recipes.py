@@ -25,7 +25,7 @@ from ppprops.errors import ConfigError
 from ppprops.methods import METHODS, Method, register_method
 from ppprops.privacy import attacks
 from ppprops.privacy.attacks import register_attack
-from ppprops.privacy.report import privacy_report
+from ppprops.privacy.matrix import privacy_report
 from ppprops.runner import start
 
 from support import doc_block, make_config, offline_llm

@@ -13,9 +13,9 @@ import pytest
 from ppprops.cli import main
 from ppprops.config import LLMConfig
 from ppprops.errors import LLMError
-from ppprops.report import run_summary
 from ppprops.runner import resume, start
 from ppprops.store import open_store
+from ppprops.summary import run_summary
 from ppprops.testing.fault_server import ANSWER_KINDS, FaultConfig, FaultServer
 
 from support import make_config

@@ -106,7 +106,7 @@ def test_report_tables_hold_the_runs_numbers(grid: Path) -> None:
 def test_reward_curve_mean_and_band_are_over_seeds(grid: Path) -> None:
     from ppprops.experiments.plots import curve
     from ppprops.experiments.report import read_run
-    from ppprops.store import find_runs
+    from ppprops.rundir import find_runs
 
     recs = [read_run(p) for p in find_runs(grid) if "pp-K10" in p.name]
     x, mean, std = curve(recs)

@@ -157,7 +157,7 @@ def test_the_lucky_one_episode_candidate_is_not_handed_over(study: Study) -> Non
     from ppprops.loop import best_candidate, search_candidates
 
     assert best_candidate(search_candidates(cands)).index == 9  # the old rule would have handed over the lucky one
-    from ppprops.report import format_summary, run_summary
+    from ppprops.summary import format_summary, run_summary
 
     summary = run_summary(study.run_dir)  # the extra episodes are stored and counted
     assert summary["counts"]["episodes"] == {"search": 10, "selection": 50, "final": 1}
@@ -290,7 +290,7 @@ def test_two_processes_asking_at_once_make_one_llm_call(tmp_path: Path) -> None:
 
 def test_a_run_whose_process_died_does_not_show_as_running(tmp_path: Path) -> None:
     from ppprops.locks import RUNNING_LOCK, file_lock
-    from ppprops.report import run_summary
+    from ppprops.summary import run_summary
 
     config = case_config("random")
     with Study.create(config, tmp_path / "d") as study:

@@ -34,13 +34,13 @@ from .config import RunConfig
 from .errors import ConfigError
 from .llm.protocol import LLM
 from .policy_file import Policy, load_policy
+from .rundir import open_run
 from .status import RunKind
 from .study import Study
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
 TaskLike = Any  # str | os.PathLike | Callable[..., gymnasium.Env] | TaskSpec | Task (see ppprops.tasks.load_task)
-POLICY_NAME = "best_policy.json"
 
 
 @dataclass(frozen=True)
@@ -376,24 +376,21 @@ def load_run(run_dir: Pathish) -> SearchResult:
         PPPropsError: the run's ``best_policy.json`` is damaged (``load_policy``).
     """
     from .loop import search_candidates, select_best
-    from .store import open_store
 
     run_dir = Path(run_dir)
-    with open_store(run_dir) as store:
-        stored = store.config()
-        if RunKind.of_config(stored) is RunKind.RL:
-            raise ConfigError(f"{run_dir} is an RL baseline run ({stored.get('method')}), not a search: "
+    with open_run(run_dir) as run:
+        if run.kind is RunKind.RL:
+            raise ConfigError(f"{run_dir} is an RL baseline run ({run.stored.get('method')}), not a search: "
                               f"`ppprops show {run_dir}` and `ppprops report` read it")  # fmt: skip
-        config = RunConfig.from_json(stored)
-        history = tuple(store.candidates())
-        fe = store.final_eval()
-        status = store.status()
+        config = run.config
+        history = tuple(run.store.candidates())
+        fe = run.store.final_eval()
+        status = run.store.status()
     best = select_best(list(history)) if search_candidates(list(history)) else None
     final = None
     if fe is not None and fe.returns:
         final = Evaluation(task=config.task, returns=tuple(fe.returns), seeds=tuple(fe.seeds), seed=config.seed)
-    policy_path = run_dir / POLICY_NAME
-    policy = load_policy(policy_path) if policy_path.exists() else None
+    policy = load_policy(run.policy_path) if run.policy_path.exists() else None
     return SearchResult(run_dir=run_dir, task=config.task, method=config.method, status=status, config=config, history=history,
                         best_index=None if best is None else best.index, best_return=None if best is None else best.ret,
                         final=final, policy=policy)  # fmt: skip

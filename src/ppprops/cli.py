@@ -164,7 +164,7 @@ def _say(text: str) -> None:
 def _finished(run_dir: Path, as_json: bool) -> int:
     """What `run` and `resume` print at the end: the summary (or one JSON object) and the audit verdict."""
     from .privacy.commands import self_audit_line
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     summary = run_summary(run_dir)
     audit = self_audit_line(run_dir)  # the run checks its own transcript
@@ -207,7 +207,7 @@ def _cmd_resume(a: argparse.Namespace) -> int:
 
 
 def _cmd_show(a: argparse.Namespace) -> int:
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     s = run_summary(a.dir)
     print(json.dumps(s) if a.json else format_summary(s))
@@ -220,15 +220,15 @@ def _cmd_policy(a: argparse.Namespace) -> int:
 
         return cmd_policy_show(a)
     from .api import evaluate_policy
-    from .store import DB_NAME
+    from .rundir import DB_NAME, POLICY_NAME, is_run_dir, policy_path
 
     path = Path(a.file)
     if path.is_dir():
-        if not (path / DB_NAME).exists():
+        if not is_run_dir(path):
             raise ConfigError(f"{path} is a directory but not a run or study directory (no {DB_NAME})")
-        path = path / "best_policy.json"
+        path = policy_path(path)
         if not path.exists():
-            raise ConfigError(f"{a.file} has no best_policy.json yet: finish the run ('ppprops resume') or the study "
+            raise ConfigError(f"{a.file} has no {POLICY_NAME} yet: finish the run ('ppprops resume') or the study "
                               f"('ppprops study finalize {a.file}')")  # fmt: skip
     ev = evaluate_policy(path, episodes=a.episodes, seed=a.seed, progress=not a.quiet)
     result: dict[str, Any] = {"task": ev.task, "mean": ev.mean, "std": ev.std, "episodes": len(ev.returns), "seed": ev.seed,
@@ -242,7 +242,7 @@ def _cmd_policy(a: argparse.Namespace) -> int:
 
 def _cmd_baseline(a: argparse.Namespace) -> int:
     from .baselines.rl import RLConfig, default_run_dir, run_baseline
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     config = RLConfig(task=a.env, algo=a.algo, timesteps=a.timesteps, seed=a.seed, final_episodes=a.final_episodes,
                       device=a.device, threads=a.threads)  # fmt: skip

@@ -1,7 +1,9 @@
-"""Run directories: making one atomically, opening one, and the final evaluation's episodes.
+"""Run directories: making one atomically, reading one back (``open_run``), and the final evaluation's episodes.
 
-A run directory holds ``run.sqlite`` (the store), ``secrets.key`` (mode 0600) and, once
-finished, ``best_policy.json``.
+A run directory holds ``run.sqlite`` (the store, ``DB_NAME``), ``secrets.key`` (mode 0600,
+``KEY_NAME``) and, once finished, ``best_policy.json`` (``POLICY_NAME``). These names are defined
+here (``DB_NAME`` in ``store``, which opens it) and nowhere else; every reader of a stored run
+opens it with ``open_run``.
 
 Crash safety: the directory is built under a temporary name and renamed into place, so a run
 killed while starting leaves either nothing at ``--out`` or a complete, resumable directory.
@@ -17,7 +19,9 @@ import shutil
 import uuid
 from collections.abc import Sequence
 from dataclasses import replace
+from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 
@@ -25,10 +29,17 @@ from . import naming
 from .client.hardening import generate_secrets
 from .client.secrets import Secrets
 from .config import RunConfig
-from .errors import ConfigError, StoreError
+from .errors import ConfigError, KeyFileError, StoreError
 from .evaluation import Evaluator, check_parallel
 from .events import NO_EVENTS, RunEvents
-from .store import DB_NAME, KEY_NAME, RunStore, open_store
+from .status import RunKind
+from .store import DB_NAME, RunStore, open_store
+
+if TYPE_CHECKING:
+    from .tasks import Task
+
+KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
+POLICY_NAME = "best_policy.json"  # the deployable policy (ppprops.policy_file), written when the run finishes
 
 
 def new_run_id(config: RunConfig) -> str:
@@ -95,28 +106,155 @@ def check_out(run_dir: Path) -> None:
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(f"--out {run_dir} is a file, not a directory; choose a new --out")
     if run_dir.is_dir() and any(run_dir.iterdir()):
-        what = "another run" if (run_dir / DB_NAME).exists() else "files"
+        what = "another run" if is_run_dir(run_dir) else "files"
         raise ConfigError(f"output directory {run_dir} already holds {what}; choose a new --out or use 'ppprops resume'")
 
 
+def is_run_dir(path: Path) -> bool:
+    """True when ``path`` holds a run's store (``DB_NAME``): a run or study directory."""
+    return (Path(path) / DB_NAME).exists()
+
+
+def policy_path(run_dir: Path) -> Path:
+    """Where a run directory keeps its policy file (``POLICY_NAME``), whether or not it is there yet."""
+    return Path(run_dir) / POLICY_NAME
+
+
+class StoredRun:
+    """A run directory opened for reading (``open_run``): its store, kind, configuration, task,
+    secrets and policy file.
+
+    ``store`` is open until the ``with`` block ends (or ``store.close()``); ``stored`` is the configuration
+    as stored (JSON), ``kind`` the run's kind (a search or an RL baseline). ``config`` and ``task``
+    are read on first use; ``secrets`` holds the key file's secrets once loaded (``open_run``'s
+    ``secrets``, or ``load_secrets``), else None.
+    """
+
+    def __init__(self, path: Path, store: RunStore) -> None:
+        self.path = path
+        self.store = store
+        self.stored: dict[str, Any] = store.config()
+        self.kind = RunKind.of_config(self.stored)
+        self.secrets: Secrets | None = None
+
+    @cached_property
+    def config(self) -> RunConfig:
+        """The search's configuration, read back from the stored one (``RunConfig.from_json``).
+
+        Raises:
+            ConfigError: the stored configuration holds a key or value this version refuses.
+        """
+        return RunConfig.from_json(self.stored)
+
+    @cached_property
+    def task(self) -> Task:
+        """The task the search ran on, from its stored declaration (``RunConfig.make_task``).
+
+        Raises:
+            ConfigError: the stored configuration names a task that cannot be made here.
+        """
+        return self.config.make_task()
+
+    @property
+    def key_path(self) -> Path:
+        """The run's key file (``KEY_NAME``)."""
+        return self.path / KEY_NAME
+
+    @property
+    def policy_path(self) -> Path:
+        """The run's policy file (``policy_path``); it exists once the run has finished."""
+        return policy_path(self.path)
+
+    @overload
+    def load_secrets(self) -> Secrets: ...
+
+    @overload
+    def load_secrets(self, *, optional: bool) -> Secrets | None: ...
+
+    def load_secrets(self, *, optional: bool = False) -> Secrets | None:
+        """The run's secrets from its key file, checked against the store (run id, D, fingerprint);
+        kept in ``secrets``. Loaded once: a second call returns the same secrets.
+
+        ``optional``: a key file that is missing or does not load counts as absent (None), as the
+        audit reads a run.
+
+        Raises:
+            KeyFileError: (not ``optional``) the key file is missing, damaged, or belongs to another run.
+            ConfigError: the stored configuration names a task that cannot be made here (D comes
+                from the task).
+        """
+        if self.secrets is not None:
+            return self.secrets
+        if optional and not self.key_path.exists():
+            return None
+        D = self.task.D
+        try:
+            self.secrets = Secrets.load(self.key_path, run_id=self.store.run_id(), D=D, fingerprint=self.store.key_fingerprint())
+        except KeyFileError:
+            if not optional:
+                raise
+        return self.secrets
+
+    def __enter__(self) -> StoredRun:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.store.close()
+
+
+def open_run(run_dir: Path | str, *, secrets: bool | Literal["optional"] = False) -> StoredRun:
+    """The run in ``run_dir``, opened for reading; use it in a ``with`` block (it closes the store).
+    Nothing stays open when this raises.
+
+    ``secrets``: False reads no key file now (``StoredRun.load_secrets`` does, later); True loads
+    the secrets now; ``"optional"`` loads them now when the key file is there and loads, else
+    leaves ``secrets`` None (a key file that does not load counts as absent).
+
+    Raises:
+        StoreError: not a run directory, or a damaged store.
+        KeyFileError: (``secrets=True``) the key file is missing, damaged, or belongs to another run.
+        ConfigError: (with secrets) the stored config names a task that cannot be made here.
+    """
+    path = Path(run_dir)
+    store = open_store(path)
+    try:
+        run = StoredRun(path, store)
+        if secrets:
+            run.load_secrets(optional=secrets == "optional")
+    except BaseException:
+        store.close()
+        raise
+    return run
+
+
 def load_run(run_dir: Path) -> tuple[RunStore, RunConfig, Secrets]:
-    """The open store, config and secrets of a run directory; the caller closes the store
-    (``with store:``). Nothing stays open when this raises.
+    """The open store, config and secrets of a run directory (``open_run`` with its secrets); the
+    caller closes the store (``with store:``). Nothing stays open when this raises.
 
     Raises:
         StoreError: not a run directory, or a damaged store.
         KeyFileError: the key file is missing, damaged, or belongs to another run.
         ConfigError: the stored config names a task that cannot be made here.
     """
-    store = open_store(run_dir)
-    try:
-        config = RunConfig.from_json(store.config())
-        task = config.make_task()
-        secrets = Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
-    except BaseException:
-        store.close()
-        raise
-    return store, config, secrets
+    run = open_run(run_dir, secrets=True)
+    return run.store, run.config, run.load_secrets()
+
+
+def find_runs(root: Path, *, recursive: bool = False, with_key: bool = False) -> list[Path]:
+    """The run directories under ``root``, sorted: ``root`` itself, its children, and a grid's
+    ``runs/*`` (``recursive``: at any depth). A directory holding ``run.sqlite`` is a run; with
+    ``with_key`` only those that also hold their key file count. Directories whose name starts
+    with ``.`` (a run still being created) are left out.
+
+    Raises:
+        ConfigError: ``root`` is not a directory.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(f"{root} is not a directory")
+    patterns = (f"**/{DB_NAME}",) if recursive else (DB_NAME, f"*/{DB_NAME}", f"runs/*/{DB_NAME}")
+    found = {p.parent for pattern in patterns for p in root.glob(pattern)}
+    return sorted(p for p in found if not p.name.startswith(".") and (not with_key or (p / KEY_NAME).exists()))
 
 
 def final_returns(evaluator: Evaluator, theta: np.ndarray, seeds: Sequence[int], events: RunEvents = NO_EVENTS) -> tuple[float, ...]:

@@ -20,9 +20,9 @@ from .errors import ConfigError, StoreError
 from .evaluation import check_parallel
 from .events import NO_EVENTS, RunEvents
 from .llm.protocol import LLM
-from .rundir import create_run, final_returns, load_run, new_run_id
+from .rundir import POLICY_NAME, create_run, final_returns, load_run, new_run_id
 from .store import RunStore
-from .study import POLICY_NAME, Callback, Study
+from .study import Callback, Study
 from .values import FinalEval
 
 __all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "create_run", "final_returns", "load_run", "new_run_id", "resume",

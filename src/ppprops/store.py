@@ -31,14 +31,13 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, StoreError
+from .errors import StoreError
 from .status import RunStatus
 from .values import Candidate, Feedback, FinalEval, Trial
 
 SCHEMA_VERSION = 5
 BUSY_TIMEOUT_S = 60.0
-DB_NAME = "run.sqlite"
-KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
+DB_NAME = "run.sqlite"  # the store's file in a run directory (the directory's other files: ppprops.rundir)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -514,19 +513,3 @@ def open_store(run_dir: Path, *, create: bool = False) -> RunStore:
         raise StoreError(f"{run_dir} is not a ppprops run directory (no {DB_NAME})")
     return RunStore(path)
 
-
-def find_runs(root: Path, *, recursive: bool = False, with_key: bool = False) -> list[Path]:
-    """The run directories under ``root``, sorted: ``root`` itself, its children, and a grid's
-    ``runs/*`` (``recursive``: at any depth). A directory holding ``run.sqlite`` is a run; with
-    ``with_key`` only those that also hold their key file count. Directories whose name starts
-    with ``.`` (a run still being created) are left out.
-
-    Raises:
-        ConfigError: ``root`` is not a directory.
-    """
-    root = Path(root)
-    if not root.is_dir():
-        raise ConfigError(f"{root} is not a directory")
-    patterns = (f"**/{DB_NAME}",) if recursive else (DB_NAME, f"*/{DB_NAME}", f"runs/*/{DB_NAME}")
-    found = {p.parent for pattern in patterns for p in root.glob(pattern)}
-    return sorted(p for p in found if not p.name.startswith(".") and (not with_key or (p / KEY_NAME).exists()))

@@ -52,7 +52,7 @@ from .methods import Method, get_method
 from .policy_file import Policy, policy_document
 from .proposers.base import Phase, SearchSetup, StopSearch
 from .proposers.uniform import warmup_sampler
-from .rundir import create_run, final_returns, load_run
+from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
 from .status import RunStatus
 from .store import RunStore
 from .strategies import search_phase
@@ -60,7 +60,6 @@ from .tasks import FeedbackKeyError, Task
 from .values import Candidate, Feedback, FinalEval, Trial
 from .wire.forms import CHAT, ENDPOINT_COMPLETIONS, FORMS, PromptForm
 
-POLICY_NAME = "best_policy.json"
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
 
@@ -472,7 +471,7 @@ class Study:
         return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
 
     def _write_policy(self, best: Candidate, fe: FinalEval | None) -> None:
-        path = self.run_dir / POLICY_NAME
+        path = policy_path(self.run_dir)
         for stale in self.run_dir.glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
             stale.unlink(missing_ok=True)
         try:

@@ -168,7 +168,7 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
                               "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
         return 0
-    from .report import format_summary, run_summary
+    from .summary import format_summary, run_summary
 
     with Study.load(a.dir) as study:
         told, total = study.store.candidate_count(), study.total
@@ -185,10 +185,10 @@ def cmd_policy_show(a: argparse.Namespace) -> int:
     """``ppprops policy show DIR|FILE``: the best policy so far of a run or study directory (or a
     policy file) as one JSON object: W, b, theta, the observation and action rules."""
     from .policy_file import load_policy
-    from .store import DB_NAME
+    from .rundir import DB_NAME, is_run_dir
 
     path = Path(a.path)
-    if path.is_dir() and not (path / DB_NAME).exists():
+    if path.is_dir() and not is_run_dir(path):
         raise ConfigError(f"{path} is not a ppprops run directory (no {DB_NAME}) nor a policy file")
     if path.is_dir():
         from .study import Study

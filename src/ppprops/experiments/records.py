@@ -75,7 +75,8 @@ def column_name(method: str, top_k: int | None, kind: str) -> str:
 
 # -- reading ---------------------------------------------------------------------------------
 def read_run(path: Path) -> RunRecord:
-    """The RunRecord of the run directory ``path``, read through ``ppprops.report.run_summary``.
+    """The RunRecord of the run directory ``path`` (opened with ``rundir.open_run``), read through
+    the run summary (``ppprops.summary``).
 
     Returns are raw reward units. ``D`` is None when the task's size cannot be known (neither a
     stored task declaration nor a task of that name).
@@ -83,11 +84,13 @@ def read_run(path: Path) -> RunRecord:
     Raises:
         StoreError: ``path`` holds no readable run.
     """
-    from ..report import run_summary
+    from ..rundir import open_run
+    from ..summary import summarize
 
-    s = run_summary(path)
+    with open_run(path) as run:
+        s = summarize(run)
+        kind = run.kind
     cfg = s["config"]
-    kind = RunKind.of_config(cfg)
     fe = s.get("final_eval")
     rec = RunRecord(
         name=path.name, path=path, kind=kind, task=str(s["env"]), method=str(s["method"]),

@@ -1,6 +1,6 @@
 """``ppprops report DIR``: the paper's tables and figures from a grid's runs, into ``DIR/report/``.
 
-Every run is read through ``ppprops.report.run_summary`` (the ``show --json`` object). Runs are
+Every run is read through ``ppprops.summary.run_summary`` (the ``show --json`` object). Runs are
 grouped by (task, method, top-K): K = 10 is the paper's default and needs no mark; other K are
 their own column ("vanilla (unbounded)" for K = 0). Over the seeds of a group we report the mean
 and the population standard deviation (numpy's default) of
@@ -257,14 +257,14 @@ def write_report(root: Path, out: Path | None = None) -> Path:
         MissingExtraError: matplotlib (the ``report`` extra) is not installed.
     """
     require_matplotlib()
-    from ..store import find_runs
+    from ..rundir import DB_NAME, find_runs
     from . import html as html_page
     from . import plots
 
     root = Path(root)
     paths = find_runs(root)
     if not paths:
-        raise ConfigError(f"{root} holds no run directories (no run.sqlite under it, nor under {root}/runs)")
+        raise ConfigError(f"{root} holds no run directories (no {DB_NAME} under it, nor under {root}/runs)")
     runs: list[RunRecord] = []
     unreadable: list[str] = []
     for p in paths:

@@ -4,7 +4,7 @@ Each attack estimates one secret of the paper's scheme from what the provider sa
 scale c, or the parameter scales a_j. It reads nothing from the store but the request bodies,
 and knows only what docs/threat-model.md grants the provider (the task, its public box, its
 reward structure and time limit, the warm-up procedure, this open-source code). Results are
-compared with the true secrets afterwards, by ``ppprops.privacy.report``.
+compared with the true secrets afterwards, by ``ppprops.privacy.matrix``.
 
 Reward scale c: ``diagnostic`` (a diagnostic that determines the return, e.g. CartPole's
 episode length), ``lattice`` (integer returns: the gcd of differences of printed returns),

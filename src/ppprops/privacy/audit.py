@@ -50,10 +50,11 @@ import numpy as np
 from .. import seeding
 from ..client.secrets import Secrets
 from ..config import RunConfig
-from ..errors import KeyFileError, StoreError
+from ..errors import StoreError
 from ..methods import Mechanisms
 from ..proposers.llm import stall_count
-from ..store import Candidate, open_store
+from ..rundir import open_run
+from ..store import Candidate
 from ..wire.encoded import EncodedEntry
 from ..wire.forms import CHAT, CRITIC, ENDPOINT_COMPLETIONS, FORMS, FormRequest, PromptForm
 from ..wire.transcript import ShownEntry, number_tokens, outside_entries
@@ -907,18 +908,13 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise StoreError(f"{run_dir} is not a directory")
-    with open_store(run_dir) as store:
-        config = search_config(store.config(), run_dir)
+    with open_run(run_dir) as run:
+        store = run.store
+        config = search_config(run.stored, run_dir)
         candidates = store.candidates()
         calls = store.llm_calls()
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
-        run_id, fingerprint = store.run_id(), store.key_fingerprint()
         keyed = store.streams_keyed()
-    secrets = None
-    if (run_dir / "secrets.key").exists():
-        try:
-            secrets = Secrets.load(run_dir / "secrets.key", run_id=run_id, D=config.make_task().D, fingerprint=fingerprint)
-        except KeyFileError:
-            secrets = None
+        secrets = run.load_secrets(optional=True)  # a key file that does not load counts as absent
     return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
                    adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed).run()

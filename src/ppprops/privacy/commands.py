@@ -101,8 +101,8 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         StoreError, KeyFileError: a run directory or key file that cannot be read.
         LLMError: the embedded model could not serve a new run.
     """
-    from ..store import DB_NAME, KEY_NAME, find_runs
-    from .report import privacy_report, run_matrix, write_report
+    from ..rundir import DB_NAME, KEY_NAME, find_runs
+    from .matrix import privacy_report, run_matrix, write_report
 
     if a.runs is not None:
         dirs = find_runs(a.runs, recursive=True, with_key=True)

@@ -59,7 +59,7 @@ class Exposure:
 @dataclass(frozen=True)
 class SimOutcome:
     """What one simulator attack recovered on a run, exposing or not: errors of c and a (error
-    factor - 1, as ``privacy.report``), the prior guess's errors, and the raw return's."""
+    factor - 1, as ``privacy.matrix``), the prior guess's errors, and the raw return's."""
 
     attack: str
     target: str

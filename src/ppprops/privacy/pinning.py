@@ -39,20 +39,19 @@ def _err(est: float | np.ndarray, true: float | np.ndarray) -> Any:
 def measure(out: Path, envs: Sequence[str], seeds: int, shown: Sequence[int], warmup: int, iterations: int,
             limits: SimLimits, log: Any = print) -> list[dict[str, Any]]:
     """Every (task, scheme, seed, N, mode) fit, scored: a list of JSON rows."""
-    from ..client.secrets import Secrets
-    from ..store import open_store
+    from ..rundir import open_run
     from .audit import search_config
-    from .report import run_matrix
+    from .matrix import run_matrix
 
     dirs = run_matrix(out, envs=envs, seeds=range(seeds), warmup=warmup, iterations=iterations, final_episodes=0,
                       log=log, offline=True)
     rows = []
     for d in dirs:
-        with open_store(d) as store:
-            config = search_config(store.config(), d)
-            task = config.make_task()
-            secrets = Secrets.load(d / "secrets.key", run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
-            cands = store.candidates()
+        with open_run(d) as run:
+            config = search_config(run.stored, d)
+            task = run.task
+            secrets = run.load_secrets()
+            cands = run.store.candidates()
         requests = load_requests(d)
         for n in shown:
             k = next((k for k in range(1, len(requests) + 1) if len(view_of(requests[:k], task, config.box).entries) >= n), None)

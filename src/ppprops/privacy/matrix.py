@@ -18,9 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..client.secrets import Secrets
 from ..errors import ConfigError
-from ..store import open_store
+from ..rundir import open_run, policy_path
 from ..tasks.base import Task
 from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
@@ -80,13 +79,13 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
     StoreError / KeyFileError for an unreadable run or key file.
     """
     run_dir = Path(run_dir)
-    with open_store(run_dir) as store:
-        config = search_config(store.config(), run_dir)
-        task = config.make_task()
-        secrets = Secrets.load(run_dir / "secrets.key", run_id=store.run_id(), D=task.D, fingerprint=store.key_fingerprint())
-        cands = store.candidates()
-        fe = store.final_eval()
-        calls = store.llm_calls()
+    with open_run(run_dir) as run:
+        config = search_config(run.stored, run_dir)
+        task = run.task
+        secrets = run.load_secrets()
+        cands = run.store.candidates()
+        fe = run.store.final_eval()
+        calls = run.store.llm_calls()
     m = config.mechanisms
     true_c = secrets.c if m.scale_rewards else 1.0
     true_a = np.asarray(secrets.a) if m.encode_params else np.ones(task.D)
@@ -99,7 +98,7 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
     report = audit_run(run_dir, limits=limits, simulate=simulate)
     out.audit = report.verdict()
     requests = load_requests(run_dir)
-    out.model = _model_of(run_dir) if requests else ""
+    out.model = _model_of(calls) if requests else ""
     estimates = report.estimates or run_attacks(requests, task, config.box, limits=limits, simulate=simulate)
     for est in estimates:
         if est.not_run:
@@ -134,9 +133,8 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
     return out
 
 
-def _model_of(run_dir: Path) -> str:
-    with open_store(run_dir) as store:
-        calls = store.llm_calls()
+def _model_of(calls: Sequence[dict[str, Any]]) -> str:
+    """The model named in the first recorded request body (the offline stand-in sends none)."""
     try:
         if calls[0]["response"] is None and calls[0]["ok"]:
             return "offline stand-in (EchoOptimizer)"  # it answers without an HTTP response body
@@ -168,7 +166,7 @@ def run_matrix(
             for scheme in schemes:
                 d = Path(out) / f"{task.name}__{scheme}__{seed}"
                 dirs.append(d)
-                if (d / "best_policy.json").exists():
+                if policy_path(d).exists():
                     continue
                 if d.exists():
                     raise ConfigError(f"{d} holds an unfinished run; finish it with 'ppprops resume {d}' or remove it")

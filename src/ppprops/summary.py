@@ -8,11 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from .baselines.record import format_rl_summary, rl_summary
-from .config import RunConfig
 from .errors import PPPropsError
 from .loop import best_candidate, pooled_returns, search_candidates, select_best
+from .rundir import StoredRun, open_run
 from .status import RunKind, RunStatus, effective
-from .store import open_store
 
 
 def _finite(x: Any) -> Any:
@@ -55,98 +54,104 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
     Keys: run_id, status, env, method, mechanisms, seed, config, endpoint_changes (LLM endpoints
     changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
     too). Raises StoreError for a directory that holds no readable run."""
-    with open_store(run_dir) as store:
-        if RunKind.of_config(store.config()) is RunKind.RL:  # same keys, no candidates, plus "training"
-            return rl_summary(store)
-        config = RunConfig.from_json(store.config())
-        cands = store.candidates()
-        calls = store.llm_calls()
-        adaptations = store.llm_adaptations()
-        fe = store.final_eval()
-        pending = store.pending_trial()
-        search = search_candidates(cands)
-        best = select_best(cands) if search else None
-        first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
-        pooled = pooled_returns(cands).get(best.index) if best is not None else None
-        status, reason = effective(store.status(), run_dir)
-        notes = []
-        from .wire.forms import FORMS
+    with open_run(run_dir) as run:
+        return summarize(run)
 
-        quiet = [str(c["form"]) for c in calls if c.get("form") in FORMS and not FORMS[str(c["form"])].shows_feedback]
-        if config.mechanisms.detailed_feedback and quiet:
-            try:
-                task = config.make_task()
-                declared = [*task.components, *(d for d in task.diagnostics if d != "episode_length")]
-            except PPPropsError:
-                declared = []
-            if declared:
-                notes.append(f"the {quiet[0]} form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
-                             "(--prompt-form chat shows them)")
-        return _finite({
-            "run_id": store.run_id(),
-            "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
-            "pending_trial": None if pending is None else pending.number,
-            "notes": notes,
-            "env": config.task,
-            "method": config.method,
-            "mechanisms": config.mechanisms.to_json(),
-            "seed": config.seed,
-            "config": config.to_json(),
-            "endpoint_changes": store.endpoint_changes(),
-            "best": {"return": best.ret, "index": best.index,
-                     "selection": {"mean": float(sum(pooled) / len(pooled)), "episodes": len(pooled)} if pooled else None,
-                     "search_best": {"return": first_pick.ret, "index": first_pick.index} if first_pick is not None else None}
-            if best else None,
-            "final_eval": {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "returns": list(fe.returns)}
-            if fe is not None and fe.returns
-            else None,
-            "counts": {
-                "candidates": len(cands),
-                "warmup": sum(c.source == "warmup" for c in cands),
-                "llm": sum(c.source == "llm" for c in cands),
-                "fallback": sum(c.source == "fallback" for c in cands),
-                "by_source": dict(Counter(c.source for c in cands)),
-                "clipped_candidates": sum(c.clipped > 0 for c in cands),
-                "episodes": {"search": sum(len(c.seeds) or 1 for c in search),
-                             "selection": sum(len(c.seeds) or 1 for c in cands if c.reevaluates is not None),
-                             "final": len(fe.returns) if fe is not None else 0},
-                "llm_calls": len(calls),
-                "request_adaptations": len(adaptations),
-                **_fault_counts(cands, calls),
-            },
-            "llm_adaptations": [{"iteration": a["iteration"], "change": a["change"]} for a in adaptations],
-            "candidates": [
-                {
-                    "index": c.index,
-                    "iteration": c.iteration,
-                    "source": c.source,
-                    "params": [float(v) for v in c.params],
-                    "return": c.ret,
-                    "components": c.feedback.components,
-                    "diagnostics": c.feedback.diagnostics,
-                    "clipped": c.clipped,
-                    "note": c.note,
-                    "reevaluates": c.reevaluates,
-                }
-                for c in cands
-            ],
-            "llm_calls": [
-                {
-                    "iteration": call["iteration"],
-                    "attempt": call["attempt"],
-                    "latency_s": call["latency_s"],
-                    "prompt_tokens": call["prompt_tokens"],
-                    "completion_tokens": call["completion_tokens"],
-                    "prompt_chars": call["prompt_chars"],
-                    "ok": call["ok"] and call["parse_error"] is None,
-                    "error": call["error"] or call["parse_error"],
-                    "error_kind": call["error_kind"] or call["parse_error"],
-                    "retry": call["retry"],
-                    "answer_source": call["answer_source"],
-                }
-                for call in calls
-            ],
-        })
+
+def summarize(run: StoredRun) -> dict[str, Any]:
+    """``run_summary``'s object for a run already open (``rundir.open_run``)."""
+    store = run.store
+    if run.kind is RunKind.RL:  # same keys, no candidates, plus "training"
+        return rl_summary(store)
+    config = run.config
+    cands = store.candidates()
+    calls = store.llm_calls()
+    adaptations = store.llm_adaptations()
+    fe = store.final_eval()
+    pending = store.pending_trial()
+    search = search_candidates(cands)
+    best = select_best(cands) if search else None
+    first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
+    pooled = pooled_returns(cands).get(best.index) if best is not None else None
+    status, reason = effective(store.status(), run.path)
+    notes = []
+    from .wire.forms import FORMS
+
+    quiet = [str(c["form"]) for c in calls if c.get("form") in FORMS and not FORMS[str(c["form"])].shows_feedback]
+    if config.mechanisms.detailed_feedback and quiet:
+        try:
+            task = run.task
+            declared = [*task.components, *(d for d in task.diagnostics if d != "episode_length")]
+        except PPPropsError:
+            declared = []
+        if declared:
+            notes.append(f"the {quiet[0]} form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
+                         "(--prompt-form chat shows them)")
+    return _finite({
+        "run_id": store.run_id(),
+        "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
+        "pending_trial": None if pending is None else pending.number,
+        "notes": notes,
+        "env": config.task,
+        "method": config.method,
+        "mechanisms": config.mechanisms.to_json(),
+        "seed": config.seed,
+        "config": config.to_json(),
+        "endpoint_changes": store.endpoint_changes(),
+        "best": {"return": best.ret, "index": best.index,
+                 "selection": {"mean": float(sum(pooled) / len(pooled)), "episodes": len(pooled)} if pooled else None,
+                 "search_best": {"return": first_pick.ret, "index": first_pick.index} if first_pick is not None else None}
+        if best else None,
+        "final_eval": {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "returns": list(fe.returns)}
+        if fe is not None and fe.returns
+        else None,
+        "counts": {
+            "candidates": len(cands),
+            "warmup": sum(c.source == "warmup" for c in cands),
+            "llm": sum(c.source == "llm" for c in cands),
+            "fallback": sum(c.source == "fallback" for c in cands),
+            "by_source": dict(Counter(c.source for c in cands)),
+            "clipped_candidates": sum(c.clipped > 0 for c in cands),
+            "episodes": {"search": sum(len(c.seeds) or 1 for c in search),
+                         "selection": sum(len(c.seeds) or 1 for c in cands if c.reevaluates is not None),
+                         "final": len(fe.returns) if fe is not None else 0},
+            "llm_calls": len(calls),
+            "request_adaptations": len(adaptations),
+            **_fault_counts(cands, calls),
+        },
+        "llm_adaptations": [{"iteration": a["iteration"], "change": a["change"]} for a in adaptations],
+        "candidates": [
+            {
+                "index": c.index,
+                "iteration": c.iteration,
+                "source": c.source,
+                "params": [float(v) for v in c.params],
+                "return": c.ret,
+                "components": c.feedback.components,
+                "diagnostics": c.feedback.diagnostics,
+                "clipped": c.clipped,
+                "note": c.note,
+                "reevaluates": c.reevaluates,
+            }
+            for c in cands
+        ],
+        "llm_calls": [
+            {
+                "iteration": call["iteration"],
+                "attempt": call["attempt"],
+                "latency_s": call["latency_s"],
+                "prompt_tokens": call["prompt_tokens"],
+                "completion_tokens": call["completion_tokens"],
+                "prompt_chars": call["prompt_chars"],
+                "ok": call["ok"] and call["parse_error"] is None,
+                "error": call["error"] or call["parse_error"],
+                "error_kind": call["error_kind"] or call["parse_error"],
+                "retry": call["retry"],
+                "answer_source": call["answer_source"],
+            }
+            for call in calls
+        ],
+    })
 
 
 def _endpoint(e: dict[str, Any]) -> str:
