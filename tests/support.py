@@ -2,13 +2,6 @@
 
 from __future__ import annotations
 
-import http.server
-import threading
-import urllib.error
-import urllib.request
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 from ppprops.config import LLMConfig, RunConfig
 from ppprops.methods import resolve
 
@@ -21,55 +14,6 @@ def make_config(task: str = "CartPole", method: str = "pp", **kw: object) -> Run
     base = dict(warmup=3, iterations=3, top_k=10, episodes=1, final_episodes=3, seed=0, prompt_form="chat", select_top=0)
     base.update(kw)
     return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)  # type: ignore[arg-type]
-
-
-
-
-class _Recorder(http.server.BaseHTTPRequestHandler):
-    """Forwards each request to the upstream server and keeps the exact bytes it was sent."""
-
-    upstream = ""
-    captured: list[bytes] = []
-
-    def _forward(self) -> None:
-        length = int(self.headers.get("Content-Length") or 0)
-        body = self.rfile.read(length) if length else b""
-        head = f"{self.command} {self.path} {self.request_version}\r\n" + "".join(f"{k}: {v}\r\n" for k, v in self.headers.items())
-        self.captured.append(head.encode() + b"\r\n" + body)
-        req = urllib.request.Request(self.upstream + self.path, data=body or None, method=self.command)
-        for k, v in self.headers.items():
-            if k.lower() not in ("host", "content-length", "connection", "accept-encoding"):
-                req.add_header(k, v)
-        try:
-            with urllib.request.urlopen(req, timeout=600) as resp:
-                status, data, ctype = resp.status, resp.read(), resp.headers.get("Content-Type", "application/json")
-        except urllib.error.HTTPError as e:
-            status, data, ctype = e.code, e.read(), e.headers.get("Content-Type", "application/json")
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(data)))
-        self.end_headers()
-        self.wfile.write(data)
-
-    do_GET = do_POST = _forward
-
-    def log_message(self, *args: object) -> None:
-        pass
-
-
-@contextmanager
-def recording_proxy(upstream: str) -> Iterator[tuple[str, list[bytes]]]:
-    """A loopback HTTP proxy in front of ``upstream``; yields (its URL, the list of raw requests)."""
-    captured: list[bytes] = []
-    handler = type("Handler", (_Recorder,), {"upstream": upstream.rstrip("/"), "captured": captured})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}", captured
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def doc_block(doc: str, first_line: str) -> str:
