@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import sqlite3
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
 from ppprops.config import LLMConfig, RunConfig
 from ppprops.methods import resolve
 
@@ -21,3 +27,81 @@ def doc_block(doc: str, first_line: str) -> str:
     to its closing fence: the code exactly as the page shows it."""
     start = doc.index(first_line + "\n")
     return doc[start:doc.index("```", start)]
+
+
+# -- forging a recorded LLM call (the audit must catch what the client would not have sent) ------------------------
+Call = dict[str, Any]
+Which = int | Call | Callable[[Call], bool]
+Edit = dict[str, Any] | Callable[[dict[str, Any]], "dict[str, Any] | None"]
+_KEEP: Any = object()
+
+
+def recorded_calls(run_dir: Path) -> list[Call]:
+    """Every recorded LLM call of a run, oldest first: the ``llm_calls`` columns as stored (read with
+    plain SQL, not the store), plus ``body``, the request parsed from JSON, and ``decisions`` parsed
+    (None where none was recorded)."""
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    try:
+        db.row_factory = sqlite3.Row
+        rows = [dict(r) for r in db.execute("SELECT * FROM llm_calls ORDER BY id")]
+    finally:
+        db.close()
+    for r in rows:
+        r["body"] = json.loads(r["request"])
+        r["decisions"] = json.loads(r["decisions"]) if r.get("decisions") else None
+    return rows
+
+
+def find_call(run_dir: Path, which: Which = -1) -> Call:
+    """One recorded call (as ``recorded_calls`` gives it): the ``which``-th in id order (0 the first,
+    -1 the last), the first for which ``which(call)`` is true, or, given a call, that call as stored now.
+
+    Raises:
+        AssertionError: no call is picked.
+    """
+    calls = recorded_calls(run_dir)
+    if isinstance(which, int):
+        assert calls and -len(calls) <= which < len(calls), f"no call {which} of {len(calls)}"
+        return calls[which]
+    if isinstance(which, dict):
+        picked = [c for c in calls if c["id"] == which["id"]]
+    else:
+        picked = [c for c in calls if which(c)]
+    assert picked, "no recorded call of that form"
+    return picked[0]
+
+
+def _edited(old: dict[str, Any], edit: Edit) -> dict[str, Any]:
+    if isinstance(edit, dict):
+        return edit
+    new = edit(old)
+    assert new is None or isinstance(new, dict), f"an edit returns the new document or None, not {new!r}"
+    return old if new is None else new
+
+
+def tamper_call(run_dir: Path, which: Which = -1, *, request: Edit | None = None, content: str | None = _KEEP,
+                decisions: Edit | None = None) -> int:
+    """Forge one recorded LLM call of ``run_dir`` with plain SQL, as if the client had sent (or been
+    answered) something else, and return its id. ``which`` picks the call as ``find_call`` does.
+
+    ``request`` is the new request body (a dict), or a function of the recorded body (parsed) that
+    returns the new one or edits it in place and returns None; ``decisions`` the same for the
+    recorded decisions; ``content`` the new content column (a string, or None). What is not given
+    stays as recorded.
+    """
+    call = find_call(run_dir, which)
+    changes: dict[str, Any] = {}
+    if request is not None:
+        changes["request"] = json.dumps(_edited(call["body"], request))
+    if decisions is not None:
+        changes["decisions"] = json.dumps(_edited(call["decisions"] or {}, decisions))
+    if content is not _KEEP:
+        changes["content"] = content
+    assert changes, "nothing to change"
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    try:
+        db.execute(f"UPDATE llm_calls SET {', '.join(f'{k} = ?' for k in changes)} WHERE id = ?", (*changes.values(), call["id"]))
+        db.commit()
+    finally:
+        db.close()
+    return int(call["id"])
