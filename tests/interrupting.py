@@ -1,11 +1,9 @@
 """Helpers for Ctrl-C tests: a `ppprops` subprocess in its own process group (as a terminal runs
-it), its stderr read as it comes, and a small LLM endpoint that answers a few requests and then
-stalls (so a test can signal while a later request is in flight)."""
+it), its stderr read as it comes. (An LLM endpoint that answers a few requests and then stalls, so
+a test can signal while a later request is in flight, is the fault server's ``hold_after``.)"""
 
 from __future__ import annotations
 
-import http.server
-import json
 import os
 import signal
 import sqlite3
@@ -13,8 +11,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 EXIT_WITHIN_S = 10.0  # generous: a loaded 2-core machine; the run itself needs well under a second
@@ -101,53 +98,3 @@ class Launched:
         except ProcessLookupError:
             pass
         self.proc.wait()
-
-
-class _Stalling(http.server.BaseHTTPRequestHandler):
-    """Answers the first ``fast`` chat requests with a valid vector, then holds each request open."""
-
-    fast = 0
-    seen: list[int] = []
-    release = threading.Event()
-
-    def do_POST(self) -> None:  # noqa: N802
-        body = json.loads(self.rfile.read(int(self.headers.get("Content-Length") or 0)) or b"{}")
-        self.seen.append(1)
-        if len(self.seen) > self.fast:
-            self.release.wait(600)
-            return
-        from ppprops.testing.fault_server import requested_dim
-
-        D = requested_dim(body) or 1
-        n = len(self.seen)  # a different vector per answer: a repeat of a history entry would be asked again
-        content = json.dumps({"params": [round(0.1 * ((i + n) % 7) - 0.3 + 0.01 * n, 2) for i in range(D)]})
-        data = json.dumps({"id": "x", "object": "chat.completion", "created": 0, "model": body.get("model", "m"),
-                           "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
-                           "usage": {"prompt_tokens": 10, "completion_tokens": D, "total_tokens": 10 + D}}).encode()  # fmt: skip
-        self.send_response(200)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(data)))
-        self.end_headers()
-        self.wfile.write(data)
-
-    def log_message(self, *args: object) -> None:
-        pass
-
-
-@contextmanager
-def stalling_endpoint(fast: int) -> Iterator[tuple[str, list[int]]]:
-    """An OpenAI-compatible endpoint (URL ends in /v1) that answers ``fast`` requests, then stalls;
-    yields (base URL, the list that grows by one per request received)."""
-    seen: list[int] = []
-    release = threading.Event()
-    handler = type("Handler", (_Stalling,), {"fast": fast, "seen": seen, "release": release})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    server.daemon_threads = True
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}/v1", seen
-    finally:
-        release.set()
-        server.shutdown()
-        server.server_close()

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import http.server
-import threading
-import urllib.error
-import urllib.request
-from collections.abc import Iterator
+import json
+import sqlite3
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
 
 from ppprops.config import LLMConfig, RunConfig
 from ppprops.methods import resolve
@@ -21,55 +21,6 @@ def make_config(task: str = "CartPole", method: str = "pp", **kw: object) -> Run
     base = dict(warmup=3, iterations=3, top_k=10, episodes=1, final_episodes=3, seed=0, prompt_form="chat", select_top=0)
     base.update(kw)
     return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)  # type: ignore[arg-type]
-
-
-
-
-class _Recorder(http.server.BaseHTTPRequestHandler):
-    """Forwards each request to the upstream server and keeps the exact bytes it was sent."""
-
-    upstream = ""
-    captured: list[bytes] = []
-
-    def _forward(self) -> None:
-        length = int(self.headers.get("Content-Length") or 0)
-        body = self.rfile.read(length) if length else b""
-        head = f"{self.command} {self.path} {self.request_version}\r\n" + "".join(f"{k}: {v}\r\n" for k, v in self.headers.items())
-        self.captured.append(head.encode() + b"\r\n" + body)
-        req = urllib.request.Request(self.upstream + self.path, data=body or None, method=self.command)
-        for k, v in self.headers.items():
-            if k.lower() not in ("host", "content-length", "connection", "accept-encoding"):
-                req.add_header(k, v)
-        try:
-            with urllib.request.urlopen(req, timeout=600) as resp:
-                status, data, ctype = resp.status, resp.read(), resp.headers.get("Content-Type", "application/json")
-        except urllib.error.HTTPError as e:
-            status, data, ctype = e.code, e.read(), e.headers.get("Content-Type", "application/json")
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(data)))
-        self.end_headers()
-        self.wfile.write(data)
-
-    do_GET = do_POST = _forward
-
-    def log_message(self, *args: object) -> None:
-        pass
-
-
-@contextmanager
-def recording_proxy(upstream: str) -> Iterator[tuple[str, list[bytes]]]:
-    """A loopback HTTP proxy in front of ``upstream``; yields (its URL, the list of raw requests)."""
-    captured: list[bytes] = []
-    handler = type("Handler", (_Recorder,), {"upstream": upstream.rstrip("/"), "captured": captured})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}", captured
-    finally:
-        server.shutdown()
-        server.server_close()
 
 
 def doc_block(doc: str, first_line: str) -> str:
@@ -109,3 +60,81 @@ def document_request(prompt: str, D: int, *, iteration: int = 0, attempt: int = 
     return FormRequest(DOCUMENT.name, DOCUMENT.endpoint, D, iteration, attempt, prompt=prompt,
                        sampling={"temperature": temperature, **(sampling or {})}, answer_tokens=answer_budget(D, labels=True),
                        grammar=grammar, stop=("]",))
+
+
+# -- forging a recorded LLM call (the audit must catch what the client would not have sent) ------------------------
+Call = dict[str, Any]
+Which = int | Call | Callable[[Call], bool]
+Edit = dict[str, Any] | Callable[[dict[str, Any]], "dict[str, Any] | None"]
+_KEEP: Any = object()
+
+
+def recorded_calls(run_dir: Path) -> list[Call]:
+    """Every recorded LLM call of a run, oldest first: the ``llm_calls`` columns as stored (read with
+    plain SQL, not the store), plus ``body``, the request parsed from JSON, and ``decisions`` parsed
+    (None where none was recorded)."""
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    try:
+        db.row_factory = sqlite3.Row
+        rows = [dict(r) for r in db.execute("SELECT * FROM llm_calls ORDER BY id")]
+    finally:
+        db.close()
+    for r in rows:
+        r["body"] = json.loads(r["request"])
+        r["decisions"] = json.loads(r["decisions"]) if r.get("decisions") else None
+    return rows
+
+
+def find_call(run_dir: Path, which: Which = -1) -> Call:
+    """One recorded call (as ``recorded_calls`` gives it): the ``which``-th in id order (0 the first,
+    -1 the last), the first for which ``which(call)`` is true, or, given a call, that call as stored now.
+
+    Raises:
+        AssertionError: no call is picked.
+    """
+    calls = recorded_calls(run_dir)
+    if isinstance(which, int):
+        assert calls and -len(calls) <= which < len(calls), f"no call {which} of {len(calls)}"
+        return calls[which]
+    if isinstance(which, dict):
+        picked = [c for c in calls if c["id"] == which["id"]]
+    else:
+        picked = [c for c in calls if which(c)]
+    assert picked, "no recorded call of that form"
+    return picked[0]
+
+
+def _edited(old: dict[str, Any], edit: Edit) -> dict[str, Any]:
+    if isinstance(edit, dict):
+        return edit
+    new = edit(old)
+    assert new is None or isinstance(new, dict), f"an edit returns the new document or None, not {new!r}"
+    return old if new is None else new
+
+
+def tamper_call(run_dir: Path, which: Which = -1, *, request: Edit | None = None, content: str | None = _KEEP,
+                decisions: Edit | None = None) -> int:
+    """Forge one recorded LLM call of ``run_dir`` with plain SQL, as if the client had sent (or been
+    answered) something else, and return its id. ``which`` picks the call as ``find_call`` does.
+
+    ``request`` is the new request body (a dict), or a function of the recorded body (parsed) that
+    returns the new one or edits it in place and returns None; ``decisions`` the same for the
+    recorded decisions; ``content`` the new content column (a string, or None). What is not given
+    stays as recorded.
+    """
+    call = find_call(run_dir, which)
+    changes: dict[str, Any] = {}
+    if request is not None:
+        changes["request"] = json.dumps(_edited(call["body"], request))
+    if decisions is not None:
+        changes["decisions"] = json.dumps(_edited(call["decisions"] or {}, decisions))
+    if content is not _KEEP:
+        changes["content"] = content
+    assert changes, "nothing to change"
+    db = sqlite3.connect(run_dir / "run.sqlite")
+    try:
+        db.execute(f"UPDATE llm_calls SET {', '.join(f'{k} = ?' for k in changes)} WHERE id = ?", (*changes.values(), call["id"]))
+        db.commit()
+    finally:
+        db.close()
+    return int(call["id"])

@@ -8,7 +8,6 @@ offline stand-in for the LLM, and test_privacy_wire.py audits runs with the embe
 from __future__ import annotations
 
 import json
-import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +31,7 @@ from ppprops.tasks import get_task
 from ppprops.wire import build_prompt, top_k
 from ppprops.wire.numbers import fmt, fmt_sig, fmt_vector
 
-from support import chat_request, make_config, offline_llm
+from support import chat_request, find_call, make_config, offline_llm, tamper_call
 
 
 def shown_vector(values: object) -> str:
@@ -98,23 +97,15 @@ def small_simulations(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def _last_request(run_dir: Path) -> tuple[int, str]:
-    db = sqlite3.connect(run_dir / "run.sqlite")
-    row = db.execute("SELECT id, request FROM llm_calls ORDER BY id DESC LIMIT 1").fetchone()
-    db.close()
-    return int(row[0]), json.loads(row[1])["messages"][0]["content"]
+    call = find_call(run_dir)
+    return int(call["id"]), call["body"]["messages"][0]["content"]
 
 
 def plant(run_dir: Path, old: str, new: str) -> None:
     """Rewrite the last recorded request, as if the client had sent ``new`` where it sent ``old``."""
-    call_id, text = _last_request(run_dir)
+    _, text = _last_request(run_dir)
     assert text.count(old) >= 1, old
-    db = sqlite3.connect(run_dir / "run.sqlite")
-    row = db.execute("SELECT request FROM llm_calls WHERE id = ?", (call_id,)).fetchone()
-    body = json.loads(row[0])
-    body["messages"][0]["content"] = text.replace(old, new, 1)
-    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call_id))
-    db.commit()
-    db.close()
+    tamper_call(run_dir, request=lambda body: body["messages"][0].update(content=text.replace(old, new, 1)))
 
 
 def _shown_candidate(run_dir: Path) -> Candidate:

@@ -35,7 +35,7 @@ from ppprops.wire.parse import final_text
 from ppprops.wire.prompt import build_correction
 from ppprops.wire.turns import ECHO_CHARS, REPEATS_HISTORY, correction_messages
 
-from support import make_config
+from support import make_config, recorded_calls, tamper_call
 
 D = 10  # CartPole
 RUN_SEED = 913_572_448
@@ -154,28 +154,12 @@ def _raw_return(run: Path) -> int:
     return next(int(c.ret) for c in cands if c.ret >= 20 and float(c.ret).is_integer())
 
 
-def _edit(run: Path, pick: Callable[[dict[str, Any], dict[str, Any]], bool], change: Callable[[dict[str, Any]], None]) -> int:
-    """Rewrite the first recorded request ``pick(row, body)`` selects; returns its call id."""
-    db = sqlite3.connect(run / "run.sqlite")
-    try:
-        for call_id, body, attempt, iteration in db.execute("SELECT id, request, attempt, iteration FROM llm_calls ORDER BY id"):
-            doc = json.loads(body)
-            if pick({"id": call_id, "attempt": attempt, "iteration": iteration}, doc):
-                change(doc)
-                db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
-                db.commit()
-                return int(call_id)
-    finally:
-        db.close()
-    raise AssertionError("no request of that form")
+def _one_message_correction(call: dict[str, Any]) -> bool:
+    return call["attempt"] >= 1 and len(call["body"]["messages"]) == 1
 
 
-def _one_message_correction(row: dict[str, Any], doc: dict[str, Any]) -> bool:
-    return row["attempt"] >= 1 and len(doc["messages"]) == 1
-
-
-def _echo(row: dict[str, Any], doc: dict[str, Any]) -> bool:
-    return len(doc["messages"]) == 3
+def _echo(call: dict[str, Any]) -> bool:
+    return len(call["body"]["messages"]) == 3
 
 
 def _in_correction(doc: dict[str, Any], i: int, text: str) -> None:
@@ -184,16 +168,16 @@ def _in_correction(doc: dict[str, Any], i: int, text: str) -> None:
     doc["messages"][i]["content"] = doc["messages"][i]["content"].replace(head, f"That answer could not be used {text}: ", 1)
 
 
-PLANTS: dict[str, tuple[Callable[[dict[str, Any], dict[str, Any]], bool], Callable[[dict[str, Any], int], None]]] = {
+PLANTS: dict[str, tuple[Callable[[dict[str, Any]], bool], Callable[[dict[str, Any], int], None]]] = {
     "the one-message correction": (_one_message_correction, lambda d, r: _in_correction(d, 0, f"(the best return is {r})")),
     "the echoed assistant turn": (_echo, lambda d, r: d["messages"][1].update(
         content=d["messages"][1]["content"] + f" The best return so far is {r}.")),
     "the echoed assistant turn, replaced": (_echo, lambda d, r: d["messages"][1].update(content=f"My return was {r}.")),
     "the correction turn": (_echo, lambda d, r: _in_correction(d, 2, f"(the best return is {r})")),
-    "the adapted token field": (lambda row, d: "max_completion_tokens" in d, lambda d, r: d.update(max_completion_tokens=r)),
-    "the renamed token field sent again": (lambda row, d: "max_completion_tokens" in d, lambda d, r: d.update(max_tokens=r)),
-    "the dropped seed sent again": (lambda row, d: "seed" not in d, lambda d, r: d.update(seed=r)),
-    "the dropped temperature sent again": (lambda row, d: "temperature" not in d, lambda d, r: d.update(temperature=r)),
+    "the adapted token field": (lambda c: "max_completion_tokens" in c["body"], lambda d, r: d.update(max_completion_tokens=r)),
+    "the renamed token field sent again": (lambda c: "max_completion_tokens" in c["body"], lambda d, r: d.update(max_tokens=r)),
+    "the dropped seed sent again": (lambda c: "seed" not in c["body"], lambda d, r: d.update(seed=r)),
+    "the dropped temperature sent again": (lambda c: "temperature" not in c["body"], lambda d, r: d.update(temperature=r)),
 }
 
 
@@ -204,7 +188,7 @@ def test_a_raw_value_planted_where_the_client_adapts_or_corrects_fails_the_audit
     shutil.copytree(persona_run, run)
     raw = _raw_return(run)
     pick, plant = PLANTS[where]
-    call_id = _edit(run, pick, lambda d: plant(d, raw))
+    call_id = tamper_call(run, pick, request=lambda d: plant(d, raw))  # the first recorded request pick selects
     r = audit_run(run)
     assert r.exit_code() == 1 and "raw_return" in {f.kind for f in r.leaks}, r.format()
     assert all(f"call {call_id} " in loc for f in r.leaks for loc in f.locations), r.format()
@@ -222,7 +206,7 @@ def test_a_correction_that_names_another_fault_is_unverified(persona_run: Path, 
         other = "the answer was empty" if "the answer was empty" not in tail else "the answer declined to propose parameters"
         doc["messages"][0]["content"] = text[: -len(tail)] + "\n\n" + build_correction(other, D)
 
-    call_id = _edit(run, _one_message_correction, swap)
+    call_id = tamper_call(run, _one_message_correction, request=swap)
     r = audit_run(run)
     assert not r.leaks and r.exit_code() == 1, r.format()
     assert r.unverified and all(f"call {call_id} " in loc for f in r.unverified for loc in f.locations), r.format()
@@ -233,25 +217,25 @@ def test_a_correction_after_an_answer_the_client_would_take_is_unverified(person
     """A 'repeats the history' correction is accounted for only if the answer did repeat a shown policy."""
     run = tmp_path / "run"
     shutil.copytree(persona_run, run)
-    db = sqlite3.connect(run / "run.sqlite")
-    rows = db.execute("SELECT id, iteration, attempt, request, content FROM llm_calls ORDER BY id").fetchall()
-    refused = next(r for r in rows if r[4] and r[4] == final_text(r[4]) and
-                   db.execute("SELECT parse_error FROM llm_calls WHERE id = ?", (r[0],)).fetchone()[0] == "repeats_history")
+    rows = recorded_calls(run)
+    refused = next(r for r in rows if r["content"] and r["content"] == final_text(r["content"]) and
+                   r["parse_error"] == "repeats_history")
     new = json.dumps({"params": [0.123] * D})  # a policy that is in no history
-    db.execute("UPDATE llm_calls SET content = ? WHERE id = ?", (new, refused[0]))
-    after = [r for r in rows if r[0] > refused[0] and r[1] == refused[1] and r[2] == refused[2] + 1]  # every try of the correction
-    for call_id, _, _, body, _ in after:
-        doc = json.loads(body)
-        assert doc["messages"][1]["content"] == refused[4].strip()
+    tamper_call(run, refused, content=new)
+    after = [r for r in rows if r["id"] > refused["id"] and r["iteration"] == refused["iteration"] and
+             r["attempt"] == refused["attempt"] + 1]  # every try of the correction
+
+    def echo_new(doc: dict[str, Any]) -> None:
+        assert doc["messages"][1]["content"] == refused["content"].strip()
         doc["messages"][1]["content"] = new  # the echo stays the answer's own text
-        db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
-    db.commit()
-    db.close()
+
+    for call in after:
+        tamper_call(run, call, request=echo_new)
     r = audit_run(run)
     assert not r.leaks, r.format()
     assert [(f.detail, f.locations) for f in r.unverified] == [
         ("a correction after an answer the client takes (it repeats no policy of the history shown)",
-         [f"call {a[0]} (iteration {a[1]}, attempt {a[2]})" for a in after])], r.format()
+         [f"call {a['id']} (iteration {a['iteration']}, attempt {a['attempt']})" for a in after])], r.format()
 
 
 # -- a resumed run --------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -31,6 +32,8 @@ from ppprops.wire import EncodedEntry, PromptContext, build_document, continuati
 from ppprops.wire.document import document_temperature
 from ppprops.wire.forms import DOCUMENT
 from ppprops.wire.transcript import open_target
+
+from support import tamper_call
 
 
 def _ctx(**kw: object) -> PromptContext:
@@ -223,23 +226,20 @@ def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
 def test_audit_flags_a_raw_return_or_a_wrong_target_in_a_document(run_dir: Path, tmp_path: Path, tamper: str,
                                                                    kind: str) -> None:
     import shutil
-    import sqlite3
 
     copy = tmp_path / "run"
     shutil.copytree(run_dir, copy)
     with open_store(copy) as store:
-        call = store.llm_calls()[-1]
         # a raw return the audit must call raw_return: not the optimum (500), which it names as such
         optimum = RunConfig.from_json(store.config()).make_task().optimal_return
         best_raw = max(c.ret for c in store.candidates() if c.ret != optimum)
-    body = json.loads(call["request"])
-    at, tok = open_target(body["prompt"])  # type: ignore[misc]
-    new = f"{best_raw:.2f}" if tamper == "raw_return" else f"{float(tok) + 1.0:.2f}"
-    body["prompt"] = body["prompt"][:at] + new + body["prompt"][at + len(tok):]
-    db = sqlite3.connect(copy / "run.sqlite")
-    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call["id"]))
-    db.commit()
-    db.close()
+
+    def retarget(body: dict[str, Any]) -> None:  # the last recorded request
+        at, tok = open_target(body["prompt"])  # type: ignore[misc]
+        new = f"{best_raw:.2f}" if tamper == "raw_return" else f"{float(tok) + 1.0:.2f}"
+        body["prompt"] = body["prompt"][:at] + new + body["prompt"][at + len(tok):]
+
+    tamper_call(copy, request=retarget)
     report = audit_run(copy)
     assert not report.clean
     assert kind in {f.kind for f in report.leaks + report.unverified}
@@ -253,18 +253,6 @@ def _offline_document_run(root: Path, name: str = "off", **kw: object) -> Path:
     with offline_llm():
         start(replace(_config(), iterations=4, final_episodes=0, seed=123456789, **kw), out)
     return out
-
-
-def _rewrite_last(run_dir: Path, change: dict[str, object]) -> None:
-    import sqlite3
-
-    db = sqlite3.connect(run_dir / "run.sqlite")
-    call_id, request = db.execute("SELECT id, request FROM llm_calls ORDER BY id DESC LIMIT 1").fetchone()
-    body = json.loads(request)
-    body.update(change)
-    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call_id))
-    db.commit()
-    db.close()
 
 
 def test_offline_document_run_is_accounted_for_byte_by_byte(tmp_path: Path) -> None:
@@ -293,7 +281,7 @@ def test_offline_document_run_is_accounted_for_byte_by_byte(tmp_path: Path) -> N
 ])
 def test_a_document_request_the_client_would_not_send_is_unverified(tmp_path: Path, field: str, value: object, why: str) -> None:
     run_dir = _offline_document_run(tmp_path)
-    _rewrite_last(run_dir, {field: value})
+    tamper_call(run_dir, request=lambda body: body.update({field: value}))
     report = audit_run(run_dir)
     assert any(why in f.detail for f in report.unverified), report.format()
 
@@ -305,5 +293,5 @@ def test_a_raw_return_planted_in_a_document_field_is_a_leak(tmp_path: Path) -> N
         raw = min(c.ret for c in store.candidates() if c.ret != 500.0)  # not the optimum (that finding has its own kind)
     finally:
         store.close()
-    _rewrite_last(run_dir, {"user": f"best {raw:.4f}"})
+    tamper_call(run_dir, request=lambda body: body.update(user=f"best {raw:.4f}"))
     assert "raw_return" in {f.kind for f in audit_run(run_dir).leaks}

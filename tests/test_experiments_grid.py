@@ -244,54 +244,16 @@ def test_ray_gate_caps_requests_across_tasks(ray_local: Any) -> None:
 
 def test_llm_concurrency_cap_reaches_the_endpoint(tmp_path: Path) -> None:
     """Three runs against one endpoint with --llm-concurrency 1: never two requests in flight."""
-    import http.server
-    import threading
-    import urllib.request
-
     from ppprops.testing.fault_server import FaultConfig, FaultServer
 
-    state = {"now": 0, "most": 0, "n": 0}
-    lock = threading.Lock()
-
-    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("delay",), delay_max_s=0.2, seed=3)) as upstream:
-
-        class Counting(http.server.BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802
-                body = self.rfile.read(int(self.headers.get("Content-Length") or 0))
-                with lock:
-                    state["now"] += 1
-                    state["n"] += 1
-                    state["most"] = max(state["most"], state["now"])
-                try:
-                    req = urllib.request.Request(upstream.base_url.removesuffix("/v1") + self.path, data=body,
-                                                 headers={"Content-Type": "application/json"}, method="POST")  # fmt: skip
-                    with urllib.request.urlopen(req, timeout=60) as resp:
-                        data = resp.read()
-                finally:
-                    with lock:
-                        state["now"] -= 1
-                self.send_response(200)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        proxy = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Counting)
-        threading.Thread(target=proxy.serve_forever, daemon=True).start()
-        try:
-            url = f"http://127.0.0.1:{proxy.server_address[1]}/v1"
-            settings = {"warmup": 2, "iterations": 5, "final_episodes": 1, "base_url": url, "model": "synthetic"}
-            spec = build_spec(flags_table(["CartPole"], ["vanilla"], 3), overrides=settings,
-                              execution={"jobs": 3, "llm_concurrency": 1})  # fmt: skip
-            result = run_grid(spec, tmp_path / "g", log=lambda s: None)
-        finally:
-            proxy.shutdown()
-            proxy.server_close()
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("delay",), delay_max_s=0.2, seed=3)) as server:
+        settings = {"warmup": 2, "iterations": 5, "final_episodes": 1, "base_url": server.base_url, "model": "synthetic"}
+        spec = build_spec(flags_table(["CartPole"], ["vanilla"], 3), overrides=settings,
+                          execution={"jobs": 3, "llm_concurrency": 1})  # fmt: skip
+        result = run_grid(spec, tmp_path / "g", log=lambda s: None)
+        stats = server.stats()  # most_in_flight: the most requests the server held at once, read and not yet answered
     assert result.ok
-    assert state["n"] >= 15 and state["most"] == 1
+    assert stats["requests"] >= 15 and stats["most_in_flight"] == 1
 
 
 def test_rl_runs_in_a_grid_are_retrained_when_unfinished_and_reported(tmp_path: Path) -> None:

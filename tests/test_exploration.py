@@ -5,7 +5,6 @@ The decision is recorded with the call, made from public values only, and the au
 from __future__ import annotations
 
 import json
-import sqlite3
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -17,7 +16,7 @@ from ppprops.runner import start
 from ppprops.store import open_store
 from ppprops.wire.document import EXPLORE_SAMPLING, EXPLORE_TEMPERATURE, STALL_AFTER, TEMPERATURES
 
-from support import make_config
+from support import make_config, tamper_call
 
 
 class Stubborn:
@@ -76,10 +75,7 @@ def test_a_stuck_search_is_sampled_hotter_and_the_choice_is_recorded(tmp_path: P
 
 def test_a_decision_the_form_did_not_make_is_flagged(tmp_path: Path) -> None:
     run, _ = _run(tmp_path)
-    with sqlite3.connect(run / "run.sqlite") as db:
-        row_id, decisions = db.execute("SELECT id, decisions FROM llm_calls ORDER BY id LIMIT 1").fetchone()
-        forged = {**json.loads(decisions), "stalled": 7}  # a number the shown returns do not give
-        db.execute("UPDATE llm_calls SET decisions = ? WHERE id = ?", (json.dumps(forged), row_id))
+    tamper_call(run, 0, decisions=lambda d: {**d, "stalled": 7})  # the first call: a number the shown returns do not give
     report = audit_run(run)
     assert any("stall count 7 is not the 0 the shown returns give" in f.detail for f in report.unverified), report.format()
 

@@ -24,7 +24,7 @@ from ppprops.llm.embedded import MODEL_ALIAS, EmbeddedServer
 from ppprops.store import open_store
 from ppprops.testing.fault_server import FaultConfig, FaultServer
 
-from interrupting import EXIT_WITHIN_S, Launched, count, stalling_endpoint
+from interrupting import EXIT_WITHIN_S, Launched, count
 
 
 def _interrupted(run: Launched, out: Path) -> None:
@@ -86,10 +86,10 @@ def test_ctrl_c_during_the_final_evaluation(tmp_path: Path, capsys) -> None:  # 
 @pytest.mark.parametrize("answered", [0, 2], ids=["first-call", "later-call"])
 def test_ctrl_c_during_a_remote_llm_call(tmp_path: Path, capsys, answered: int) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
-    with stalling_endpoint(fast=answered) as (url, seen):
+    with FaultServer(FaultConfig(fault_rate=0.0, hold_after=answered)) as stalling:  # answers `answered`, then holds
         run = Launched(["run", "--env", "CartPole", "--method", "pp", "--warmup", "3", "--iterations", "4", "--final-episodes", "2", "--select-top", "0",
-                        "--base-url", url, "--model", "m", "--retries", "0", "--out", str(out), "--quiet"])  # fmt: skip
-        run.wait_for(lambda: len(seen) > answered, f"LLM request {answered + 1} to arrive")
+                        "--base-url", stalling.base_url, "--model", "m", "--retries", "0", "--out", str(out), "--quiet"])  # fmt: skip
+        run.wait_for(lambda: stalling.stats()["requests"] > answered, f"LLM request {answered + 1} to arrive")
         _interrupted(run, out)
     assert count(out / "run.sqlite") == 3 + answered
     with FaultServer(FaultConfig(fault_rate=0.0)) as healthy:  # the stalled endpoint is gone: continue elsewhere

@@ -5,7 +5,6 @@ each hardening switch alone, the request seed and the fallback state no secret, 
 from __future__ import annotations
 
 import json
-import sqlite3
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -32,7 +31,7 @@ from ppprops.runner import start
 from ppprops.store import open_store
 from ppprops.wire.numbers import fmt
 
-from support import make_config, offline_llm
+from support import make_config, offline_llm, tamper_call
 
 
 # -- R2PO ---------------------------------------------------------------------------------------
@@ -84,16 +83,6 @@ def test_a_grid_with_one_hardening_switch_runs(tmp_path: Path, flag: str, capsys
 
 
 # -- the audit reads every byte ---------------------------------------------------------------------
-def _edit_last(run: Path, change: Callable[[dict[str, Any]], None]) -> None:
-    db = sqlite3.connect(run / "run.sqlite")
-    call_id, body = db.execute("SELECT id, request FROM llm_calls ORDER BY id DESC LIMIT 1").fetchone()
-    doc = json.loads(body)
-    change(doc)
-    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
-    db.commit()
-    db.close()
-
-
 def _shown(run: Path) -> Any:
     store = open_store(run)
     cands = store.candidates()
@@ -144,7 +133,7 @@ def test_a_raw_value_planted_anywhere_in_a_request_fails_the_audit(hardened_run:
     run = tmp_path / "run"
     shutil.copytree(hardened_run, run)
     c = _shown(run)
-    _edit_last(run, lambda d: PLACEMENTS[where](d, c))
+    tamper_call(run, request=lambda d: PLACEMENTS[where](d, c))
     r = audit_run(run)
     assert r.exit_code() == 1 and r.leaks, r.format()
     kinds = {f.kind for f in r.leaks}
@@ -157,7 +146,7 @@ def test_a_request_with_an_unexpected_field_is_unverified_even_without_numbers(h
 
     run = tmp_path / "run"
     shutil.copytree(hardened_run, run)
-    _edit_last(run, lambda d: d.update(user="someone"))
+    tamper_call(run, request=lambda d: d.update(user="someone"))
     r = audit_run(run)
     assert r.exit_code() == 1 and not r.leaks and [f.detail for f in r.unverified] == ["field user, which the client never sends"]
 
@@ -314,7 +303,7 @@ def test_the_audit_rebuilds_the_r2po_critic_prompt_and_reads_what_differs(tmp_pa
         assert text.startswith("You are a critic")
         d["messages"][0]["content"] = text.replace("Per-episode diagnostics", f"Best so far: {c.ret:.1f}. Per-episode diagnostics", 1)
 
-    _edit_last(tmp_path / "r", plant)
+    tamper_call(tmp_path / "r", request=plant)
     r = audit_run(tmp_path / "r")
     assert any(f.kind == "raw_return" and not f.by_design for f in r.leaks), r.format()
     assert "by design" not in r.verdict()

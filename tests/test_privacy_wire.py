@@ -1,10 +1,11 @@
 """For pp, the bytes sent over HTTP hold no raw parameter, raw return or optimal return.
 
-A recording proxy sits between ppprops and the embedded llama.cpp server and keeps every byte
-sent. The check reads those bytes the way the prompt writes values (the history's params
-arrays, return lines and reward components, at the prompt's precision and as integers) and
-compares them with the raw values recorded on the client. Secrets are fixed here so the check
-is deterministic; the same check must flag a vanilla run, which sends raw values by design.
+A recording proxy (the fault server with no faults, ``record`` on, passing every request to the
+upstream) sits between ppprops and the embedded llama.cpp server and keeps every byte sent. The
+check reads those bytes the way the prompt writes values (the history's params arrays, return
+lines and reward components, at the prompt's precision and as integers) and compares them with
+the raw values recorded on the client. Secrets are fixed here so the check is deterministic; the
+same check must flag a vanilla run, which sends raw values by design.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from ppprops.privacy.audit import audit_run
 from ppprops.runner import start
 from ppprops.store import open_store
 from ppprops.tasks import get_task
+from ppprops.testing.fault_server import FaultConfig, FaultServer
 
-from support import make_config, recording_proxy
+from support import make_config
 
 pytestmark = pytest.mark.llm
 
@@ -90,15 +92,16 @@ def _proxied_run(  # type: ignore[no-untyped-def]
     t = get_task(task)
     rng = np.random.default_rng(11)
     secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193) if method != "pp-hardened" else None
-    with recording_proxy(embedded_server.base_url.removesuffix("/v1")) as (url, captured):
-        llm = LLMConfig(base_url=url + "/v1", model=MODEL_ALIAS, structured="grammar")
+    with FaultServer(FaultConfig(fault_rate=0.0, upstream=embedded_server.base_url, record=True, max_seconds=3600)) as proxy:
+        llm = LLMConfig(base_url=proxy.base_url, model=MODEL_ALIAS, structured="grammar")
         if method == "r2po":
             cfg = replace(make_config(task, "vanilla", warmup=warmup, iterations=iterations, final_episodes=0, llm=llm, **settings),
                           method="r2po")
         else:
             cfg = make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, llm=llm, **settings)
         start(cfg, tmp_path / method, secrets=secrets)
-    return list(captured), tmp_path / method
+        captured = proxy.received()
+    return captured, tmp_path / method
 
 
 @pytest.mark.parametrize("method", ["vanilla", "pe", "df", "pp", "pp-hardened", "r2po"])

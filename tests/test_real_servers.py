@@ -10,7 +10,6 @@ every request shape.
 from __future__ import annotations
 
 import json
-import sqlite3
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -31,7 +30,7 @@ from ppprops.testing.fault_server import FaultConfig, FaultServer, requested_dim
 from ppprops.testing.personas import CONTEXT_TOKENS
 from ppprops.wire.document import continuation_grammar
 
-from support import chat_request, document_request, make_config
+from support import chat_request, document_request, make_config, recorded_calls, tamper_call
 
 D = 10  # CartPole
 A = 2.0  # encoded = 2 * raw: the personas' answers in [-3, 3] decode inside the box
@@ -286,13 +285,7 @@ def test_transport_faults_on_the_completions_endpoint_are_retried(kind: str, err
 # -- the audit, through the real client and a real HTTP server, per request shape ---------------------------
 def _plant(run_dir: Path, edit: Any) -> None:
     """Rewrite the last recorded request body with ``edit`` (a function of the parsed body)."""
-    db = sqlite3.connect(run_dir / "run.sqlite")
-    call_id, request = db.execute("SELECT id, request FROM llm_calls WHERE ok = 1 ORDER BY id DESC LIMIT 1").fetchone()
-    body = json.loads(request)
-    edit(body)
-    db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(body), call_id))
-    db.commit()
-    db.close()
+    tamper_call(run_dir, [c for c in recorded_calls(run_dir) if c["ok"]][-1], request=edit)
 
 
 @pytest.mark.parametrize("form", ["chat", "document"])

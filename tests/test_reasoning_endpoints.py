@@ -9,11 +9,7 @@ or it asserts the exact line and exit code the run stops with.
 
 from __future__ import annotations
 
-import http.server
 import json
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -113,32 +109,9 @@ def decoded(out: Path, answer: list[float]) -> np.ndarray:
     return clip_to_box(theta, config.box)[0]
 
 
-@contextmanager
-def json_server(status: int, doc: Any) -> Iterator[tuple[str, list[str]]]:
-    """A local server answering every POST with one fixed status and JSON body (a server quirk)."""
-    hits: list[str] = []
-
-    class Handler(http.server.BaseHTTPRequestHandler):
-        def do_POST(self) -> None:  # noqa: N802
-            self.rfile.read(int(self.headers.get("Content-Length") or 0))
-            hits.append(self.path)
-            data = json.dumps(doc).encode()
-            self.send_response(status)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
-
-        def log_message(self, *args: object) -> None:
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield f"http://127.0.0.1:{server.server_address[1]}/v1", hits
-    finally:
-        server.shutdown()
-        server.server_close()
+def json_server(status: int, doc: Any) -> FaultServer:
+    """The fault server answering every request with one fixed status and JSON body (a server quirk)."""
+    return FaultServer(FaultConfig(fault_rate=0.0, fixed_status=status, fixed_body=json.dumps(doc)))
 
 
 # -- row 1: out of max_tokens while reasoning ----------------------------------------------------
@@ -398,26 +371,28 @@ def test_a_proposal_equal_to_a_history_entry_is_asked_again_and_counted(tmp_path
 def test_a_quota_exhausted_429_is_not_retried() -> None:
     body = {"error": {"message": "You exceeded your current quota, please check your plan and billing details.",
                       "type": "insufficient_quota", "param": None, "code": "insufficient_quota"}}
-    with json_server(429, body) as (url, hits):
+    with json_server(429, body) as server:
+        url = server.base_url
         conf = LLMConfig(base_url=url, model="m", transport_retries=3, retry_base_s=0.01)
         client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMRejected, match="quota_exhausted: HTTP 429 .*You exceeded your current quota"):
             client.send(chat_request([{"role": "user", "content": "x"}], 3))
         client.close()
-        assert len(hits) == 1
+        assert server.stats()["requests"] == 1
 
 
 def test_a_400_naming_no_parameter_stops_at_once_with_the_servers_message() -> None:
     body = {"object": "error", "message": "This model's maximum context length is 4096 tokens. However, you requested "
             "5000 tokens. Please reduce the length of the messages or completion.", "type": "BadRequestError",
             "param": None, "code": 400}
-    with json_server(400, body) as (url, hits):
+    with json_server(400, body) as server:
+        url = server.base_url
         conf = LLMConfig(base_url=url, model="m", transport_retries=3, retry_base_s=0.01)
         client = EndpointClient(conf, base_url=url, model="m", api_key="k", grammar_ok=False)
         with pytest.raises(LLMRejected, match="bad_request: HTTP 400 .*maximum context length is 4096 tokens"):
             client.send(chat_request([{"role": "user", "content": "x"}], 3))
         client.close()
-        assert len(hits) == 1
+        assert server.stats()["requests"] == 1
 
 
 def test_run_level_stop_on_rejection_even_with_skip(tmp_path: Path) -> None:

@@ -3,14 +3,20 @@ counted, Retry-After is honoured up to its cap, and the fault server itself beha
 
 from __future__ import annotations
 
+import http.client
 import json
 import re
+import signal
 import socket
+import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
@@ -170,6 +176,101 @@ def test_fault_server_is_seeded_and_stops_by_itself() -> None:
         t0 = time.monotonic()
         server.wait()
         assert time.monotonic() - t0 < 5
+
+
+def _post(url: str, body: bytes, timeout: float = 10) -> tuple[int, bytes]:
+    req = urllib.request.Request(url, data=body, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as resp:
+            return resp.status, resp.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+
+
+CHAT = json.dumps({"model": "m", "messages": MSG}).encode()
+
+
+def test_fault_server_fixed_answer_is_every_healthy_answer() -> None:
+    body = {"error": {"message": "You exceeded your current quota", "code": "insufficient_quota"}}
+    with FaultServer(FaultConfig(fault_rate=0.0, fixed_status=429, fixed_body=json.dumps(body))) as server:
+        got = [_post(server.base_url + "/chat/completions", CHAT) for _ in range(2)]
+        assert server.stats()["requests"] == 2 and server.stats()["passed"] == 2
+    assert got == [(429, json.dumps(body).encode())] * 2
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("http_503",), fixed_status=200)) as server:  # faults still come first
+        assert _post(server.base_url + "/chat/completions", CHAT)[0] == 503
+    for bad in (dict(fixed_status=99), dict(fixed_status=200, fixed_body="not json"),
+                dict(fixed_status=200, personas=("plain",)), dict(fixed_status=200, upstream="http://127.0.0.1:9/v1"),
+                dict(hold_after=-1)):
+        with pytest.raises(ValueError):
+            FaultServer(FaultConfig(**bad))  # type: ignore[arg-type]
+
+
+def test_fault_server_holds_requests_after_the_first_n_until_released_or_stopped() -> None:
+    with FaultServer(FaultConfig(fault_rate=0.0, hold_after=1, max_seconds=60)) as server:
+        assert _post(server.base_url + "/chat/completions", CHAT)[0] == 200  # the first is answered
+        with ThreadPoolExecutor(2) as pool:
+            held = [pool.submit(_post, server.base_url + "/chat/completions", CHAT) for _ in range(2)]
+            deadline = time.monotonic() + 10
+            while server.stats()["requests"] < 3 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(0.2)
+            assert server.stats()["requests"] == 3 and not any(f.done() for f in held)  # arrived, held open
+            assert server.stats()["most_in_flight"] == 2
+            server.release()
+            assert [f.result(timeout=10)[0] for f in held] == [200, 200]
+        assert _post(server.base_url + "/chat/completions", CHAT)[0] == 200  # released for good
+    with FaultServer(FaultConfig(fault_rate=0.0, hold_after=0, max_seconds=60)) as server:
+        with ThreadPoolExecutor(1) as pool:
+            dropped = pool.submit(_post, server.base_url + "/chat/completions", CHAT)
+            while server.stats()["requests"] < 1:
+                time.sleep(0.02)
+            t0 = time.monotonic()
+            server.stop()  # a held request's connection is dropped when the server stops
+            with pytest.raises((urllib.error.URLError, ConnectionError, http.client.HTTPException)):
+                dropped.result(timeout=10)
+            assert time.monotonic() - t0 < 5
+
+
+def test_fault_server_records_each_request_byte_for_byte_and_counts_those_in_flight() -> None:
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("delay",), delay_max_s=0.0, record=True)) as server:
+        _post(server.base_url + "/chat/completions", CHAT)
+        _post(server.base_url + "/chat/completions", CHAT)
+        with urllib.request.urlopen(server.base_url + "/stats", timeout=5) as resp:  # the server's own route: not kept
+            assert json.loads(resp.read())["most_in_flight"] == 1  # one after the other
+        got = server.received()
+    assert len(got) == 2 and all(r.startswith(b"POST /v1/chat/completions HTTP/1.1\r\n") for r in got)
+    assert [r.split(b"\r\n\r\n", 1)[1] for r in got] == [CHAT, CHAT]
+    assert b"\r\nContent-Type: application/json\r\n" in got[0]
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("delay",), delay_max_s=0.0)) as server:  # record off: nothing kept
+        _post(server.base_url + "/chat/completions", CHAT)
+        assert server.received() == []
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("timeout",), timeout_s=0.5)) as server:
+        with ThreadPoolExecutor(3) as pool:
+            stalled = [pool.submit(_post, server.base_url + "/chat/completions", CHAT) for _ in range(3)]
+        assert all(isinstance(f.exception(), http.client.RemoteDisconnected) for f in stalled)  # each timed out
+        assert server.stats()["most_in_flight"] == 3  # all three stalled together
+
+
+def test_fault_server_command_line_holds_releases_and_writes_the_requests(tmp_path: Path) -> None:
+    requests_file = tmp_path / "requests.json"
+    proc = subprocess.Popen([sys.executable, "-m", "ppprops.testing.fault_server", "--fault-rate", "0", "--hold-after", "0",
+                             "--fixed-status", "418", "--fixed-body", '{"teapot": true}', "--requests-file", str(requests_file),
+                             "--max-seconds", "60"], stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split()[1]
+        with ThreadPoolExecutor(1) as pool:
+            held = pool.submit(_post, url + "/chat/completions", CHAT)
+            time.sleep(0.5)
+            assert not held.done()
+            assert _post(url + "/release", b"") == (200, b'{"released": true}')
+            assert held.result(timeout=10) == (418, b'{"teapot": true}')
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and json.loads(out.splitlines()[-1])["requests"] == 1
+    recorded = json.loads(requests_file.read_text())
+    assert len(recorded) == 1 and recorded[0].startswith("POST /v1/chat/completions ") and recorded[0].endswith(CHAT.decode())
 
 
 @pytest.mark.llm

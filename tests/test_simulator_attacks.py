@@ -13,12 +13,12 @@ budgets (``SMALL``), so the whole file takes seconds.
 from __future__ import annotations
 
 import dataclasses
-import json
 import sqlite3
 import sys
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -36,7 +36,7 @@ from ppprops.runner import start
 from ppprops.study import Study
 from ppprops.tasks import get_task
 
-from support import make_config, offline_llm
+from support import make_config, offline_llm, tamper_call
 
 SMALL = simfit.SimLimits(vector_steps=3_000_000, env_steps=20_000, seconds=300.0)
 MEDIUM = simfit.SimLimits(vector_steps=10_000_000, env_steps=20_000, seconds=300.0)  # the audit's default bound
@@ -218,14 +218,14 @@ def test_finding_5_a_module_or_class_name_of_the_users_env_in_a_prompt_is_flagge
     assert "sim-exact" in dict(r.not_run) and "private" in dict(r.not_run)["sim-exact"]
     if "point_robot" not in load_requests(out)[0].text:  # a neutral name: nothing to flag; plant one
         assert not r.identifiers, r.format()
-        with sqlite3.connect(out / "run.sqlite") as db:
-            call_id, body = db.execute("SELECT id, request FROM llm_calls ORDER BY id LIMIT 1").fetchone()
-            doc = json.loads(body)
+
+        def plant(doc: dict[str, Any]) -> None:  # in the first recorded request
             if "messages" in doc:
                 doc["messages"][0]["content"] += "\n(point_robot.PointRobot)"
             else:
                 doc["prompt"] = "(point_robot.PointRobot)\n" + doc["prompt"]
-            db.execute("UPDATE llm_calls SET request = ? WHERE id = ?", (json.dumps(doc), call_id))
+
+        tamper_call(out, 0, request=plant)
         r = audit_run(out)
     names = {f.detail.split("'")[1] for f in r.identifiers}
     assert {"point_robot", "PointRobot"} <= names, r.format()

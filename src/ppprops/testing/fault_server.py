@@ -35,13 +35,30 @@ grammar's repetition count (or the labels of the document form's continuation gr
 prompt's "with D numbers" / "exactly D ... numbers", or the last history entry of a document.
 Decisions come from one seeded generator in arrival order, so a serial client sees the same
 fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
-``max_seconds`` seconds. ``GET /stats`` returns the counts.
+``max_seconds`` seconds. ``GET /stats`` returns the counts, among them the most completions
+requests in flight at once (read and not yet answered: a client's concurrency cap, seen from the
+server).
+
+For tests of what a client does around a request rather than with its answer:
+
+``fixed_status`` / ``fixed_body``
+    every request that gets no fault is answered with this status and JSON body (a server quirk:
+    a quota 429, a 400 naming no parameter, ...) instead of a persona, upstream or random vector.
+``hold_after``
+    the requests after the first ``hold_after`` are held open, unanswered, until ``release()``
+    (``POST /release``) lets them go on as usual, or until the server stops and drops them: a
+    request in flight at a moment the test chooses (a Ctrl-C during an LLM call).
+``record``
+    every request received is kept, byte for byte (request line, headers, blank line, body), for
+    ``received()``: what crossed the wire, to compare with what the client recorded.
 
 Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
 
     python -m ppprops.testing.fault_server --port 0 --fault-rate 0.3 --synthetic
     python -m ppprops.testing.fault_server --port 0 --fault-rate 0 --personas harmony_markup,r1_open_think
     python -m ppprops.testing.fault_server --upstream http://127.0.0.1:8080/v1 --kinds http_429,drop
+    python -m ppprops.testing.fault_server --fault-rate 0 --fixed-status 429 --fixed-body '{"error": {"code": 429}}'
+    python -m ppprops.testing.fault_server --fault-rate 0 --hold-after 2   # then: curl -X POST URL/release
 """
 
 from __future__ import annotations
@@ -93,6 +110,10 @@ class FaultConfig:
     personas: tuple[str, ...] = ()  # answer healthy requests as one of these (drawn per request); () = plain vectors
     v1_only: bool = False  # 404 for any path but /v1/chat/completions and /v1/completions
     error_body_code: int = 502  # the code inside an "error_body" fault
+    fixed_status: int | None = None  # answer every request that gets no fault with this status and fixed_body
+    fixed_body: str = "{}"  # the JSON body of those answers (with fixed_status)
+    hold_after: int | None = None  # hold the requests after the first hold_after open until release() or stop
+    record: bool = False  # keep every request received, byte for byte, for FaultServer.received()
 
     def validate(self) -> None:
         """Check the settings (``FaultServer`` calls it).
@@ -100,7 +121,8 @@ class FaultConfig:
         Raises:
             ValueError: ``fault_rate`` outside [0, 1], no or unknown ``kinds``, unknown ``personas``,
                 personas together with an upstream, an upstream that is not ``http://``,
-                ``max_requests`` < 1 or ``max_seconds`` <= 0.
+                ``max_requests`` < 1 or ``max_seconds`` <= 0; a ``fixed_status`` outside 100-599, with
+                personas or an upstream, or whose ``fixed_body`` is not JSON; ``hold_after`` < 0.
         """
         if not (0.0 <= self.fault_rate <= 1.0):
             raise ValueError(f"fault rate must be in [0, 1], got {self.fault_rate}")
@@ -118,6 +140,17 @@ class FaultConfig:
             raise ValueError(f"max requests must be >= 1, got {self.max_requests}")
         if not (self.max_seconds > 0):
             raise ValueError(f"max seconds must be > 0, got {self.max_seconds}")
+        if self.fixed_status is not None:
+            if not (100 <= self.fixed_status <= 599):
+                raise ValueError(f"fixed status must be an HTTP status (100-599), got {self.fixed_status}")
+            if self.personas or self.upstream is not None:
+                raise ValueError("a fixed answer answers by itself; it does not go with personas or an upstream")
+            try:
+                json.loads(self.fixed_body)
+            except ValueError as e:
+                raise ValueError(f"fixed body must be JSON: {e}") from None
+        if self.hold_after is not None and self.hold_after < 0:
+            raise ValueError(f"hold after must be >= 0, got {self.hold_after}")
 
 
 @dataclass
@@ -132,6 +165,10 @@ class _State:
     started: float = field(default_factory=time.monotonic)
     personas: Counter[str] = field(default_factory=Counter)
     answers: list[tuple[int, str, list[float]]] = field(default_factory=list)  # (request, persona, new vector)
+    released: threading.Event = field(default_factory=threading.Event)  # ends the hold of hold_after
+    received: list[bytes] = field(default_factory=list)  # every request, byte for byte (with record)
+    in_flight: int = 0
+    most_in_flight: int = 0
 
     def draw(self) -> tuple[int, str | None, random.Random, str]:
         """Request number, fault kind (None = pass), a generator for this request's values, and
@@ -156,6 +193,17 @@ class _State:
             if reply.answer is not None:
                 self.answers.append((n, persona, list(reply.answer)))
 
+    def arrived(self) -> None:
+        """A completions request is in flight (until ``left``)."""
+        with self.lock:
+            self.in_flight += 1
+            self.most_in_flight = max(self.most_in_flight, self.in_flight)
+
+    def left(self) -> None:
+        """A request is no longer in flight: its answer starts going out, or its connection is dropped."""
+        with self.lock:
+            self.in_flight -= 1
+
     def stats(self) -> dict[str, Any]:
         with self.lock:
             return {
@@ -164,6 +212,7 @@ class _State:
                 "injected": dict(sorted(self.injected.items())),
                 "injected_total": sum(self.injected.values()),
                 "personas": dict(sorted(self.personas.items())),
+                "most_in_flight": self.most_in_flight,
                 "elapsed_s": round(time.monotonic() - self.started, 3),
             }
 
@@ -297,6 +346,7 @@ def _completion(content: str | None, reasoning: str | None, model: str, n: int) 
 class _Handler(http.server.BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     state: _State  # set on the subclass made per server
+    _in_flight = False  # this connection's current request is counted in flight
 
     def log_message(self, *args: object) -> None:
         pass
@@ -310,6 +360,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     # -- responses ------------------------------------------------------------------------
     def _send(self, status: int, data: bytes, headers: dict[str, str] | None = None, *, partial: bool = False,
               content_type: str = "application/json") -> None:
+        self._left()  # before a byte goes out: a client that waits for this answer never sees the request still in flight
         self.send_response(status)
         self.send_header("Content-Type", content_type)
         self.send_header("Content-Length", str(len(data)))
@@ -332,17 +383,40 @@ class _Handler(http.server.BaseHTTPRequestHandler):
 
     def _hang_up(self) -> None:
         """Close the socket at once, so the client sees a dropped connection."""
+        self._left()
         self.close_connection = True
         try:
             self.connection.shutdown(socket.SHUT_RDWR)
         except OSError:
             pass
 
+    def _left(self) -> None:
+        if self._in_flight:
+            self._in_flight = False
+            self.state.left()
+
+    def _record(self, raw: bytes) -> None:
+        """Keep the request as it came (request line, headers, blank line, body) when ``record`` is on."""
+        if self.state.config.record:
+            head = f"{self.command} {self.path} {self.request_version}\r\n" + "".join(f"{k}: {v}\r\n" for k, v in self.headers.items())
+            with self.state.lock:
+                self.state.received.append(head.encode() + b"\r\n" + raw)
+
+    def _hold(self) -> bool:
+        """Wait until ``release()`` (True) or the server stops (False)."""
+        st = self.state
+        while not st.released.wait(0.05):
+            if st.stop.is_set():
+                return False
+        return True
+
     # -- routes ---------------------------------------------------------------------------
     def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
         if self.path.rstrip("/").endswith("/stats"):
             self._send_json(200, self.state.stats())
-        elif self.path.rstrip("/").endswith("/models"):
+            return
+        self._record(b"")
+        if self.path.rstrip("/").endswith("/models"):
             self._send_json(200, {"object": "list", "data": [{"id": "fault-synthetic", "object": "model"}]})
         else:
             self._error(404, f"no route {self.path}")
@@ -353,12 +427,26 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         st = self.state
         cfg = st.config
         path = self.path.split("?")[0].rstrip("/")
+        if path.endswith("/release"):  # the control route of hold_after
+            st.released.set()
+            self._send_json(200, {"released": True})
+            return
+        self._record(raw)
         if cfg.v1_only and path not in ("/v1/chat/completions", "/v1/completions"):
             self._send(404, b"404 page not found", content_type="text/plain")  # Go's default, as Ollama answers
             return
         if path not in ("/v1/chat/completions", "/chat/completions", "/v1/completions", "/completions"):
             self._error(404, f"no route {self.path}")
             return
+        self._in_flight = True
+        st.arrived()
+        try:
+            self._completions(raw, path)
+        finally:
+            self._left()
+
+    def _completions(self, raw: bytes, path: str) -> None:
+        st, cfg = self.state, self.state.config
         document = not path.endswith("/chat/completions")
         n, kind, rng, persona = st.draw()
         if cfg.max_requests is not None and n > cfg.max_requests:
@@ -375,6 +463,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         if document != isinstance(body.get("prompt"), str):
             what = "a prompt string" if document else "messages"
             self._error(400, f"{path} takes {what}")
+            return
+        if cfg.hold_after is not None and n > cfg.hold_after and not self._hold():
+            self._hang_up()  # the server stopped while the request was held
             return
         model = str(body.get("model") or "fault-synthetic")
         try:
@@ -435,8 +526,11 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             st.answered(n, kind, Reply(200, data, answer=vector))
             self._send(200, data)
             return
-        # pass (or "drop": a valid answer cut off mid-body): the upstream's answer, or a random vector
+        # pass (or "drop": a valid answer cut off mid-body): the fixed answer, the upstream's, or a random vector
         drop = kind == "drop"
+        if cfg.fixed_status is not None:
+            self._send(cfg.fixed_status, cfg.fixed_body.encode(), partial=drop)
+            return
         if cfg.upstream is not None:
             status, data = self._forward(raw, path)
             self._send(status, data, partial=drop)
@@ -527,8 +621,21 @@ class FaultServer:
 
     def stats(self) -> dict[str, Any]:
         """Counts so far: requests, passed, injected (by kind) and injected_total, personas (replies by
-        persona), elapsed_s (seconds since the server was made); the body of ``GET /stats``."""
+        persona), most_in_flight (the most completions requests in flight at once: read, not yet
+        answered), elapsed_s (seconds since the server was made); the body of ``GET /stats``."""
         return self._state.stats()
+
+    def release(self) -> None:
+        """End the hold of ``hold_after``: the held requests and every later one are answered as usual
+        (as ``POST /release`` does)."""
+        self._state.released.set()
+
+    def received(self) -> list[bytes]:
+        """Every request received so far with ``record`` on, in arrival order, byte for byte: the
+        request line, the headers, a blank line and the body (``GET /stats`` and ``POST /release``,
+        the server's own routes, are not kept)."""
+        with self._state.lock:
+            return list(self._state.received)
 
     def answers(self) -> list[tuple[int, str, list[float]]]:
         """(request number, persona or fault kind, vector) of every new vector a reply proposed, in
@@ -557,7 +664,7 @@ def main(argv: list[str] | None = None) -> int:
     """The command line (see the module docstring): serve until the budget is spent, SIGTERM or Ctrl-C.
 
     Prints ``listening URL`` first and the stats as JSON at the end; ``--answers-file`` gets the
-    proposed vectors. Returns 0, or 2 for bad settings or a port that cannot be bound (one line on
+    proposed vectors, ``--requests-file`` the requests received. Returns 0, or 2 for bad settings or a port that cannot be bound (one line on
     stderr); argparse exits 2 itself on a malformed flag.
     """
     p = argparse.ArgumentParser(prog="python -m ppprops.testing.fault_server", description=__doc__.splitlines()[0])
@@ -579,11 +686,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--v1-only", action="store_true", help="404 for any path but /v1/chat/completions and /v1/completions")
     p.add_argument("--error-body-code", type=int, default=502, help="code inside an injected error_body fault")
     p.add_argument("--answers-file", type=str, default=None, help="write the proposed vectors here as JSON when stopping")
+    p.add_argument("--fixed-status", type=int, default=None,
+                   help="answer every request that gets no fault with this HTTP status and --fixed-body")
+    p.add_argument("--fixed-body", default="{}", help="the JSON body of those answers (with --fixed-status)")
+    p.add_argument("--hold-after", type=int, default=None, metavar="N",
+                   help="hold the requests after the first N open, unanswered, until POST /release (then answered as "
+                        "usual) or the server stops (then dropped)")
+    p.add_argument("--requests-file", type=str, default=None,
+                   help="write every request received (request line, headers, body; UTF-8) here as a JSON list when stopping")
     a = p.parse_args(argv)
     cfg = FaultConfig(
         fault_rate=a.fault_rate, kinds=_kinds(a.kinds), seed=a.seed, upstream=a.upstream, delay_max_s=a.delay_max,
         timeout_s=a.timeout_delay, retry_after_s=a.retry_after, max_requests=a.max_requests, max_seconds=a.max_seconds,
-        default_dim=a.dim, v1_only=a.v1_only, error_body_code=a.error_body_code,
+        default_dim=a.dim, v1_only=a.v1_only, error_body_code=a.error_body_code, fixed_status=a.fixed_status,
+        fixed_body=a.fixed_body, hold_after=a.hold_after, record=a.requests_file is not None,
         personas=tuple(PERSONAS) if a.personas == "all" else tuple(x.strip() for x in a.personas.split(",") if x.strip()),
     )
     try:
@@ -602,6 +718,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.answers_file:
         with open(a.answers_file, "w", encoding="utf-8") as f:
             json.dump([{"request": n, "by": who, "params": v} for n, who, v in server.answers()], f)
+    if a.requests_file:
+        with open(a.requests_file, "w", encoding="utf-8") as f:
+            json.dump([r.decode("utf-8", "replace") for r in server.received()], f)
     print(json.dumps(server.stats()), flush=True)
     return 0
 
