@@ -25,12 +25,14 @@ from ppprops.client.context import prompt_context
 from ppprops.client.hardening import codec_for
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig, RunConfig
-from ppprops.llm.client import ChatClient
+from ppprops.llm.client import EndpointClient
 from ppprops.methods import resolve
-from ppprops.proposers.llm import LLMProposer
-from ppprops.runner import chat_client, load_run, start
+from ppprops.proposers.llm import LLMProposer, LLMSearch
+from ppprops.runner import load_run, start
 from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
+from ppprops.wire.document import document_temperature
+from ppprops.wire.forms import CHAT, CHAT_TEMPERATURE, DOCUMENT, FORMS, FormRequest, answer_budget, params_grammar, params_schema
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -167,7 +169,8 @@ def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **ove
     codec = codec_for(secrets, task, cfg.encoding)
     k = cfg.top_k if top_k is None else top_k
     ctx = replace(prompt_context(task, cfg.prompt, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
-    return LLMProposer(chat=None, codec=codec, context=ctx, top_k=k, box=cfg.box, streams=Streams(cfg.seed), form=form), cands  # type: ignore[arg-type]
+    run = LLMSearch(llm=None, codec=codec, context=ctx, top_k=k, box=cfg.box, streams=Streams(cfg.seed))  # type: ignore[arg-type]
+    return LLMProposer(run, form=FORMS[form]), cands
 
 
 def replay_prompts(run_dir: Path, form: str = "chat", **overrides: Any) -> list[tuple[int, str]]:
@@ -220,15 +223,29 @@ def sent_prompts(run_dir: Path) -> list[tuple[int, str]]:
 
 
 @contextmanager
-def embedded(context_size: int = 32768) -> Iterator[ChatClient]:
+def embedded(context_size: int = 32768) -> Iterator[EndpointClient]:
     """A fresh embedded server (empty prompt cache) and a client for it."""
-    with chat_client(config("CartPole", llm=LLMConfig(context_size=context_size))) as client:
+    client = EndpointClient(LLMConfig(context_size=context_size)).start()
+    try:
         yield client
+    finally:
+        client.close()
 
 
-def count_tokens(client: ChatClient, text: str) -> int:
+def request_for(form: str, text: str, D: int, iteration: int = 0, grammar: str | None = None) -> FormRequest:
+    """The request a prompt form sends for a prompt ``text`` it wrote (the first attempt, default
+    temperature), for replaying a recorded prompt."""
+    if form == DOCUMENT.name:
+        return FormRequest(DOCUMENT.name, DOCUMENT.endpoint, D, iteration, prompt=text, sampling={"temperature": document_temperature(0, 0)},
+                           answer_tokens=answer_budget(D, labels=True), grammar=grammar, stop=("]",))
+    return FormRequest(CHAT.name, CHAT.endpoint, D, iteration, messages=({"role": "user", "content": text},),
+                       sampling={"temperature": CHAT_TEMPERATURE}, answer_tokens=answer_budget(D), explains=True,
+                       json_schema=params_schema(D), grammar=params_grammar(D))
+
+
+def count_tokens(client: EndpointClient, text: str) -> int:
     """Tokens of ``text`` under the embedded model's own tokenizer (llama.cpp /tokenize)."""
-    root = str(client._client.base_url).rstrip("/").removesuffix("/v1")
+    root = client.base_url.rstrip("/").removesuffix("/v1")
     req = urllib.request.Request(root + "/tokenize", data=json.dumps({"content": text}).encode(),
                                  headers={"Content-Type": "application/json"}, method="POST")
     with urllib.request.urlopen(req, timeout=120) as resp:

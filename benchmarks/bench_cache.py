@@ -14,7 +14,7 @@ import statistics
 from contextlib import ExitStack
 from pathlib import Path
 
-from _common import Context, Section, embedded, replay_requests, run_form, sent_prompts, table, timings
+from _common import Context, Section, embedded, replay_requests, request_for, run_form, sent_prompts, table, timings
 
 from ppprops import seeding
 from ppprops.store import open_store
@@ -47,10 +47,7 @@ def replay(run_dir: Path) -> dict[str, list[dict[str, float]]]:
             for arm, form, _ in ARMS:
                 it, text, grammar = requests[arm][i]
                 seed = seeding.llm_seed(0, it, 0)
-                if form == "document":
-                    ex = clients[arm].complete_document(text, D=D, seed=seed, grammar=grammar)
-                else:
-                    ex = clients[arm].complete([{"role": "user", "content": text}], D=D, seed=seed)
+                ex = clients[arm].send(request_for(form, text, D, it, grammar), seed=seed)
                 if not ex.ok:
                     raise RuntimeError(f"replay request failed: {ex.error}")
                 t = timings(ex.response)

@@ -24,7 +24,7 @@ from ppprops.methods import resolve
 from ppprops.privacy.audit import audit_run
 from ppprops.proposers import LLMProposer
 from ppprops.proposers.base import clip_to_box
-from ppprops.proposers.llm import stall_count
+from ppprops.proposers.llm import LLMSearch, stall_count
 from ppprops.runner import load_run, start
 from ppprops.seeding import Streams
 from ppprops.store import open_store
@@ -177,8 +177,8 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
         store.close()
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg.encoding)
-    rebuilt = LLMProposer(llm=None, codec=codec, context=prompt_context(task, cfg.prompt, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
-                          box=cfg.box, streams=Streams(cfg.seed), form="document")
+    rebuilt = LLMProposer(LLMSearch(llm=None, codec=codec, context=prompt_context(task, cfg.prompt, codec), top_k=cfg.top_k,  # type: ignore[arg-type]
+                                    box=cfg.box, streams=Streams(cfg.seed)), form=DOCUMENT)
     by_iteration: dict[int, list[dict[str, object]]] = {}
     for c in calls:
         by_iteration.setdefault(int(c["iteration"]), []).append(c)

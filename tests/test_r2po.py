@@ -14,6 +14,7 @@ from ppprops.client.context import prompt_context
 from ppprops.client.secrets import Secrets
 from ppprops.evaluation import Feedback
 from ppprops.proposers.base import StopSearch
+from ppprops.proposers.llm import LLMSearch
 from ppprops.proposers.r2po import R2POProposer
 from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
@@ -27,8 +28,8 @@ def _proposer(window: int = 10**6) -> tuple[R2POProposer, Codec]:
     codec = Codec(Secrets(run_id="r", a=np.ones(task.D), c=1.0), encode_params=False, scale_rewards=False)
     ctx = prompt_context(task, make_config("CartPole", "vanilla").prompt, codec)
     steps = [((0.1, 0.2, 0.3, 0.4), "1")] * 50
-    p = R2POProposer(llm=None, codec=codec, context=ctx, top_k=10, box=(-6, 6), streams=Streams(0),  # type: ignore[arg-type]
-                     rollout=lambda theta, seed: (50.0, steps), count_tokens=len, context_window=window, max_tokens=100)
+    run = LLMSearch(llm=None, codec=codec, context=ctx, top_k=10, box=(-6, 6), streams=Streams(0))  # type: ignore[arg-type]
+    p = R2POProposer(run, rollout=lambda theta, seed: (50.0, steps), count_tokens=len, context_window=window, max_tokens=100)
     return p, codec
 
 

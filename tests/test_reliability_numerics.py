@@ -20,6 +20,7 @@ from ppprops.config import LLMConfig
 from ppprops.evaluation import Feedback
 from ppprops.loop import best_candidate
 from ppprops.proposers import LLMProposer
+from ppprops.proposers.llm import LLMSearch
 from ppprops.runner import start
 from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
@@ -101,8 +102,8 @@ def test_non_finite_feedback_is_kept_out_of_the_history() -> None:
     config = make_config(method="pp")
     secrets = Secrets.generate("r", cartpole.D)
     codec = Codec(secrets, encode_params=True, scale_rewards=True)
-    proposer = LLMProposer(llm=None, codec=codec, context=prompt_context(cartpole, config.prompt, codec), top_k=0,  # type: ignore[arg-type]
-                           box=(-6.0, 6.0), streams=Streams(0))
+    proposer = LLMProposer(LLMSearch(llm=None, codec=codec, context=prompt_context(cartpole, config.prompt, codec), top_k=0,  # type: ignore[arg-type]
+                                     box=(-6.0, 6.0), streams=Streams(0)))
 
     def cand(i: int, ret: float, comps: dict[str, float], diags: dict[str, Any]) -> Candidate:
         fb = Feedback(ret=ret, components=comps, diagnostics=diags, episode_returns=(ret,))

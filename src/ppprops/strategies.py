@@ -15,6 +15,7 @@ from .client.context import prompt_context
 from .errors import ConfigError
 from .methods import Method
 from .proposers.base import Phase, Proposal, Proposer, SearchSetup
+from .proposers.llm import LLMSearch
 from .proposers.uniform import UniformSampler
 from .seeding import Streams
 from .values import Candidate
@@ -49,16 +50,21 @@ class RandomSearch:
         """Nothing: random search does not learn."""
 
 
+def llm_search(s: SearchSetup) -> LLMSearch:
+    """What the run's LLM proposers share: its recording client, codec, prompt context and settings."""
+    assert s.llm_client is not None, "a prompted method needs the run's LLM client"
+    return LLMSearch(llm=s.llm_client(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
+                     box=s.box, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
+                     temperature=s.llm.temperature, explore=s.prompt.explore)  # fmt: skip
+
+
 def props_phase(s: SearchSetup) -> Phase:
     """ProPS (Algorithm 1): one LLM call per iteration over the top-K history, under the run's
     mechanisms, in the run's prompt form (``s.prompt.form``: the document form for the embedded model)."""
     from .proposers import LLMProposer
+    from .wire.forms import FORMS
 
-    assert s.llm_client is not None, "a prompted method needs the run's LLM client"
-    proposer = LLMProposer(llm=s.llm_client(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
-                           box=s.box, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
-                           form=s.prompt.form, temperature=s.llm.temperature, explore=s.prompt.explore)  # fmt: skip
-    return Phase("llm", proposer, s.iterations)
+    return Phase("llm", LLMProposer(llm_search(s), form=FORMS[s.prompt.form]), s.iterations)
 
 
 def r2po_phase(s: SearchSetup) -> Phase:
@@ -67,22 +73,11 @@ def r2po_phase(s: SearchSetup) -> Phase:
     from .proposers.r2po import R2POProposer
     from .rollout import record_rollout
 
-    assert s.llm_client is not None, "a prompted method needs the run's LLM client"
     if s.evaluator is None:
         raise ConfigError(f"--method r2po re-runs episodes for its critic: task {s.task.name} has no env to run them in")
     task, evaluator = s.task, s.evaluator
-    proposer = R2POProposer(
-        llm=s.llm_client(),
-        codec=s.codec,
-        context=prompt_context(task, s.prompt, s.codec),
-        top_k=s.prompt.top_k,
-        box=s.box,
-        streams=s.streams,
-        rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
-        context_window=s.llm.context_size,
-        max_tokens=s.llm.max_tokens or default_max_tokens(task.D),
-        parse_retries=s.parse_retries,
-    )
+    proposer = R2POProposer(llm_search(s), rollout=lambda theta, seed: record_rollout(task, evaluator.env, theta, seed),
+                            context_window=s.llm.context_size, max_tokens=s.llm.max_tokens or default_max_tokens(task.D))
     return Phase("r2po", proposer, s.iterations)
 
 

@@ -404,6 +404,12 @@ class EndpointClient:
             self._stack.callback(self._sdk.close)
         return self._sdk
 
+    def start(self) -> EndpointClient:
+        """Connect now (starting the embedded server when this client runs it) rather than on the
+        first ``send``; returns the client, whose ``base_url`` is then the server's."""
+        self._client()
+        return self
+
     def body(self, req: FormRequest, *, seed: int | None = None) -> dict[str, Any]:
         """The request body ``send`` would send now for ``req`` (``RequestShape.body``)."""
         return self.shape.body(req, seed)

@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -44,7 +44,7 @@ from ..client.codec import Codec
 from ..llm.protocol import Exchange, LLMRejected, LLMUnavailable
 from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, top_k
-from ..wire.forms import FORMS, PromptForm
+from ..wire.forms import CHAT, PromptForm
 from ..wire.turns import repeats_history
 from .base import Proposal, clip_to_box
 
@@ -95,56 +95,55 @@ def stall_count(candidates: Sequence[Candidate]) -> int:
     return counter.count
 
 
+@dataclass(frozen=True)
+class LLMSearch:
+    """What an LLM proposer takes from its run: the run's recording client ``llm``
+    (``llm.recording.RecordingLLM``), the ``codec`` (the only producer of encoded values), the
+    public prompt ``context``, ``top_k`` entries shown (0: all, Eq. 9), the raw ``box``, the keyed
+    ``streams`` (fallback noise, sampling seeds), ``parse_retries`` corrections before a fallback,
+    ``on_llm_failure`` (``stop`` or ``skip`` when the endpoint stays down), ``temperature``
+    (``--temperature``; None: each form's own) and ``explore`` (the stall count goes to the form;
+    off: 0). Built once per run (``strategies``) and shared by R2PO's two stages."""
+
+    llm: RecordingLLM
+    codec: Codec
+    context: PromptContext
+    top_k: int
+    box: tuple[float, float]
+    streams: seeding.Streams
+    parse_retries: int = 2
+    on_llm_failure: str = "stop"
+    temperature: float | None = None
+    explore: bool = True
+
+
 class LLMProposer:
     """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
 
-    The prompt is built on the wire side by the run's prompt ``form`` (``wire.forms``) from
-    ``context`` and the encoded entries only; an answer is read by the same form into D encoded
-    numbers and decoded (theta = A^-1 theta~) into the box. Every request goes through ``llm``,
-    the run's recording client (``llm.recording.RecordingLLM``), which records each try as it is
-    sent. An unusable answer is corrected (chat form; the document form asks the same document
-    again) up to ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian
-    noise of ``FALLBACK_SIGMA`` x box width in the encoded space (source ``fallback``, with the
-    reason as note), drawn from ``streams``.
+    The prompt is built on the wire side by the prompt ``form`` (``wire.forms``) from the run's
+    public context and the encoded entries only; an answer is read by the same form into D encoded
+    numbers and decoded (theta = A^-1 theta~) into the box. Every request goes through the run's
+    recording client (``LLMSearch.llm``), which records each try as it is sent. An unusable answer
+    is corrected (chat form; the document form asks the same document again) up to
+    ``parse_retries`` times, then replaced by a fallback: the best policy plus Gaussian noise of
+    ``FALLBACK_SIGMA`` x box width in the encoded space (source ``fallback``, with the reason as
+    note), drawn from the run's streams. ``on_answer`` sees every answer received (R2PO measures
+    its prompts' tokens per character from them).
     """
 
-    def __init__(
-        self,
-        *,
-        llm: RecordingLLM,
-        codec: Codec,
-        context: PromptContext,
-        top_k: int,
-        box: tuple[float, float],
-        streams: seeding.Streams,
-        parse_retries: int = 2,
-        on_llm_failure: str = "stop",
-        form: str | PromptForm = "chat",
-        temperature: float | None = None,
-        on_answer: Callable[[Exchange], None] | None = None,
-        explore: bool = True,
-    ) -> None:
-        """``llm``: the run's ``RecordingLLM`` (``send``, ``judged``). ``form``: a ``wire.forms`` form or
-        its name. ``temperature`` is
-        ``--temperature`` (None: the form's own schedule). ``on_answer`` sees every answer
-        received (R2PO measures its prompts' tokens per character from them). ``explore``: pass the
-        stall count to the form (the document form then samples hotter when stuck), else 0."""
+    def __init__(self, run: LLMSearch, *, form: PromptForm = CHAT, on_answer: Callable[[Exchange], None] | None = None) -> None:
         self.on_answer = on_answer
-        self.explore = explore
-        self.temperature = temperature
-        if isinstance(form, str):
-            if form not in FORMS:
-                raise ValueError(f"unknown prompt form {form!r} (known: {', '.join(FORMS)})")
-            form = FORMS[form]
-        self.form: PromptForm = form
-        self.llm = llm
-        self.codec = codec
-        self.ctx = context
-        self.k = top_k
-        self.box = box
-        self.streams = streams
-        self.parse_retries = parse_retries
-        self.on_llm_failure = on_llm_failure
+        self.explore = run.explore
+        self.temperature = run.temperature
+        self.form = form
+        self.llm = run.llm
+        self.codec = run.codec
+        self.ctx = run.context
+        self.k = run.top_k
+        self.box = run.box
+        self.streams = run.streams
+        self.parse_retries = run.parse_retries
+        self.on_llm_failure = run.on_llm_failure
         self.nonfinite_skipped = 0
         self.entries: list[EncodedEntry] = []
         self.best: Candidate | None = None

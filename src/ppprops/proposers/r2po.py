@@ -21,22 +21,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import seeding
-from ..client.codec import Codec
 from ..llm.protocol import Exchange
 from ..values import Candidate
-from ..wire import PromptContext
 from ..wire.forms import CHAT, CRITIC
 from ..wire.r2po import Evidence, build_critic_prompt
 from .base import Proposal, StopSearch
-from .llm import LLMProposer
+from .llm import LLMProposer, LLMSearch
 
 if TYPE_CHECKING:
-    from ..llm.recording import RecordingLLM
+    pass
 
 Rollout = Callable[[np.ndarray, int], tuple[float, list[tuple[tuple[float, ...], str]]]]
 
@@ -66,29 +63,14 @@ class R2POProposer:
     not fit ``context_window`` tokens with its answer.
     """
 
-    def __init__(
-        self,
-        *,
-        llm: RecordingLLM,
-        codec: Codec,
-        context: PromptContext,
-        top_k: int,
-        box: tuple[float, float],
-        streams: seeding.Streams,
-        rollout: Rollout,
-        context_window: int,
-        max_tokens: int,
-        parse_retries: int = 2,
-        count_tokens: Callable[[str], int] = estimate_tokens,
-    ) -> None:
-        """``llm`` is the run's recording client (``llm.recording.RecordingLLM``); ``rollout(theta,
-        seed)`` re-runs one episode for the critic's evidence; ``context_window`` and ``max_tokens``
-        bound a request; ``count_tokens`` estimates a prompt before the first answer's usage counts."""
+    def __init__(self, run: LLMSearch, *, rollout: Rollout, context_window: int, max_tokens: int,
+                 count_tokens: Callable[[str], int] = estimate_tokens) -> None:
+        """``run`` is what both stages share (``proposers.llm.LLMSearch``); ``rollout(theta, seed)``
+        re-runs one episode for the critic's evidence; ``context_window`` and ``max_tokens`` bound a
+        request; ``count_tokens`` estimates a prompt before the first answer's usage counts."""
         self._ratio: float | None = None  # prompt tokens per character, from the usage counts so far
-        common: dict[str, Any] = dict(llm=llm, codec=codec, context=context, box=box, streams=streams, parse_retries=parse_retries,
-                                      on_answer=self._observe)
-        self.search = LLMProposer(top_k=top_k, form=CHAT, **common)
-        self.critic = _Critic(top_k=top_k, form=CRITIC, **common)
+        self.search = LLMProposer(run, form=CHAT, on_answer=self._observe)
+        self.critic = _Critic(run, form=CRITIC, on_answer=self._observe)
         self.rollout = rollout
         self.count_tokens = count_tokens
         self.context_window = context_window
