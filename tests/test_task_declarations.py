@@ -347,6 +347,129 @@ def test_declarations_stored_before_still_read_and_are_written_the_same() -> Non
     assert privacy_facts(task_from_json({**old, "summary": "another cart"})).is_empty()
 
 
+# Declarations exactly as ppprops stored them (ppprops.task/1) before the declaration became one
+# pydantic model: what TaskSpec.to_json wrote then, hard-coded. A paper task (its recorder, its
+# [privacy] facts with a cap), a task without env (action bounds and prompt_name, written only when
+# set) and a Gymnasium id with a Discrete observation (one_hot as {n, start}, env kwargs pinned).
+STORED_CARTPOLE = {
+    "format": "ppprops.task/1",
+    "name": "CartPole",
+    "env": {"id": "CartPole-v1", "entry_point": None, "kwargs": {}, "max_episode_steps": None, "imports": [], "paths": [], "setup": None},
+    "observation": {"keys": None, "indices": None, "one_hot": None,
+                    "names": ["cart_position", "cart_velocity", "pole_angle", "pole_angular_velocity"],
+                    "descriptions": ["cart position along the track (0 is the centre)", "cart velocity",
+                                     "pole angle from vertical (positive leans right)", "pole angular velocity"]},
+    "action_type": "discrete",
+    "actions": ["score for pushing the cart to the left", "score for pushing the cart to the right"],
+    "components": [],
+    "diagnostics": [{"name": "episode_length", "description": "steps the episode lasted", "info": None, "reduce": "last"},
+                    {"name": "termination", "description": "why the episode ended: pole_fell, cart_out_of_bounds or time_limit",
+                     "info": None, "reduce": "last"}],
+    "recorder": "ppprops.tasks.classic:CartPoleRecorder",
+    "summary": "A pole is attached by an unactuated joint to a cart that moves along a frictionless track. The controller pushes the cart "
+               "left or right at every step; the goal is to keep the pole upright and the cart on the track for as long as possible.",
+    "reward_structure": "The reward is +1 for every step the pole stays up. An episode ends when the pole leans more than 12 degrees, the "
+                        "cart leaves the track (|position| > 2.4), or after 500 steps.",
+    "reward_hint": "The return grows with the time the pole is kept balanced and the cart kept on the track.",
+    "hints": "The action with the higher score is applied. A balancing controller pushes the cart towards the side the pole is falling "
+             "to; the angle and angular velocity matter most.",
+    "optimal_return": 500.0,
+    "prompt_name": "CartPole",
+    "privacy": {"integer_returns": True, "return_formula": {"episode_length": 1.0},
+                "caps": [{"side": "max", "value": 500.0, "diagnostic": "termination", "marker": "time_limit"}],
+                "return_range": [1.0, 500.0], "resolution": {"return": 1.0}, "survive_component": False, "ctrl_component": False,
+                "time_limit": 500, "components_sum_to_return": False, "return_determining": ["episode_length"],
+                "residual_component": False, "reward_scale": 500.0},
+}  # fmt: skip
+STORED_RIGARM = {
+    "format": "ppprops.task/1",
+    "name": "RigArm",
+    "env": None,
+    "observation": {"keys": None, "indices": None, "one_hot": None,
+                    "names": ["shoulder", "elbow", "shoulder_vel", "elbow_vel", "dx", "dy"],
+                    "descriptions": ["shoulder angle (rad, 0 points along +x)", "elbow angle relative to the upper link (rad)",
+                                     "shoulder angular velocity (rad/s)", "elbow angular velocity (rad/s)", "target x minus tip x (m)",
+                                     "target y minus tip y (m)"]},
+    "action_type": "continuous",
+    "actions": ["shoulder torque (N m, -2 to 2; positive turns the upper link counter-clockwise)",
+                "elbow torque (N m, -2 to 2; positive turns the forearm counter-clockwise)"],
+    "components": [{"name": "reward_distance", "description": "minus the tip-to-target distance, summed over the steps", "info": None,
+                    "reduce": "sum"},
+                   {"name": "reward_effort", "description": "minus the torque cost, summed over the steps", "info": None, "reduce": "sum"}],
+    "diagnostics": [{"name": "final_distance", "description": "distance from the tip to the target at the end of the trial (m)",
+                     "info": None, "reduce": "last"},
+                    {"name": "reached", "description": "1 if the tip ended within 1 cm of the target, else 0", "info": None,
+                     "reduce": "last"}],
+    "recorder": None,
+    "summary": "A planar arm with two revolute joints (shoulder, elbow) moves its tip towards a target point drawn at random in its "
+               "workspace at the start of each trial. The controller sets both joint torques every 10 ms; the goal is to bring the tip to "
+               "the target quickly and hold it there, without wasting effort.",
+    "reward_structure": "Each step pays minus the distance from the tip to the target (m) minus 0.01 times the sum of the squared torques. "
+                        "A trial lasts 200 steps (2 s).",
+    "reward_hint": "The return is higher the sooner the tip gets close to the target and the less torque it uses.",
+    "hints": "Drive each joint towards the target with a term proportional to the tip's offset from it, and damp it with the joint's "
+             "velocity; start with small weights.",
+    "optimal_return": None,
+    "action_low": [-2.0, -2.0],
+    "action_high": [2.0, 2.0],
+    "prompt_name": "a two-joint arm",
+    "privacy": {"public_env": False, "integer_returns": False, "return_formula": False, "survive_component": False,
+                "ctrl_component": "reward_effort", "ctrl_per_step": 0.08, "time_limit": 200, "components_sum_to_return": True,
+                "return_determining": [], "residual_component": "reward_effort", "reward_scale": 300.0},
+}  # fmt: skip
+STORED_FROZEN_LAKE = {
+    "format": "ppprops.task/1",
+    "name": "FrozenLake-v1",
+    "env": {"id": "FrozenLake-v1", "entry_point": "gymnasium.envs.toy_text.frozen_lake:FrozenLakeEnv", "kwargs": {"map_name": "4x4"},
+            "max_episode_steps": 100, "imports": [], "paths": [], "setup": None},
+    "observation": {"keys": None, "indices": None, "one_hot": {"n": 16, "start": 0}, "names": [f"state_{i}" for i in range(16)],
+                    "descriptions": [f"1 when the environment is in discrete state {i}, else 0" for i in range(16)]},
+    "action_type": "discrete",
+    "actions": [f"score for discrete action {j}" for j in range(4)],
+    "components": [],
+    "diagnostics": [],
+    "recorder": None,
+    "summary": "The Gymnasium environment FrozenLake-v1. No description of its physics or goal is available: what the 16 observed values "
+               "and the 4 policy outputs mean has to be inferred from the feedback.",
+    "reward_structure": "The return is the sum of the environment's per-step rewards over an episode.",
+    "reward_hint": "The return is the sum of the environment's per-step rewards over an episode; higher is better.",
+    "hints": "Nothing is known about the task beyond the feedback; start with small weights and change few parameters at a time to learn "
+             "what each one does.",
+    "optimal_return": None,
+}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("stored", "source"),
+    [(STORED_CARTPOLE, "CartPole"), (STORED_RIGARM, str(ROBOT)), (STORED_FROZEN_LAKE, "FrozenLake-v1")],
+    ids=["paper-task", "without-env", "one-hot"],
+)
+def test_declarations_stored_as_ppprops_task_1_load_and_are_stored_the_same(stored: dict, source: str) -> None:
+    name = stored["name"]
+    stored = json.loads(json.dumps(stored))  # as read back from run.sqlite or a policy file
+    task = task_from_json(stored)
+    fresh = load_task(source)
+    assert task == fresh and task.spec.complete and task.spec.privacy == (fresh.spec.privacy if "privacy" in stored else None)
+    assert task.spec.to_json() == stored and fresh.spec.to_json() == stored  # a run stored now writes the same
+    assert task_from_json(json.loads(json.dumps(task.spec.to_json()))) == task
+    assert (task.n_s, task.n_a, task.action_type, task.components, task.diagnostics, task.text, task.prompt_name, task.optimal_return) \
+        == (fresh.n_s, fresh.n_a, fresh.action_type, fresh.components, fresh.diagnostics, fresh.text, fresh.prompt_name,
+            fresh.optimal_return)  # fmt: skip
+    assert task.observation == fresh.observation and task.observation.names == tuple(stored["observation"]["names"])
+    assert facts_for(task) == facts_for(fresh)
+    if name == "CartPole":
+        assert task.has_env and task.env_id == "CartPole-v1" and task.optimal_return == 500.0 and task.n_s == 4 and task.discrete
+        assert facts_for(task).time_limit == 500 and facts_for(task).return_formula == {"episode_length": 1.0}
+        assert reward_scale(task) == 500.0 and return_determining(task) == {"episode_length"}
+    elif name == "RigArm":
+        assert not task.has_env and task.env_id == "" and task.prompt_name == "a two-joint arm"
+        assert task.action_low == (-2.0, -2.0) and task.action_high == (2.0, 2.0) and task.components == ("reward_distance", "reward_effort")
+        assert residual_component(task) == {"reward_effort"} and reward_scale(task) == 300.0
+    else:
+        assert task.observation.one_hot == (16, 0) and task.n_s == 16 and task.n_a == 4 and dict(task.env_kwargs) == {"map_name": "4x4"}
+        assert task.spec.env.max_episode_steps == 100 and task.spec.privacy is None and facts_for(task).public_env
+
+
 # -- privacy facts --------------------------------------------------------------------------------------
 # The tables of privacy/knowledge.py and client/hardening.py before the facts moved into the task files.
 OLD_FACTS = {
