@@ -110,7 +110,7 @@ def schemes_of(v: View) -> list[Scheme]:
     presets are tried (``pp`` and ``pp-hardened``), the better fit wins. Empty when the prompt
     shows raw parameters or raw returns (nothing to fit)."""
     text = v.requests[0].text if v.requests else ""
-    step = v.facts.resolution.get("return", 0.0)
+    step = (v.facts.resolution or {}).get("return", 0.0)
     params = next((k for k, w in _PARAM_WORDS if w in text), None)
     rewards = next((k for k, w in _REWARD_WORDS if w in text), None)
     if params and rewards:

@@ -99,7 +99,7 @@ def registered(name: str) -> Task | None:
 
 
 def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
-    """The privacy facts a task declares (``tasks.facts``; issue 20), read from its declaration.
+    """The privacy facts a task declares (``tasks.facts.PrivacyFacts``), read from its declaration.
 
     A declaration stored before privacy facts existed (no ``privacy`` key) is given the facts of the
     paper task of the same name when it is that task's declaration in every other respect (a run of

@@ -193,7 +193,7 @@ class TaskSpec:
         if self.prompt_name is not None:
             out["prompt_name"] = self.prompt_name
         if self.privacy is not None and not self.privacy.is_empty():
-            out["privacy"] = self.privacy.to_json()
+            out["privacy"] = self.privacy.model_dump(mode="json")
         return out
 
     @classmethod
@@ -231,7 +231,7 @@ class TaskSpec:
             action_low=None if low is None else tuple(float(v) for v in low),
             action_high=None if high is None else tuple(float(v) for v in high),
             prompt_name=d.get("prompt_name"),
-            privacy=PrivacyFacts.from_json(d["privacy"]) if "privacy" in d else None,
+            privacy=PrivacyFacts.model_validate(d["privacy"]) if "privacy" in d else None,
         )
 
     def with_options(
@@ -378,7 +378,7 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
         action_low=None if bounds is None else bounds[0],
         action_high=None if bounds is None else bounds[1],
         prompt_name=f.prompt_name,
-        privacy=f.privacy.facts(),
+        privacy=f.privacy,
     )
     if builtin:
         _check_complete(spec, where)
