@@ -420,7 +420,7 @@ def test_a_task_file_with_extends_select_and_reduced_diagnostics(tmp_path: Path,
 
 def test_paper_task_files_round_trip_through_their_stored_declaration() -> None:
     for task in ppprops.tasks.list_tasks():
-        rebuilt = task_from_json(task.spec.to_json())
+        rebuilt = task_from_json(task.spec.model_dump(mode="json"))
         assert rebuilt == task and rebuilt.text == task.text, task.name
 
 

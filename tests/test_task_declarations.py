@@ -226,7 +226,7 @@ def test_a_task_without_env_declares_what_the_policy_sees_and_does() -> None:
     with pytest.raises(NoEnvError) as e:
         task.make_env()
     assert str(e.value) == line
-    assert task_from_json(json.loads(json.dumps(task.spec.to_json()))) == task  # stored and rebuilt in any process
+    assert task_from_json(json.loads(json.dumps(task.spec.model_dump(mode="json")))) == task  # stored and rebuilt in any process
     with pytest.raises(TaskFileError, match="task RigArm has no env .* apply to an env"):
         load_task(ROBOT, components=["x"])
 
@@ -339,10 +339,10 @@ OLD_PENDULUM = {
 
 def test_declarations_stored_before_still_read_and_are_written_the_same() -> None:
     task = task_from_json(OLD_PENDULUM)
-    assert task == load_task("Pendulum-v1") and task.spec.to_json() == OLD_PENDULUM
+    assert task == load_task("Pendulum-v1") and task.spec.model_dump(mode="json") == OLD_PENDULUM
     assert task.spec.privacy is None and facts_for(task).public_env  # a plain Gymnasium id: an attacker can simulate it
     # a paper task's declaration stored before [privacy] existed gets the paper task's facts, and only when it is that task
-    old = get_task("CartPole").spec.to_json()
+    old = get_task("CartPole").spec.model_dump(mode="json")
     del old["privacy"]
     assert privacy_facts(task_from_json(old)) == get_task("CartPole").spec.privacy
     assert privacy_facts(task_from_json({**old, "summary": "another cart"})).is_empty()
@@ -451,8 +451,8 @@ def test_declarations_stored_as_ppprops_task_1_load_and_are_stored_the_same(stor
     task = task_from_json(stored)
     fresh = load_task(source)
     assert task == fresh and task.spec.complete and task.spec.privacy == (fresh.spec.privacy if "privacy" in stored else None)
-    assert task.spec.to_json() == stored and fresh.spec.to_json() == stored  # a run stored now writes the same
-    assert task_from_json(json.loads(json.dumps(task.spec.to_json()))) == task
+    assert task.spec.model_dump(mode="json") == stored and fresh.spec.model_dump(mode="json") == stored  # a run stored now writes the same
+    assert task_from_json(json.loads(json.dumps(task.spec.model_dump(mode="json")))) == task
     assert (task.n_s, task.n_a, task.action_type, task.components, task.diagnostics, task.text, task.prompt_name, task.optimal_return) \
         == (fresh.n_s, fresh.n_a, fresh.action_type, fresh.components, fresh.diagnostics, fresh.text, fresh.prompt_name,
             fresh.optimal_return)  # fmt: skip
@@ -540,7 +540,7 @@ def test_a_users_task_declares_its_facts_or_they_are_unknown(tmp_path: Path, use
     assert facts.public_env and facts.time_limit == 5 and facts.survive_component is None
     assert "time_limit" not in facts.unknown and "survive_component" not in facts.unknown and "healthy_reward" not in facts.unknown
     assert residual_component(declared) == {"extra"} and reward_scale(declared) == 7.5
-    assert task_from_json(declared.spec.to_json()).spec.privacy == declared.spec.privacy
+    assert task_from_json(declared.spec.model_dump(mode="json")).spec.privacy == declared.spec.privacy
 
 
 def test_public_env_defaults() -> None:

@@ -106,7 +106,7 @@ class RunConfig:
     prompt_form: Annotated[Literal["auto", "chat", "document"], Flag(
         "chat: the paper's instruction prompt; document: the history as a document for a base model to continue "
         "(completions endpoint); auto: document for the embedded model, chat otherwise")] = "auto"
-    # The task's whole declaration (ppprops.tasks.spec.TaskSpec.to_json()): env recipe, observation
+    # The task's whole declaration (ppprops.tasks.spec.TaskSpec.model_dump(mode="json")): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
     task_spec: dict[str, Any] | None = None

@@ -61,7 +61,7 @@ def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str],
     key = task.name.lower()
     old = _REGISTRY.get(key)
     if old is not None:
-        if old is task or (old.spec is not None and task.spec is not None and old.spec.to_json() == task.spec.to_json()):
+        if old is task or (old.spec is not None and task.spec is not None and old.spec.model_dump(mode="json") == task.spec.model_dump(mode="json")):
             return old
         raise ConfigError(f"task {task.name!r} is already registered")
     _REGISTRY[key] = task
@@ -112,8 +112,7 @@ def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
         return spec.privacy
     paper = _REGISTRY.get(spec.name.lower())
     if paper is not None and is_builtin(paper) and paper.spec is not None:
-        mine = {k: v for k, v in spec.to_json().items() if k != "privacy"}
-        theirs = {k: v for k, v in paper.spec.to_json().items() if k != "privacy"}
+        mine, theirs = (s.model_dump(mode="json", exclude={"privacy"}) for s in (spec, paper.spec))
         if mine == theirs and paper.spec.privacy is not None:
             return paper.spec.privacy
     return PrivacyFacts()
@@ -324,7 +323,7 @@ def task_ref(task: Task) -> TaskRef:
     if is_builtin(task):
         return task.name
     if task.spec is not None:
-        return task.spec.to_json()
+        return task.spec.model_dump(mode="json")
     return task  # an ad-hoc task: sent whole, so it must pickle
 
 
