@@ -20,6 +20,7 @@ import pytest
 
 import ppprops
 from ppprops.cli import main
+from ppprops.config import TaskOptions
 from ppprops.errors import ConfigError
 from ppprops.evaluation import make_policy, run_episode
 from ppprops.store import open_store
@@ -306,7 +307,7 @@ def test_a_module_that_fails_to_import_names_the_cause(capsys, user_dir: Path, a
 def test_dict_observations_with_chosen_keys(env_id: str, keys: tuple[str, ...], sizes: tuple[int, int]) -> None:
     with pytest.raises(ConfigError, match=rf"{env_id} has a Dict observation .* --obs-keys"):
         load_task(env_id)
-    task = load_task(env_id, obs_keys=keys)
+    task = load_task(env_id, options=TaskOptions(obs_keys=keys))
     assert task.n_s == sum(sizes) and task.observation.names[0] == f"{keys[0]}_0"
     env = task.make_env()
     try:
@@ -332,7 +333,7 @@ def test_discrete_observation_is_one_hot_so_the_policy_is_a_table() -> None:
             assert policy.act(task.observation(np.int64(state))) == int(np.argmax(table[state] + bias))
     finally:
         env.close()
-    cliff = load_task("CliffWalking-v1", max_episode_steps=40)
+    cliff = load_task("CliffWalking-v1", options=TaskOptions(max_episode_steps=40))
     assert cliff.n_s == 48
     env = cliff.make_env()
     try:

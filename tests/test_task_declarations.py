@@ -17,6 +17,7 @@ import pytest
 import ppprops
 from ppprops.cli import main
 from ppprops.client.hardening import residual_component, return_determining, reward_scale
+from ppprops.config import TaskOptions
 from ppprops.errors import ConfigError
 from ppprops.evaluation import make_policy, run_episode
 from ppprops.fileio import write_json_atomic
@@ -117,7 +118,7 @@ def test_loading_a_task_makes_its_env_once_and_never_resets_or_steps_it(tmp_path
     task = load_task(f)
     assert (task.n_s, task.n_a, task.components) == (3, 1, ("effort",))
     assert _counts(user_module) == (1, 0, 0)  # made once to read its spaces; no reset, no step
-    load_task(f"{user_module}:Counting", components=["effort"], diagnostics=["mode"])
+    load_task(f"{user_module}:Counting", options=TaskOptions(components=["effort"], diagnostics=["mode"]))
     assert _counts(user_module) == (2, 0, 0)
     result = check_task(f)  # the check the user asks for does step it
     assert result.ok and result.steps == 5 and result.ended and _counts(user_module) == (3, 1, 5)
@@ -133,7 +134,7 @@ def test_the_first_episode_checks_the_declared_keys(user_module: str) -> None:
         ({"diagnostics": ["phase"]}, f"{env_id}: diagnostic 'phase' is not in the env's info at any step of an episode (its "
                                      "keys: effort, parts, mode); did you mean parts?"),
     ]:  # fmt: skip
-        task = load_task(env_id, **kwargs)  # type: ignore[arg-type]
+        task = load_task(env_id, options=TaskOptions(**kwargs))
         env = task.make_env()
         try:
             with pytest.raises(FeedbackKeyError) as e:
@@ -145,7 +146,7 @@ def test_the_first_episode_checks_the_declared_keys(user_module: str) -> None:
 
 def test_task_check_reports_every_problem_at_once(user_module: str) -> None:
     env_id = f"{user_module}:Counting"
-    result = check_task(env_id, components=["efort", "parts"], diagnostics=["phase", "mode"])
+    result = check_task(env_id, options=TaskOptions(components=["efort", "parts"], diagnostics=["phase", "mode"]))
     assert not result.ok and result.checked is None and result.steps == 5 and result.ended
     assert list(result.problems) == [
         f"{env_id}: component 'efort' is not in the env's info at the first step (its keys: effort, parts, mode); did you "
@@ -155,11 +156,11 @@ def test_task_check_reports_every_problem_at_once(user_module: str) -> None:
         f"{env_id}: diagnostic 'phase' is not in the env's info at any step of an episode (its keys: effort, parts, mode); did "
         "you mean parts?",
     ]  # fmt: skip
-    expanded = check_task(env_id, components=["parts.*"])
+    expanded = check_task(env_id, options=TaskOptions(components=["parts.*"]))
     assert expanded.ok and expanded.expanded == {"parts.*": ("parts.a", "parts.b")}
     assert expanded.checked is not None and expanded.checked.components == ("parts.a", "parts.b")
     with pytest.raises(TaskFileError, match=r"component 'parts\.\*' asks for every entry .* `ppprops task check`"):
-        load_task(env_id, components=["parts.*"])
+        load_task(env_id, options=TaskOptions(components=["parts.*"]))
 
 
 def test_task_check_cli(capsys: pytest.CaptureFixture[str], user_module: str) -> None:
@@ -178,7 +179,7 @@ def test_an_env_constructor_that_raises_is_one_line_naming_the_users_frame(tmp_p
     path = tmp_path / f"{user_module}.py"
     line_no = MODULE.splitlines().index('            raise RuntimeError("motor driver fault")') + 1
     with pytest.raises(EnvError) as e:
-        load_task(f"{user_module}:FaultyDriver", env_kwargs={"broken_at": "init"})
+        load_task(f"{user_module}:FaultyDriver", options=TaskOptions(env_kwargs={"broken_at": "init"}))
     assert str(e.value) == (f"making {user_module}:FaultyDriver failed: RuntimeError: motor driver fault "
                             f"(at {path}:{line_no}, in __init__)")  # fmt: skip
 
@@ -203,8 +204,8 @@ def test_describe_user_error_points_at_the_callers_frame_of_a_standard_library_e
 
 
 def test_a_gymnasium_env_with_a_bad_kwarg_loads_and_the_check_says_which_kwargs() -> None:
-    load_task("Pendulum-v1", env_kwargs={"g": "heavy"})  # issue 23: no probe, so no traceback at load
-    result = check_task("Pendulum-v1", env_kwargs={"g": "heavy"})
+    load_task("Pendulum-v1", options=TaskOptions(env_kwargs={"g": "heavy"}))  # issue 23: no probe, so no traceback at load
+    result = check_task("Pendulum-v1", options=TaskOptions(env_kwargs={"g": "heavy"}))
     assert result.problems == ("Pendulum-v1: the env's step 1 raised TypeError: unsupported operand type(s) for /: 'str' "
                                "and 'float' (check env_kwargs {\"g\": \"heavy\"})",)  # fmt: skip
 
@@ -228,7 +229,7 @@ def test_a_task_without_env_declares_what_the_policy_sees_and_does() -> None:
     assert str(e.value) == line
     assert task_from_json(json.loads(json.dumps(task.spec.model_dump(mode="json")))) == task  # stored and rebuilt in any process
     with pytest.raises(TaskFileError, match="task RigArm has no env .* apply to an env"):
-        load_task(ROBOT, components=["x"])
+        load_task(ROBOT, options=TaskOptions(components=["x"]))
 
 
 def test_generic_prose_names_nothing_of_the_user(tmp_path: Path, user_module: str) -> None:
@@ -514,7 +515,7 @@ def test_the_paper_tasks_declare_the_facts_the_tables_held() -> None:
 
 
 def test_a_users_task_declares_its_facts_or_they_are_unknown(tmp_path: Path, user_module: str) -> None:
-    bare = load_task(f"{user_module}:Counting", components=["effort"])
+    bare = load_task(f"{user_module}:Counting", options=TaskOptions(components=["effort"]))
     facts = facts_for(bare)
     assert not facts.public_env and "integer_returns" in facts.unknown and "reward_scale" in facts.unknown
     assert facts.not_run("survive-length", "survive_component", "time_limit") == (
@@ -552,7 +553,7 @@ def test_public_env_defaults() -> None:
 
 def test_options_on_a_paper_tasks_env_id_give_a_task_of_that_env() -> None:
     """Issue 23: `--env CartPole-v1 --diagnostic x` was refused with "... or give its env id CartPole-v1"."""
-    task = load_task("CartPole-v1", max_episode_steps=50)
+    task = load_task("CartPole-v1", options=TaskOptions(max_episode_steps=50))
     assert task.name == "CartPole-v1" and task.spec.env.max_episode_steps == 50 and task is not get_task("CartPole")
     with pytest.raises(ConfigError, match="^CartPole is a paper task"):
-        load_task("CartPole", max_episode_steps=50)
+        load_task("CartPole", options=TaskOptions(max_episode_steps=50))

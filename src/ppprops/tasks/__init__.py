@@ -1,9 +1,10 @@
 """Task registry and loading: the paper's task files, a user's task files, Gymnasium ids, env factories.
 
 ``get_task(name)`` finds a task by its name, its env id, a task file path, or builds one for any
-Gymnasium id. ``load_task(source, ...)`` is the general form behind ``ppprops run`` and
+Gymnasium id. ``load_task(source, options=...)`` is the general form behind ``ppprops run`` and
 ``ppprops.search``: the source may also be an env factory or a ``TaskSpec``, with the quick options
-(env kwargs, a step limit, packages to import, Dict keys, info keys) applied.
+of a ``config.TaskOptions`` (env kwargs, a step limit, packages to import, Dict keys, info keys)
+applied.
 
 Loading the registry reads the paper's task files only; simulators are imported when a task's env
 is made, so the list of tasks is available without any extra installed. Loading a task makes its
@@ -15,11 +16,11 @@ from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, UnknownTaskError
 from .base import EpisodeFeedback, EpisodeRecorder, NoEnvError, Selection, Task, TaskText
@@ -39,6 +40,9 @@ from .spec import (
     spec_from_table,
     task_from_json,
 )
+
+if TYPE_CHECKING:
+    from ..config import TaskOptions
 
 _REGISTRY: dict[str, Task] = {}
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
@@ -169,78 +173,60 @@ def generic_task(
 
 @cache
 def _generic(name: str, components: tuple[str, ...], diagnostics: tuple[str, ...]) -> Task:
+    from ..config import TaskOptions
+
     found = registered_id(name)
     if found is None and ":" not in name:
         raise UnknownTaskError(f"unknown task {name!r}: not a registered Gymnasium id")
-    spec = spec_for_env(found or name).with_options(components=components, diagnostics=diagnostics)
+    spec = spec_for_env(found or name).with_options(TaskOptions(components=components, diagnostics=diagnostics))
     return build_task(resolve(spec))
 
 
 TaskSource = str | os.PathLike[str] | Callable[..., Any] | Mapping[str, Any] | TaskSpec | Task
 
 
-def load_task(
-    source: TaskSource | None = None,
-    *,
-    task_file: str | os.PathLike[str] | None = None,
-    env_kwargs: Mapping[str, Any] | None = None,
-    max_episode_steps: int | None = None,
-    gym_packages: Sequence[str] = (),
-    obs_keys: Sequence[str] | None = None,
-    components: Sequence[str] = (),
-    diagnostics: Sequence[str] = (),
-) -> Task:
+def load_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[str] | None = None, options: TaskOptions | None = None) -> Task:
     """The task a run searches, from any of the forms a user gives one in.
 
     ``source`` is a paper task name (``"Ant-Ultra"``), a Gymnasium id (``"Pendulum-v1"``), a
     ``module:EnvId`` or ``module:attr`` string (an Env class or a function returning an env), a path
     to a task file (``.toml``), a dict with a task file's keys (``{"name": ..., "env": ...,
     "observation": {"indices": [...]}}``), an env factory callable, a ``TaskSpec``, or a ``Task``;
-    ``task_file`` names a task file instead. The options are those of ``ppprops run``
-    (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``, ``--obs-keys``, ``--component``,
-    ``--diagnostic``) and win over the declaration. A task that is not a paper task is checked
-    against its env's observation and action spaces (the env is made, never stepped); its feedback
-    keys are checked by the episodes that use them, or by ``check_task`` when asked. A task file
-    without ``env`` gives a task without env (``Task.has_env`` False), driven with ask/tell.
+    ``task_file`` names a task file instead. ``options`` (a ``ppprops.config.TaskOptions``) holds
+    the options of ``ppprops run`` (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``,
+    ``--obs-keys``, ``--component``, ``--diagnostic``), which win over the declaration; its ``env``
+    or ``task_file`` names the task when neither ``source`` nor ``task_file`` does
+    (``load_task(options=TaskOptions(env="Pendulum-v1", max_episode_steps=100))``). A task that is
+    not a paper task is checked against its env's observation and action spaces (the env is made,
+    never stepped); its feedback keys are checked by the episodes that use them, or by
+    ``check_task`` when asked. A task file without ``env`` gives a task without env
+    (``Task.has_env`` False), driven with ask/tell.
 
     Raises:
         UnknownTaskError, TaskFileError, TaskImportError, EnvError (all ConfigError): one line naming
         what is wrong (an unknown id, a bad task file, a module that fails to import and why, an env
         whose constructor raises, a ``KEY.*`` that only ``check_task`` can expand).
     """
-    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
-                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    found = _source(source, task_file, options)
     return found if isinstance(found, Task) else build_task(resolve(found))
 
 
-def check_task(
-    source: TaskSource | None = None,
-    *,
-    task_file: str | os.PathLike[str] | None = None,
-    env_kwargs: Mapping[str, Any] | None = None,
-    max_episode_steps: int | None = None,
-    gym_packages: Sequence[str] = (),
-    obs_keys: Sequence[str] | None = None,
-    components: Sequence[str] = (),
-    diagnostics: Sequence[str] = (),
-    seed: int = 0,
-    max_steps: int = PROBE_STEPS,
-) -> TaskCheck:
+def check_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[str] | None = None, options: TaskOptions | None = None,
+               seed: int = 0, max_steps: int = PROBE_STEPS) -> TaskCheck:  # fmt: skip
     """Check a task in one zero-policy episode on its env and report every problem (``ppprops task check``).
 
-    The task is named as for ``load_task`` (same ``source`` forms and options). The episode is reset
-    with ``seed`` and runs at most ``max_steps`` steps. ``KEY.*`` components and diagnostics are
-    expanded here, and only here: ``result.expanded`` lists their entries, and ``result.checked``
-    is the task with them named (None when the check found problems), ready for ``ppprops.search``.
-    A task without env is validated and needs no episode.
+    The task is named as for ``load_task`` (same ``source`` forms and ``options``). The episode is
+    reset with ``seed`` and runs at most ``max_steps`` steps. ``KEY.*`` components and diagnostics
+    are expanded here, and only here: ``result.expanded`` lists their entries, and
+    ``result.checked`` is the task with them named (None when the check found problems), ready for
+    ``ppprops.search``. A task without env is validated and needs no episode.
 
     Raises:
         ConfigError: one line for what stops the check before the episode (an unknown task, a bad
             task file, an env that cannot be made, spaces that disagree with the declaration); what
             the episode finds is in ``result.problems`` instead.
     """
-    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
-                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    found = _source(source, task_file, options)
     if isinstance(found, Task):
         if found.spec is None:
             raise ConfigError(f"task {found.name} is a Task made by hand, with no declaration to check")
@@ -248,20 +234,14 @@ def check_task(
     return check_spec(found, seed=seed, max_steps=max_steps)
 
 
-def _source(
-    source: TaskSource | None,
-    *,
-    task_file: str | os.PathLike[str] | None,
-    env_kwargs: Mapping[str, Any] | None,
-    max_episode_steps: int | None,
-    gym_packages: Sequence[str],
-    obs_keys: Sequence[str] | None,
-    components: Sequence[str],
-    diagnostics: Sequence[str],
-) -> Task | TaskSpec:
+def _source(source: TaskSource | None, task_file: str | os.PathLike[str] | None, options: TaskOptions | None) -> Task | TaskSpec:
     """The registered Task a source names, or the declaration (options applied, not yet resolved) it gives."""
-    options = bool(env_kwargs or max_episode_steps is not None or gym_packages or obs_keys is not None or components or diagnostics)
-    for module in gym_packages:
+    given = options is not None and options.has_options
+    if options is not None and (options.env is not None or options.task_file is not None):
+        if source is not None or task_file is not None:
+            raise ConfigError("the task is named twice: give it as the source or in the options (env / task_file), not both")
+        source, task_file = options.env, options.task_file
+    for module in options.gym_packages if options is not None else ():
         import_module(module, "--gym-packages")
     if task_file is not None:
         if source is not None:
@@ -271,7 +251,7 @@ def _source(
         raise ConfigError("no task: give a task name or Gymnasium id (--env), or a task file (--task-file)")
     spec: TaskSpec
     if isinstance(source, Task):
-        if options:
+        if given:
             raise ConfigError(f"task {source.name} is a Task object: change its declaration (its .spec) instead of passing options")
         return source
     if isinstance(source, TaskSpec):
@@ -281,7 +261,7 @@ def _source(
     elif isinstance(source, os.PathLike) or (isinstance(source, str) and _is_task_file(source)):
         spec = read_task_file(Path(source))
     elif isinstance(source, str):
-        if not options:
+        if not given:
             return get_task(source)
         known = _REGISTRY.get(source.lower())
         if known is None:
@@ -305,9 +285,9 @@ def _source(
         spec = spec_for_env(source)
     else:
         raise ConfigError(f"a task is a name, a Gymnasium id, a task file, an env factory, a TaskSpec or a Task; got {source!r}")
-    if options:
-        spec = spec.with_options(env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
-                                 obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    if given:
+        assert options is not None
+        spec = spec.with_options(options)
     return spec
 
 

@@ -56,11 +56,11 @@ from __future__ import annotations
 import difflib
 import json
 import tomllib
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import TYPE_CHECKING, Any, Final, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -71,6 +71,9 @@ from .envs import EnvRecipe, Prepare, check_json_kwargs, entry_point_of, import_
 from .facts import PrivacyFacts
 from .feedback import InfoFeedback, InfoKey
 from .schema import RESERVED, TaskFile, TaskFileError, validate_table
+
+if TYPE_CHECKING:
+    from ..config import TaskOptions
 
 FORMAT: Final = "ppprops.task/1"
 _TEXT = "ppprops.tasks.descriptions"
@@ -215,40 +218,30 @@ class TaskSpec(BaseModel):
             return False
         return env.entry_point is None or not env.entry_point.startswith(tuple(f"{m}." for m in ("__main__", "__mp_main__")))
 
-    def with_options(
-        self,
-        *,
-        env_kwargs: Mapping[str, Any] | None = None,
-        max_episode_steps: int | None = None,
-        gym_packages: Sequence[str] = (),
-        obs_keys: Sequence[str] | None = None,
-        components: Sequence[str] = (),
-        diagnostics: Sequence[str] = (),
-    ) -> TaskSpec:
+    def with_options(self, options: TaskOptions) -> TaskSpec:
         """This declaration with the quick options of ``ppprops run`` applied (they win); not yet resolved.
 
-        Raises TaskFileError for a task without env (every option but the feedback names concerns
-        an env; a task without env declares its feedback in its file).
+        ``options`` is a ``config.TaskOptions``; its ``env`` and ``task_file`` (which name the task)
+        are not read here. Raises TaskFileError for a task without env (every option but the
+        feedback names concerns an env; a task without env declares its feedback in its file).
         """
         env = self.env
         if env is None:
             raise TaskFileError(f"task {self.name} has no env (a robot outside Python): --env-kwargs, --max-episode-steps, "
                                 "--gym-packages, --obs-keys, --component and --diagnostic apply to an env; declare the "
                                 "feedback in the task file")  # fmt: skip
-        if env_kwargs:
-            env = env.model_copy(update={"kwargs": {**env.kwargs, **check_json_kwargs(env_kwargs, self.name)}})
-        if max_episode_steps is not None:
-            if max_episode_steps < 1:
-                raise TaskFileError(f"--max-episode-steps must be >= 1, got {max_episode_steps}")
-            env = env.model_copy(update={"max_episode_steps": int(max_episode_steps)})
-        if gym_packages:
-            env = env.model_copy(update={"imports": tuple(dict.fromkeys((*env.imports, *gym_packages)))})
+        if options.env_kwargs:
+            env = env.model_copy(update={"kwargs": {**env.kwargs, **check_json_kwargs(options.env_kwargs, self.name)}})
+        if options.max_episode_steps is not None:
+            env = env.model_copy(update={"max_episode_steps": options.max_episode_steps})
+        if options.gym_packages:
+            env = env.model_copy(update={"imports": tuple(dict.fromkeys((*env.imports, *options.gym_packages)))})
         update: dict[str, Any] = {"env": env, "complete": False}
-        if obs_keys is not None:
-            update["observation"] = ObservationSpec(keys=tuple(obs_keys))
-        if components or diagnostics:
-            update["components"] = self.components + tuple(Declared(name=k, info=k, reduce="sum") for k in components)
-            update["diagnostics"] = self.diagnostics + tuple(Declared(name=k, info=k) for k in diagnostics)
+        if options.obs_keys is not None:
+            update["observation"] = ObservationSpec(keys=tuple(options.obs_keys))
+        if options.components or options.diagnostics:
+            update["components"] = self.components + tuple(Declared(name=k, info=k, reduce="sum") for k in options.components)
+            update["diagnostics"] = self.diagnostics + tuple(Declared(name=k, info=k) for k in options.diagnostics)
         return self.model_copy(update=update)
 
 
