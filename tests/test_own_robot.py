@@ -653,7 +653,7 @@ def test_guide_error_example_is_the_real_line(capsys, tmp_path: Path) -> None:  
 def test_register_by_task_file_and_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import ppprops.tasks
 
-    monkeypatch.setattr(ppprops.tasks, "_REGISTRY", dict(ppprops.tasks._REGISTRY))  # registered for this test only
+    monkeypatch.setattr(ppprops.tasks, "_REGISTRY", dict(ppprops.tasks._tasks()))  # registered for this test only
     task = register(EXAMPLE / "point_robot.toml")
     assert get_task("PointRobot") is task and task.n_s == 6 and task.components == ("reward_distance", "reward_effort")
     assert task.diagnostics == ("episode_length", "distance", "reached")

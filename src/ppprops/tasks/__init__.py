@@ -6,8 +6,9 @@ Gymnasium id. ``load_task(source, options=...)`` is the general form behind ``pp
 of a ``config.TaskOptions`` (env kwargs, a step limit, packages to import, Dict keys, info keys)
 applied.
 
-Loading the registry reads the paper's task files only; simulators are imported when a task's env
-is made, so the list of tasks is available without any extra installed. Loading a task makes its
+The registry reads the paper's task files the first time it is used (importing ``ppprops.tasks``
+reads none); simulators are imported when a task's env is made, so the list of tasks is available
+without any extra installed. Loading a task makes its
 env at most once, to read its spaces, and never steps it; ``check_task`` runs the one zero-policy
 episode that checks a declaration, when the user asks for it (``ppprops task check``).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import difflib
 import os
+import threading
 from collections.abc import Callable, Mapping
 from functools import cache
 from importlib import resources
@@ -44,9 +46,23 @@ from .spec import (
 if TYPE_CHECKING:
     from ..config import TaskOptions
 
-_REGISTRY: dict[str, Task] = {}
+_REGISTRY: dict[str, Task] = {}  # read through _tasks(): the paper's tasks are read into it on first use
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
 _BUILTIN: set[str] = set()  # the paper's tasks: always known by name, in every process
+_PAPER_READ = False
+_LOCK = threading.Lock()
+
+
+def _tasks() -> dict[str, Task]:
+    """The registry, with the paper's tasks read into it the first time it is used (so importing
+    ``ppprops.tasks`` reads no task file and builds no validator)."""
+    global _PAPER_READ
+    if not _PAPER_READ:
+        with _LOCK:
+            if not _PAPER_READ:
+                _load_paper()
+                _PAPER_READ = True
+    return _REGISTRY
 
 
 def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str], *, by_env_id: bool = True) -> Task:
@@ -60,15 +76,21 @@ def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str],
     Raises:
         ValueError (ConfigError): the name is taken by another declaration.
     """
+    registry = _tasks()
     if not isinstance(task, Task):
         task = load_task(task)
+    return _add(registry, task, by_env_id)
+
+
+def _add(registry: dict[str, Task], task: Task, by_env_id: bool) -> Task:
     key = task.name.lower()
-    old = _REGISTRY.get(key)
+    old = registry.get(key)
     if old is not None:
-        if old is task or (old.spec is not None and task.spec is not None and old.spec.model_dump(mode="json") == task.spec.model_dump(mode="json")):
+        if old is task or (old.spec is not None and task.spec is not None
+                           and old.spec.model_dump(mode="json") == task.spec.model_dump(mode="json")):  # fmt: skip
             return old
         raise ConfigError(f"task {task.name!r} is already registered")
-    _REGISTRY[key] = task
+    registry[key] = task
     if not by_env_id:
         _NAME_ONLY.add(key)
     return task
@@ -80,26 +102,24 @@ def _load_paper() -> None:
         for filename in files:
             with resources.as_file(root.joinpath(filename)) as path:
                 task = build_task(read_task_file(path, builtin=True))
-            register(task, by_env_id=by_env_id)
+            _add(_REGISTRY, task, by_env_id)
             _BUILTIN.add(task.name.lower())
-
-
-_load_paper()
 
 
 def list_tasks() -> list[Task]:
     """Every registered task: the paper's ten and its presets first, then any registered in this process."""
-    return list(_REGISTRY.values())
+    return list(_tasks().values())
 
 
 def is_builtin(task: Task) -> bool:
     """True for the paper's own task objects (known by name in every process)."""
-    return task.name.lower() in _BUILTIN and _REGISTRY.get(task.name.lower()) is task
+    return task.name.lower() in _BUILTIN and _tasks().get(task.name.lower()) is task
 
 
 def registered(name: str) -> Task | None:
-    """The task registered in this process under ``name`` (case-insensitive), or None; builds and loads nothing."""
-    return _REGISTRY.get(name.lower())
+    """The task registered in this process under ``name`` (case-insensitive), or None; makes no env (the
+    paper's task files are read the first time any registry function is called)."""
+    return _tasks().get(name.lower())
 
 
 def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
@@ -114,7 +134,7 @@ def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
         return PrivacyFacts()
     if spec.privacy is not None:
         return spec.privacy
-    paper = _REGISTRY.get(spec.name.lower())
+    paper = _tasks().get(spec.name.lower())
     if paper is not None and is_builtin(paper) and paper.spec is not None:
         mine, theirs = (s.model_dump(mode="json", exclude={"privacy"}) for s in (spec, paper.spec))
         if mine == theirs and paper.spec.privacy is not None:
@@ -138,9 +158,10 @@ def get_task(name: str) -> Task:
         ConfigError: the task file or the env's info keys are wrong (one line naming the cause).
     """
     key = name.lower()
-    if key in _REGISTRY:
-        return _REGISTRY[key]
-    by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
+    registry = _tasks()
+    if key in registry:
+        return registry[key]
+    by_id = [t for k, t in registry.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
     if len(by_id) == 1:
         return by_id[0]
     if by_id:
@@ -150,8 +171,8 @@ def get_task(name: str) -> Task:
     found = registered_id(name)
     if found is not None or ":" in name:  # module:attr: an env class or factory (checked when built)
         return generic_task(found or name)
-    names = [t.name for t in _REGISTRY.values()]
-    candidates = names + [t.env_id for t in _REGISTRY.values()] + known_ids()
+    names = [t.name for t in registry.values()]
+    candidates = names + [t.env_id for t in registry.values()] + known_ids()
     close = difflib.get_close_matches(name, list(dict.fromkeys(candidates)), n=3, cutoff=0.5)
     hint = f"; did you mean {', '.join(close)}?" if close else f"; known tasks: {', '.join(names)}"
     raise UnknownTaskError(f"unknown task {name!r}{hint}")
@@ -263,9 +284,10 @@ def _source(source: TaskSource | None, task_file: str | os.PathLike[str] | None,
     elif isinstance(source, str):
         if not given:
             return get_task(source)
-        known = _REGISTRY.get(source.lower())
+        registry = _tasks()
+        known = registry.get(source.lower())
         if known is None:
-            by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
+            by_id = [t for k, t in registry.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
             known = by_id[0] if len(by_id) == 1 else None
         if known is not None and is_builtin(known):
             if known.name.lower() == source.lower():
