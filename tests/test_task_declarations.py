@@ -204,7 +204,7 @@ def test_describe_user_error_points_at_the_callers_frame_of_a_standard_library_e
 
 
 def test_a_gymnasium_env_with_a_bad_kwarg_loads_and_the_check_says_which_kwargs() -> None:
-    load_task("Pendulum-v1", options=TaskOptions(env_kwargs={"g": "heavy"}))  # issue 23: no probe, so no traceback at load
+    load_task("Pendulum-v1", options=TaskOptions(env_kwargs={"g": "heavy"}))  # no probe, so no traceback at load
     result = check_task("Pendulum-v1", options=TaskOptions(env_kwargs={"g": "heavy"}))
     assert result.problems == ("Pendulum-v1: the env's step 1 raised TypeError: unsupported operand type(s) for /: 'str' "
                                "and 'float' (check env_kwargs {\"g\": \"heavy\"})",)  # fmt: skip

@@ -8,9 +8,9 @@ applied.
 
 The registry reads the paper's task files the first time it is used (importing ``ppprops.tasks``
 reads none); simulators are imported when a task's env is made, so the list of tasks is available
-without any extra installed. Loading a task makes its
-env at most once, to read its spaces, and never steps it; ``check_task`` runs the one zero-policy
-episode that checks a declaration, when the user asks for it (``ppprops task check``).
+without any extra installed. Loading a task makes its env at most once, to read its spaces, and
+never steps it; ``check_task`` runs the one zero-policy episode that checks a declaration, when the
+user asks for it (``ppprops task check``).
 """
 
 from __future__ import annotations
