@@ -221,7 +221,7 @@ def test_warped_lattice_recovers_c_under_pp_and_the_old_undithered_warp_but_not_
     import ppprops.client.hardening as hardening
 
     facts = hardening.facts_for
-    monkeypatch.setattr(hardening, "facts_for", lambda name: replace(facts(name), resolution={}))
+    monkeypatch.setattr(hardening, "facts_for", lambda name: facts(name).model_copy(update={"resolution": {}}))
     # (it needs a favourable draw: 1 of these 8 seeded runs on CartPole, 2 on Acrobot)
     old = [(s, _estimate(_simulate(tmp_path / "old", task, "pp-hardened", s), task, "warped-lattice")) for s in range(8)]
     hits = [(s, e) for s, e in old if e.applicable]

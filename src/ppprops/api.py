@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import RunConfig
+from .config import TASK_OPTIONS, RunConfig, TaskOptions
 from .errors import ConfigError
 from .llm.protocol import LLM
 from .policy_file import Policy, load_policy
@@ -120,8 +120,7 @@ GROUPS: dict[str, dict[str, str]] = {
                "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries", "explore": "explore"},
     "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers", "select_top": "select_top",
                    "select_episodes": "select_episodes"},
-    "task_options": {"env_kwargs": "env_kwargs", "max_episode_steps": "max_episode_steps", "gym_packages": "gym_packages",
-                     "obs_keys": "obs_keys", "components": "components", "diagnostics": "diagnostics"},
+    "task_options": {name: name for name in TASK_OPTIONS},  # the fields of config.TaskOptions
 }  # fmt: skip
 
 
@@ -176,10 +175,7 @@ def _build(task: TaskLike, *, method: str, warmup: int, iterations: int, seed: i
     values.update({k: v for k, v in switches.items() if v is not None})
     if method_options:
         values["method_options"] = dict(method_options)
-    topts = _group_values("task_options", task_options)
-    t = load_task(task, env_kwargs=topts.get("env_kwargs"), max_episode_steps=topts.get("max_episode_steps"),
-                  gym_packages=topts.get("gym_packages", ()), obs_keys=topts.get("obs_keys"), components=topts.get("components", ()),
-                  diagnostics=topts.get("diagnostics", ()))  # fmt: skip
+    t = load_task(task, options=TaskOptions(**_group_values("task_options", task_options)))
     return build_config(values, task=t), model
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -34,7 +34,7 @@ from .schema import SCHEMA, Box, Flag, Int, JsonObject, Names, OnOff, one_line_e
 if TYPE_CHECKING:
     from .tasks import Task
 
-__all__ = ["LLMConfig", "OnOff", "PromptSettings", "RunConfig", "TaskOptions", "read_table", "read_text", "read_toml"]
+__all__ = ["TASK_OPTIONS", "LLMConfig", "OnOff", "PromptSettings", "RunConfig", "TaskOptions", "read_table", "read_text", "read_toml"]
 
 # Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
 MAX_WARMUP = 10_000
@@ -106,7 +106,7 @@ class RunConfig:
     prompt_form: Annotated[Literal["auto", "chat", "document"], Flag(
         "chat: the paper's instruction prompt; document: the history as a document for a base model to continue "
         "(completions endpoint); auto: document for the embedded model, chat otherwise")] = "auto"
-    # The task's whole declaration (ppprops.tasks.spec.TaskSpec.to_json()): env recipe, observation
+    # The task's whole declaration (ppprops.tasks.spec.TaskSpec.model_dump(mode="json")): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
     task_spec: dict[str, Any] | None = None
@@ -213,8 +213,10 @@ class RunConfig:
 @dataclass(frozen=True, config=SCHEMA)
 class TaskOptions:
     """How a user names the task of a run: ``--env`` or ``--task-file``, and the options of a task
-    that is not a paper task. ``load()`` turns them into the ``Task`` whose name and declaration
-    (``task_spec``) the RunConfig stores.
+    that is not a paper task (``TASK_OPTIONS``). ``load()`` turns them into the ``Task`` whose name
+    and declaration (``task_spec``) the RunConfig stores. The one object that carries those options:
+    ``ppprops.tasks.load_task`` / ``check_task`` and ``TaskSpec.with_options`` take it, and
+    ``ppprops.search``'s ``task_options`` mapping becomes one.
 
     Raises:
         ConfigError: on construction, for a value of the wrong type.
@@ -238,6 +240,12 @@ class TaskOptions:
         "an info key to report as a diagnostic (its last value; repeatable)", name="diagnostic", metavar="KEY",
         repeatable=True)] = ()
 
+    @property
+    def has_options(self) -> bool:
+        """True when an option of a task that is not a paper task is set (one of ``TASK_OPTIONS``)."""
+        return bool(self.env_kwargs or self.max_episode_steps is not None or self.gym_packages or self.obs_keys is not None
+                    or self.components or self.diagnostics)  # fmt: skip
+
     def load(self) -> Task:
         """The task (``ppprops.tasks.load_task``).
 
@@ -249,9 +257,11 @@ class TaskOptions:
             raise ConfigError("--env or --task-file is required (on the command line, or in the --config file)")
         from .tasks import load_task
 
-        return load_task(self.env, task_file=self.task_file, env_kwargs=self.env_kwargs, max_episode_steps=self.max_episode_steps,
-                         gym_packages=self.gym_packages, obs_keys=self.obs_keys, components=self.components,
-                         diagnostics=self.diagnostics)  # fmt: skip
+        return load_task(options=self)
+
+
+# The options of a task that is not a paper task: the fields of TaskOptions but the two naming the task.
+TASK_OPTIONS: tuple[str, ...] = tuple(f.name for f in fields(TaskOptions) if f.name not in ("env", "task_file"))
 
 
 SWITCH_FLAGS: dict[str, Flag] = {name: Flag(SWITCH_HELP[name], metavar="on|off") for name in SWITCHES}

@@ -134,7 +134,7 @@ def policy_document(
         "b": pol.b.tolist(),
         "theta": [float(v) for v in theta],
         "versions": _versions(((env_doc or {}).get("spec") or {}).get("entry_point")),
-        "task_spec": task.spec.to_json() if task.spec is not None else None,
+        "task_spec": task.spec.model_dump(mode="json") if task.spec is not None else None,
         "search": search,
         "final_eval": final_eval,
     }

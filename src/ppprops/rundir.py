@@ -58,7 +58,7 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     config.validate()
     task = config.make_task()
     if config.task_spec is None and task.spec is not None:
-        config = replace(config, task_spec=task.spec.to_json())
+        config = replace(config, task_spec=task.spec.model_dump(mode="json"))
     if config.workers > 1:
         check_parallel(task)  # before the directory: a pool that could never start
     run_dir = Path(run_dir)

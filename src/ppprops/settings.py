@@ -324,4 +324,4 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
         task = options.load()
     from .tasks import is_builtin
 
-    return dataclasses.replace(config, task=task.name, task_spec=None if is_builtin(task) or task.spec is None else task.spec.to_json())
+    return dataclasses.replace(config, task=task.name, task_spec=None if is_builtin(task) or task.spec is None else task.spec.model_dump(mode="json"))

@@ -1,8 +1,9 @@
 """Client-side facts the hardened preset needs about a task, and the run's codec and secrets.
 
-The facts live with each task (its task file's ``[privacy]`` table, read through
-``privacy.knowledge.facts_for``; issue 20): which diagnostics pin the return, which reward
-component is left out, the public step of each reward quantity and the rough size of returns.
+The facts live with each task (its task file's ``[privacy]`` table, ``tasks.facts.PrivacyFacts``,
+completed for the task by ``privacy.knowledge.facts_for``, as the attacks read them): which
+diagnostics pin the return, which reward component is left out, the public step of each reward
+quantity and the rough size of returns.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..privacy.knowledge import facts_for
+from ..tasks.facts import DEFAULT_REWARD_SCALE
 from .codec import Codec
 from .mechanisms import Mechanisms
 from .secrets import Secrets, os_rng
@@ -37,7 +39,7 @@ def return_determining(task: Task) -> frozenset[str]:
     ``hide_return_diagnostics``; docs/threat-model.md): the task's ``privacy.return_determining``, and
     ``episode_length`` for every task (the CartPole return, the Acrobot return with ``success``, the
     healthy reward of the locomotion tasks; it also states the time limit)."""
-    return facts_for(task).return_determining
+    return frozenset(facts_for(task).return_determining or ())
 
 
 def residual_component(task: Task) -> frozenset[str]:
@@ -49,18 +51,18 @@ def residual_component(task: Task) -> frozenset[str]:
     is public anyway), else its first component.
     """
     name = facts_for(task).residual_component
-    if not task.components or name is None:
+    if not task.components or not name:
         return frozenset()
     return frozenset({name if name in task.components else task.components[0]})
 
 
 def reward_scale(task: Task) -> float:
     """The public magnitude of the task's returns (reward units): its ``privacy.reward_scale``, else
-    |optimal return|, else 1000 (``privacy.knowledge.DEFAULT_REWARD_SCALE``).
+    |optimal return|, else 1000 (``tasks.facts.DEFAULT_REWARD_SCALE``).
 
     Bounds the secret reward offsets s and s_k of ``secret_offsets``.
     """
-    return facts_for(task).reward_scale
+    return facts_for(task).reward_scale or DEFAULT_REWARD_SCALE
 
 
 def generate_secrets(run_id: str, task: Task, config: EncodingSettings, rng: np.random.Generator | None = None) -> Secrets:
@@ -101,7 +103,7 @@ def codec_for(secrets: Secrets, task: Task, config: EncodingSettings) -> Codec:
         box=config.box,
         hidden_diagnostics=return_determining(task) if m.hide_return_diagnostics else frozenset(),
         hidden_components=residual_component(task) if m.hide_return_diagnostics else frozenset(),
-        resolution=facts_for(task).resolution,
+        resolution=facts_for(task).resolution or {},
         episodes=config.episodes,
         reward_scale=reward_scale(task),
     )

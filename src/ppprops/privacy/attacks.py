@@ -61,7 +61,7 @@ def diagnostic(v: View) -> Estimate:
             vals = [token_value(e.diagnostics[k]) if k in e.diagnostics else None for k in formula]
             if any(x is None for x in vals):
                 continue
-            raw = sum(coef * x[0] for coef, x in zip(formula.values(), vals, strict=True) if x) + v.facts.formula_const
+            raw = sum(coef * x[0] for coef, x in zip(formula.values(), vals, strict=True) if x) + (v.facts.return_formula_constant or 0.0)
             if raw != 0:
                 f.append(raw)
                 r.append(e.ret)
@@ -119,7 +119,8 @@ def lattice(v: View) -> Estimate:
 
 def known_cap(v: View) -> Estimate:
     """c = printed return / cap, for entries a diagnostic (or a tie at the extreme) marks as capped."""
-    for side, cap, diag, marker in v.facts.caps:
+    for known in v.facts.caps or ():
+        side, cap, diag, marker = known.side, known.value, known.diagnostic, known.marker
         hits = [e.ret for e in v.entries if same_marker(e.diagnostics.get(diag), marker)]
         how = f"{diag}={marker}"
         if not hits:

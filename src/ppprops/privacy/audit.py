@@ -408,7 +408,7 @@ class _Auditor:
                 self.finding("channel", "reward_lattice", "integer returns scaled by c keep a lattice: the gcd of differences of "
                              "printed returns gives c", f"{len(set(rets))} distinct returns shown")
         if mech.scale_rewards and not mech.warp_rewards and not mech.secret_offsets:
-            caps = {v for _, v, _, _ in facts_for(self.task).caps}
+            caps = {c.value for c in facts_for(self.task).caps or ()}
             if self.task.optimal_return is not None:
                 caps.add(float(self.task.optimal_return))
             for c in shown:

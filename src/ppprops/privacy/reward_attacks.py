@@ -38,7 +38,7 @@ def warped_lattice(v: View) -> Estimate:
     """c (with s and p) from integer returns seen through an unknown power warp and offset."""
     f = v.facts
     name = "warped-lattice"
-    if not f.integer_returns or f.return_range is None:
+    if not f.integer_returns or not f.return_range:
         return Estimate(name, "c", None, "returns of this task are not known to be integers")
     lo, hi = f.return_range
     flip = hi <= 0  # work with |r| > 0: y' = -y = c (w(|r|) - w(-s)) for negative returns
@@ -99,10 +99,10 @@ def _pairs(qmax: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _cap_anchor(v: View, flip: bool) -> tuple[float, float] | None:
     """(printed value, |raw|) of a return a diagnostic marks as the public cap, if one is shown."""
-    for _, cap, diag, marker in v.facts.caps:
-        hits = {(-e.ret if flip else e.ret) for e in v.entries if same_marker(e.diagnostics.get(diag), marker)}
+    for cap in v.facts.caps or ():
+        hits = {(-e.ret if flip else e.ret) for e in v.entries if same_marker(e.diagnostics.get(cap.diagnostic), cap.marker)}
         if len(hits) == 1:
-            return hits.pop(), abs(cap)
+            return hits.pop(), abs(cap.value)
     return None
 
 
@@ -201,8 +201,8 @@ def additivity(v: View) -> Estimate:
         if set(comps) != set(f.components) or any(x is None for x in comps.values()):
             continue
         rows.append((e.ret, [comps[k][0] for k in f.components]))  # type: ignore[index]
-        if f.survive and f.time_limit and same_marker(e.diagnostics.get("termination"), "time_limit"):
-            anchors.append(comps[f.survive][0])  # type: ignore[index]
+        if f.survive_component and f.time_limit and same_marker(e.diagnostics.get("termination"), "time_limit"):
+            anchors.append(comps[f.survive_component][0])  # type: ignore[index]
     if len(rows) < 5:
         shown = sorted({k for e in v.entries for k, _ in e.components})
         why = f"components shown: {', '.join(shown) or 'none'}" if rows == [] else f"only {len(rows)} complete entries"
@@ -295,11 +295,11 @@ def _steps(v: View, diagnostics: dict[str, str]) -> float | None:
 def survive_length(v: View) -> Estimate:
     """c = printed survive component / (healthy reward x episode length), constant over the entries."""
     f = v.facts
-    if f.survive is None or not f.healthy_reward:
+    if not f.survive_component or not f.healthy_reward:
         return Estimate("survive-length", "c", None, "no component with a public per-step value")
     ratios = []
     for e in v.entries:
-        y, n = _component(e.components, f.survive), _steps(v, e.diagnostics)
+        y, n = _component(e.components, f.survive_component), _steps(v, e.diagnostics)
         if y is not None and n is not None:
             healthy = n - 1 if same_marker(e.diagnostics.get("termination"), "unhealthy") else n  # the last step pays 0
             if healthy > 0:
@@ -315,11 +315,11 @@ def survive_length(v: View) -> Estimate:
 def saturated_ctrl(v: View) -> Estimate:
     """c from the most negative printed control cost per step, when several policies share it (saturation)."""
     f = v.facts
-    if f.ctrl is None or not f.ctrl_per_step:
+    if not f.ctrl_component or not f.ctrl_per_step:
         return Estimate("saturated-ctrl", "c", None, "no control cost with a public saturation value")
     per = []
     for e in v.entries:
-        y, n = _component(e.components, f.ctrl), _steps(v, e.diagnostics)
+        y, n = _component(e.components, f.ctrl_component), _steps(v, e.diagnostics)
         if y is not None and n is not None and y < 0:
             per.append((y / n, tuple(e.params)))
     if len(per) < 2:

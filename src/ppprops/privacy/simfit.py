@@ -110,7 +110,7 @@ def schemes_of(v: View) -> list[Scheme]:
     presets are tried (``pp`` and ``pp-hardened``), the better fit wins. Empty when the prompt
     shows raw parameters or raw returns (nothing to fit)."""
     text = v.requests[0].text if v.requests else ""
-    step = v.facts.resolution.get("return", 0.0)
+    step = (v.facts.resolution or {}).get("return", 0.0)
     params = next((k for k, w in _PARAM_WORDS if w in text), None)
     rewards = next((k for k, w in _REWARD_WORDS if w in text), None)
     if params and rewards:
@@ -732,7 +732,7 @@ def _fingerprint(v: View, mode: str) -> str:
     """Everything a fit reads: the shown entries, the provider's answers, the first request (its
     wording and sampling seed), the task's env and declaration, the box and the limits."""
     task = v.task
-    decl = json.dumps(task.spec.to_json(), sort_keys=True, default=str) if task is not None and task.spec is not None else ""
+    decl = json.dumps(task.spec.model_dump(mode="json"), sort_keys=True, default=str) if task is not None and task.spec is not None else ""
     parts = [mode, v.facts.task, decl, repr(v.box), repr(v.memo.get("sim_limits")),
              v.requests[0].text if v.requests else "", repr(v.requests[0].seed if v.requests else None)]
     parts += [repr((tuple(e.params), tuple(e.tols), e.ret, e.ret_tol, sorted(e.diagnostics.items()), e.first_call, e.components))

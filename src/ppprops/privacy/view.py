@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .knowledge import PublicFacts, facts_for
+from ..tasks.facts import PrivacyFacts
+from .knowledge import facts_for
 from .requests import Request
 from .tokens import token_value
 
@@ -36,7 +37,7 @@ class View:
     requests: tuple[Request, ...]
     entries: tuple[Shown, ...]
     warmup: tuple[Shown, ...]  # the entries of the first request: the warm-up, as Algorithm 1 starts
-    facts: PublicFacts
+    facts: PrivacyFacts  # completed for the task (``knowledge.facts_for``)
     box: tuple[float, float]
     D: int
     memo: dict[str, object] = field(default_factory=dict, compare=False, hash=False)  # results attacks share

@@ -1,25 +1,28 @@
 """Task registry and loading: the paper's task files, a user's task files, Gymnasium ids, env factories.
 
 ``get_task(name)`` finds a task by its name, its env id, a task file path, or builds one for any
-Gymnasium id. ``load_task(source, ...)`` is the general form behind ``ppprops run`` and
+Gymnasium id. ``load_task(source, options=...)`` is the general form behind ``ppprops run`` and
 ``ppprops.search``: the source may also be an env factory or a ``TaskSpec``, with the quick options
-(env kwargs, a step limit, packages to import, Dict keys, info keys) applied.
+of a ``config.TaskOptions`` (env kwargs, a step limit, packages to import, Dict keys, info keys)
+applied.
 
-Loading the registry reads the paper's task files only; simulators are imported when a task's env
-is made, so the list of tasks is available without any extra installed. Loading a task makes its
-env at most once, to read its spaces, and never steps it; ``check_task`` runs the one zero-policy
-episode that checks a declaration, when the user asks for it (``ppprops task check``).
+The registry reads the paper's task files the first time it is used (importing ``ppprops.tasks``
+reads none); simulators are imported when a task's env is made, so the list of tasks is available
+without any extra installed. Loading a task makes its env at most once, to read its spaces, and
+never steps it; ``check_task`` runs the one zero-policy episode that checks a declaration, when the
+user asks for it (``ppprops task check``).
 """
 
 from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Callable, Mapping, Sequence
+import threading
+from collections.abc import Callable, Mapping
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, UnknownTaskError
 from .base import EpisodeFeedback, EpisodeRecorder, NoEnvError, Selection, Task, TaskText
@@ -40,9 +43,26 @@ from .spec import (
     task_from_json,
 )
 
-_REGISTRY: dict[str, Task] = {}
+if TYPE_CHECKING:
+    from ..config import TaskOptions
+
+_REGISTRY: dict[str, Task] = {}  # read through _tasks(): the paper's tasks are read into it on first use
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
 _BUILTIN: set[str] = set()  # the paper's tasks: always known by name, in every process
+_PAPER_READ = False
+_LOCK = threading.Lock()
+
+
+def _tasks() -> dict[str, Task]:
+    """The registry, with the paper's tasks read into it the first time it is used (so importing
+    ``ppprops.tasks`` reads no task file and builds no validator)."""
+    global _PAPER_READ
+    if not _PAPER_READ:
+        with _LOCK:
+            if not _PAPER_READ:
+                _load_paper()
+                _PAPER_READ = True
+    return _REGISTRY
 
 
 def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str], *, by_env_id: bool = True) -> Task:
@@ -56,15 +76,21 @@ def register(task: Task | TaskSpec | Mapping[str, Any] | str | os.PathLike[str],
     Raises:
         ValueError (ConfigError): the name is taken by another declaration.
     """
+    registry = _tasks()
     if not isinstance(task, Task):
         task = load_task(task)
+    return _add(registry, task, by_env_id)
+
+
+def _add(registry: dict[str, Task], task: Task, by_env_id: bool) -> Task:
     key = task.name.lower()
-    old = _REGISTRY.get(key)
+    old = registry.get(key)
     if old is not None:
-        if old is task or (old.spec is not None and task.spec is not None and old.spec.to_json() == task.spec.to_json()):
+        if old is task or (old.spec is not None and task.spec is not None
+                           and old.spec.model_dump(mode="json") == task.spec.model_dump(mode="json")):  # fmt: skip
             return old
         raise ConfigError(f"task {task.name!r} is already registered")
-    _REGISTRY[key] = task
+    registry[key] = task
     if not by_env_id:
         _NAME_ONLY.add(key)
     return task
@@ -76,30 +102,28 @@ def _load_paper() -> None:
         for filename in files:
             with resources.as_file(root.joinpath(filename)) as path:
                 task = build_task(read_task_file(path, builtin=True))
-            register(task, by_env_id=by_env_id)
+            _add(_REGISTRY, task, by_env_id)
             _BUILTIN.add(task.name.lower())
-
-
-_load_paper()
 
 
 def list_tasks() -> list[Task]:
     """Every registered task: the paper's ten and its presets first, then any registered in this process."""
-    return list(_REGISTRY.values())
+    return list(_tasks().values())
 
 
 def is_builtin(task: Task) -> bool:
     """True for the paper's own task objects (known by name in every process)."""
-    return task.name.lower() in _BUILTIN and _REGISTRY.get(task.name.lower()) is task
+    return task.name.lower() in _BUILTIN and _tasks().get(task.name.lower()) is task
 
 
 def registered(name: str) -> Task | None:
-    """The task registered in this process under ``name`` (case-insensitive), or None; builds and loads nothing."""
-    return _REGISTRY.get(name.lower())
+    """The task registered in this process under ``name`` (case-insensitive), or None; makes no env (the
+    paper's task files are read the first time any registry function is called)."""
+    return _tasks().get(name.lower())
 
 
 def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
-    """The privacy facts a task declares (``tasks.facts``; issue 20), read from its declaration.
+    """The privacy facts a task declares (``tasks.facts.PrivacyFacts``), read from its declaration.
 
     A declaration stored before privacy facts existed (no ``privacy`` key) is given the facts of the
     paper task of the same name when it is that task's declaration in every other respect (a run of
@@ -110,10 +134,9 @@ def privacy_facts(task: Task | TaskSpec) -> PrivacyFacts:
         return PrivacyFacts()
     if spec.privacy is not None:
         return spec.privacy
-    paper = _REGISTRY.get(spec.name.lower())
+    paper = _tasks().get(spec.name.lower())
     if paper is not None and is_builtin(paper) and paper.spec is not None:
-        mine = {k: v for k, v in spec.to_json().items() if k != "privacy"}
-        theirs = {k: v for k, v in paper.spec.to_json().items() if k != "privacy"}
+        mine, theirs = (s.model_dump(mode="json", exclude={"privacy"}) for s in (spec, paper.spec))
         if mine == theirs and paper.spec.privacy is not None:
             return paper.spec.privacy
     return PrivacyFacts()
@@ -135,9 +158,10 @@ def get_task(name: str) -> Task:
         ConfigError: the task file or the env's info keys are wrong (one line naming the cause).
     """
     key = name.lower()
-    if key in _REGISTRY:
-        return _REGISTRY[key]
-    by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
+    registry = _tasks()
+    if key in registry:
+        return registry[key]
+    by_id = [t for k, t in registry.items() if t.env_id and t.env_id.lower() == key and k not in _NAME_ONLY]
     if len(by_id) == 1:
         return by_id[0]
     if by_id:
@@ -147,8 +171,8 @@ def get_task(name: str) -> Task:
     found = registered_id(name)
     if found is not None or ":" in name:  # module:attr: an env class or factory (checked when built)
         return generic_task(found or name)
-    names = [t.name for t in _REGISTRY.values()]
-    candidates = names + [t.env_id for t in _REGISTRY.values()] + known_ids()
+    names = [t.name for t in registry.values()]
+    candidates = names + [t.env_id for t in registry.values()] + known_ids()
     close = difflib.get_close_matches(name, list(dict.fromkeys(candidates)), n=3, cutoff=0.5)
     hint = f"; did you mean {', '.join(close)}?" if close else f"; known tasks: {', '.join(names)}"
     raise UnknownTaskError(f"unknown task {name!r}{hint}")
@@ -170,78 +194,60 @@ def generic_task(
 
 @cache
 def _generic(name: str, components: tuple[str, ...], diagnostics: tuple[str, ...]) -> Task:
+    from ..config import TaskOptions
+
     found = registered_id(name)
     if found is None and ":" not in name:
         raise UnknownTaskError(f"unknown task {name!r}: not a registered Gymnasium id")
-    spec = spec_for_env(found or name).with_options(components=components, diagnostics=diagnostics)
+    spec = spec_for_env(found or name).with_options(TaskOptions(components=components, diagnostics=diagnostics))
     return build_task(resolve(spec))
 
 
 TaskSource = str | os.PathLike[str] | Callable[..., Any] | Mapping[str, Any] | TaskSpec | Task
 
 
-def load_task(
-    source: TaskSource | None = None,
-    *,
-    task_file: str | os.PathLike[str] | None = None,
-    env_kwargs: Mapping[str, Any] | None = None,
-    max_episode_steps: int | None = None,
-    gym_packages: Sequence[str] = (),
-    obs_keys: Sequence[str] | None = None,
-    components: Sequence[str] = (),
-    diagnostics: Sequence[str] = (),
-) -> Task:
+def load_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[str] | None = None, options: TaskOptions | None = None) -> Task:
     """The task a run searches, from any of the forms a user gives one in.
 
     ``source`` is a paper task name (``"Ant-Ultra"``), a Gymnasium id (``"Pendulum-v1"``), a
     ``module:EnvId`` or ``module:attr`` string (an Env class or a function returning an env), a path
     to a task file (``.toml``), a dict with a task file's keys (``{"name": ..., "env": ...,
     "observation": {"indices": [...]}}``), an env factory callable, a ``TaskSpec``, or a ``Task``;
-    ``task_file`` names a task file instead. The options are those of ``ppprops run``
-    (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``, ``--obs-keys``, ``--component``,
-    ``--diagnostic``) and win over the declaration. A task that is not a paper task is checked
-    against its env's observation and action spaces (the env is made, never stepped); its feedback
-    keys are checked by the episodes that use them, or by ``check_task`` when asked. A task file
-    without ``env`` gives a task without env (``Task.has_env`` False), driven with ask/tell.
+    ``task_file`` names a task file instead. ``options`` (a ``ppprops.config.TaskOptions``) holds
+    the options of ``ppprops run`` (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``,
+    ``--obs-keys``, ``--component``, ``--diagnostic``), which win over the declaration; its ``env``
+    or ``task_file`` names the task when neither ``source`` nor ``task_file`` does
+    (``load_task(options=TaskOptions(env="Pendulum-v1", max_episode_steps=100))``). A task that is
+    not a paper task is checked against its env's observation and action spaces (the env is made,
+    never stepped); its feedback keys are checked by the episodes that use them, or by
+    ``check_task`` when asked. A task file without ``env`` gives a task without env
+    (``Task.has_env`` False), driven with ask/tell.
 
     Raises:
         UnknownTaskError, TaskFileError, TaskImportError, EnvError (all ConfigError): one line naming
         what is wrong (an unknown id, a bad task file, a module that fails to import and why, an env
         whose constructor raises, a ``KEY.*`` that only ``check_task`` can expand).
     """
-    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
-                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    found = _source(source, task_file, options)
     return found if isinstance(found, Task) else build_task(resolve(found))
 
 
-def check_task(
-    source: TaskSource | None = None,
-    *,
-    task_file: str | os.PathLike[str] | None = None,
-    env_kwargs: Mapping[str, Any] | None = None,
-    max_episode_steps: int | None = None,
-    gym_packages: Sequence[str] = (),
-    obs_keys: Sequence[str] | None = None,
-    components: Sequence[str] = (),
-    diagnostics: Sequence[str] = (),
-    seed: int = 0,
-    max_steps: int = PROBE_STEPS,
-) -> TaskCheck:
+def check_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[str] | None = None, options: TaskOptions | None = None,
+               seed: int = 0, max_steps: int = PROBE_STEPS) -> TaskCheck:  # fmt: skip
     """Check a task in one zero-policy episode on its env and report every problem (``ppprops task check``).
 
-    The task is named as for ``load_task`` (same ``source`` forms and options). The episode is reset
-    with ``seed`` and runs at most ``max_steps`` steps. ``KEY.*`` components and diagnostics are
-    expanded here, and only here: ``result.expanded`` lists their entries, and ``result.checked``
-    is the task with them named (None when the check found problems), ready for ``ppprops.search``.
-    A task without env is validated and needs no episode.
+    The task is named as for ``load_task`` (same ``source`` forms and ``options``). The episode is
+    reset with ``seed`` and runs at most ``max_steps`` steps. ``KEY.*`` components and diagnostics
+    are expanded here, and only here: ``result.expanded`` lists their entries, and
+    ``result.checked`` is the task with them named (None when the check found problems), ready for
+    ``ppprops.search``. A task without env is validated and needs no episode.
 
     Raises:
         ConfigError: one line for what stops the check before the episode (an unknown task, a bad
             task file, an env that cannot be made, spaces that disagree with the declaration); what
             the episode finds is in ``result.problems`` instead.
     """
-    found = _source(source, task_file=task_file, env_kwargs=env_kwargs, max_episode_steps=max_episode_steps,
-                    gym_packages=gym_packages, obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    found = _source(source, task_file, options)
     if isinstance(found, Task):
         if found.spec is None:
             raise ConfigError(f"task {found.name} is a Task made by hand, with no declaration to check")
@@ -249,20 +255,14 @@ def check_task(
     return check_spec(found, seed=seed, max_steps=max_steps)
 
 
-def _source(
-    source: TaskSource | None,
-    *,
-    task_file: str | os.PathLike[str] | None,
-    env_kwargs: Mapping[str, Any] | None,
-    max_episode_steps: int | None,
-    gym_packages: Sequence[str],
-    obs_keys: Sequence[str] | None,
-    components: Sequence[str],
-    diagnostics: Sequence[str],
-) -> Task | TaskSpec:
+def _source(source: TaskSource | None, task_file: str | os.PathLike[str] | None, options: TaskOptions | None) -> Task | TaskSpec:
     """The registered Task a source names, or the declaration (options applied, not yet resolved) it gives."""
-    options = bool(env_kwargs or max_episode_steps is not None or gym_packages or obs_keys is not None or components or diagnostics)
-    for module in gym_packages:
+    given = options is not None and options.has_options
+    if options is not None and (options.env is not None or options.task_file is not None):
+        if source is not None or task_file is not None:
+            raise ConfigError("the task is named twice: give it as the source or in the options (env / task_file), not both")
+        source, task_file = options.env, options.task_file
+    for module in options.gym_packages if options is not None else ():
         import_module(module, "--gym-packages")
     if task_file is not None:
         if source is not None:
@@ -272,7 +272,7 @@ def _source(
         raise ConfigError("no task: give a task name or Gymnasium id (--env), or a task file (--task-file)")
     spec: TaskSpec
     if isinstance(source, Task):
-        if options:
+        if given:
             raise ConfigError(f"task {source.name} is a Task object: change its declaration (its .spec) instead of passing options")
         return source
     if isinstance(source, TaskSpec):
@@ -282,11 +282,12 @@ def _source(
     elif isinstance(source, os.PathLike) or (isinstance(source, str) and _is_task_file(source)):
         spec = read_task_file(Path(source))
     elif isinstance(source, str):
-        if not options:
+        if not given:
             return get_task(source)
-        known = _REGISTRY.get(source.lower())
+        registry = _tasks()
+        known = registry.get(source.lower())
         if known is None:
-            by_id = [t for k, t in _REGISTRY.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
+            by_id = [t for k, t in registry.items() if t.env_id and t.env_id.lower() == source.lower() and k not in _NAME_ONLY]
             known = by_id[0] if len(by_id) == 1 else None
         if known is not None and is_builtin(known):
             if known.name.lower() == source.lower():
@@ -306,9 +307,9 @@ def _source(
         spec = spec_for_env(source)
     else:
         raise ConfigError(f"a task is a name, a Gymnasium id, a task file, an env factory, a TaskSpec or a Task; got {source!r}")
-    if options:
-        spec = spec.with_options(env_kwargs=env_kwargs, max_episode_steps=max_episode_steps, gym_packages=gym_packages,
-                                 obs_keys=obs_keys, components=components, diagnostics=diagnostics)  # fmt: skip
+    if given:
+        assert options is not None
+        spec = spec.with_options(options)
     return spec
 
 
@@ -324,7 +325,7 @@ def task_ref(task: Task) -> TaskRef:
     if is_builtin(task):
         return task.name
     if task.spec is not None:
-        return task.spec.to_json()
+        return task.spec.model_dump(mode="json")
     return task  # an ad-hoc task: sent whole, so it must pickle
 
 

@@ -21,12 +21,12 @@ from __future__ import annotations
 import functools
 import json
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from .base import Selection, Task
+from .base import Task
 from .envs import describe_user_error, has_time_limit, load_attr, user_frame
 from .feedback import MISSING, FeedbackKeyError, InfoKey, check_value, lookup, missing_key
 from .spec import Declared, TaskSpec, build_task, finish_spec, resolve_spaces
@@ -102,7 +102,7 @@ def check_spec(spec: TaskSpec, *, seed: int = 0, max_steps: int = PROBE_STEPS) -
     env = recipe.make()
     try:
         if not spec.complete:
-            spec = resolve_spaces(replace(spec, env=recipe), env)
+            spec = resolve_spaces(spec.model_copy(update={"env": recipe}), env)
         return _episode(spec, env, seed, max_steps)
     finally:
         env.close()
@@ -113,8 +113,8 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
 
     name = spec.name
     problems: list[str] = []
-    adapter = Selection(names=spec.names, indices=spec.indices, keys=spec.keys, one_hot=spec.one_hot)
-    n_s, n_a = len(spec.names), len(spec.actions)
+    adapter = spec.observation.selection()
+    n_s, n_a = len(spec.observation.names), len(spec.actions)
     space = env.action_space
     policy = LinearPolicy.from_flat(np.zeros((n_s + 1) * n_a), n_s, n_a, discrete=spec.action_type == "discrete",
                                     low=getattr(space, "low", None), high=getattr(space, "high", None))  # fmt: skip
@@ -196,7 +196,7 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
     if not problems:
         if by_info and expanded:
             computed = tuple(d for d in spec.diagnostics if d.info is None)
-            spec = replace(spec, components=tuple(components), diagnostics=(*computed, *diagnostics))
+            spec = spec.model_copy(update={"components": tuple(components), "diagnostics": (*computed, *diagnostics)})
         checked = build_task(spec if spec.complete else finish_spec(spec))
     return result(problems=tuple(problems), steps=step, ended=ended, raised=raised, expanded=expanded, kinds=kinds,
                      checked=checked)

@@ -87,15 +87,15 @@ def cmd_task(a: argparse.Namespace) -> int:
     Raises:
         ConfigError: no task or two, or what stops the check before the episode (``check_task``).
     """
+    from ..config import TASK_OPTIONS, TaskOptions
     from . import check_task
 
     given = [x for x in (a.file, a.env, a.task_file) if x is not None]
     if len(given) != 1:
         raise ConfigError("task check needs one task: a task file, --env ID or --task-file FILE")
     file = a.file if a.file is not None else a.task_file
-    result = check_task(a.env, task_file=file, env_kwargs=a.env_kwargs, max_episode_steps=a.max_episode_steps,
-                        gym_packages=tuple(a.gym_packages), obs_keys=a.obs_keys, components=tuple(a.components),
-                        diagnostics=tuple(a.diagnostics), seed=a.seed, max_steps=a.max_steps)  # fmt: skip
+    options = TaskOptions(env=a.env, task_file=file, **{name: getattr(a, name) for name in TASK_OPTIONS})  # the flags' dests
+    result = check_task(options=options, seed=a.seed, max_steps=a.max_steps)
     print(json.dumps(result.to_json()) if a.json else "\n".join(result.lines()))
     return 0 if result.ok else 1
 

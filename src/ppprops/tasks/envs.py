@@ -23,9 +23,11 @@ import sys
 import sysconfig
 import traceback
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
 
 from ..errors import ConfigError, MissingExtraError, UnknownTaskError
 
@@ -269,9 +271,9 @@ def _registered_spec(env_id: str) -> Any:
                                "code that has not run here: import the module that registers it (imports / --gym-packages)") from None
 
 
-@dataclass(frozen=True)
-class EnvRecipe:
-    """How to make a task's env. Stored with every run and in every policy file.
+class EnvRecipe(BaseModel):
+    """How to make a task's env. Stored with every run and in every policy file (as part of its
+    ``TaskSpec``, serialised by pydantic).
 
     ``id`` is a Gymnasium id (``"Ant-v5"``, ``"module:Env-v0"``) looked up when the env is made, or,
     with ``entry_point``, only a label. ``entry_point`` is ``"module:attr"``: an ``Env`` subclass or a
@@ -282,9 +284,11 @@ class EnvRecipe:
     a simulator extra before the env is made.
     """
 
+    model_config = ConfigDict(frozen=True, defer_build=True)
+
     id: str
     entry_point: str | None = None
-    kwargs: Mapping[str, Any] = field(default_factory=dict)
+    kwargs: dict[str, Any] = Field(default_factory=dict)
     max_episode_steps: int | None = None
     imports: tuple[str, ...] = ()
     paths: tuple[str, ...] = ()
@@ -375,25 +379,13 @@ class EnvRecipe:
             load_attr(reg.entry_point, self.id)  # imported here, so its folder is known
             root = import_root(reg.entry_point.split(":")[0])
             paths = self.paths if root is None else tuple(dict.fromkeys((*self.paths, root)))
-            return replace(self, entry_point=reg.entry_point, kwargs=kwargs, max_episode_steps=steps, paths=paths)
+            return self.model_copy(update={"entry_point": reg.entry_point, "kwargs": kwargs, "max_episode_steps": steps, "paths": paths})
         found = entry_point_of(reg.entry_point)
         if found is None:
             return self
         ref, paths = found
-        return replace(self, entry_point=ref, kwargs=kwargs, max_episode_steps=steps, paths=tuple(dict.fromkeys(self.paths + paths)))
-
-    def to_json(self) -> dict[str, Any]:
-        """The stored form (in a task declaration)."""
-        return {"id": self.id, "entry_point": self.entry_point, "kwargs": dict(self.kwargs),
-                "max_episode_steps": self.max_episode_steps, "imports": list(self.imports), "paths": list(self.paths),
-                "setup": self.setup}  # fmt: skip
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> EnvRecipe:
-        """The inverse of ``to_json``; KeyError without ``id``."""
-        return cls(id=str(d["id"]), entry_point=d.get("entry_point"), kwargs=dict(d.get("kwargs") or {}),
-                   max_episode_steps=d.get("max_episode_steps"), imports=tuple(d.get("imports") or ()),
-                   paths=tuple(d.get("paths") or ()), setup=d.get("setup"))  # fmt: skip
+        update = {"entry_point": ref, "kwargs": kwargs, "max_episode_steps": steps, "paths": tuple(dict.fromkeys(self.paths + paths))}
+        return self.model_copy(update=update)
 
 
 @dataclass(frozen=True)

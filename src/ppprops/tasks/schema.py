@@ -4,7 +4,9 @@
 ``TaskFile``; every problem is one ``TaskFileError`` line that names the file and the key
 (``task file robot.toml: max_episode_steps must be a positive integer, got 0``). Each field's
 ``description`` is what a value of it must be, so the error lines are written from the schema
-itself. ``ppprops.tasks.spec`` turns a ``TaskFile`` into the stored ``TaskSpec``.
+itself. ``ppprops.tasks.spec`` turns a ``TaskFile`` into the stored ``TaskSpec``; the
+``[privacy]`` table validates directly into the facts model the declaration stores
+(``tasks.facts.PrivacyFacts``).
 
 Two kinds of task share the schema (docs/own-robot.md):
 
@@ -24,16 +26,13 @@ import typing
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from ..errors import ConfigError
-from .facts import FACT_NAMES, PrivacyFacts
+from .facts import TABLE, Number, PrivacyFacts, Text
 from .feedback import REDUCE, RESERVED
 
-Text = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1)]
-Number = Annotated[float, Field(allow_inf_nan=False)]
 Bound = Annotated[float, Field(allow_inf_nan=True)]  # an action bound may be +-inf, never NaN (checked below)
-Name = Literal[False]  # `false` in a name-valued privacy fact: the task has no such thing (known, not unknown)
 
 
 class TaskFileError(ConfigError):
@@ -41,7 +40,7 @@ class TaskFileError(ConfigError):
 
 
 class _Table(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = TABLE
 
 
 # -- feedback ------------------------------------------------------------------------------------
@@ -93,62 +92,6 @@ class ObservationTable(_Table):
         return self
 
 
-# -- privacy facts -------------------------------------------------------------------------------
-class CapEntry(_Table):
-    """A return that a marked episode end pins: ``{ side = "max", value = 500.0, diagnostic = "termination", marker = "time_limit" }``."""
-
-    side: Literal["max", "min"] = Field(description="max or min")
-    value: Number = Field(description="a number (the pinned return)")
-    diagnostic: Text = Field(description="a diagnostic name")
-    marker: Text = Field(description="a string (the diagnostic's value that marks the cap)")
-
-
-class PrivacyTable(_Table):
-    """``[privacy]``: what an attacker may know about the task without any secret (``tasks.facts.PrivacyFacts``).
-
-    Every key may be left out: the fact is then unknown, and the audit says which attacks it could
-    not run because of that. ``false`` for a name, a formula, a range or a time limit states that
-    the task has none (a known fact).
-    """
-
-    public_env: bool | None = Field(default=None, description="true or false")
-    integer_returns: bool | None = Field(default=None, description="true or false")
-    return_formula: dict[str, Number] | Name | None = Field(
-        default=None, description="a table of diagnostic = coefficient (raw return = sum of coefficient x diagnostic + constant), or false")
-    return_formula_constant: Number | None = Field(default=None, description="a number")
-    caps: list[CapEntry] | None = Field(default=None, description="a list of { side, value, diagnostic, marker } tables")
-    return_range: Annotated[list[Number], Field(min_length=2, max_length=2)] | Name | None = Field(
-        default=None, description="[low, high] (one episode's return), or false when unbounded")
-    resolution: dict[str, Annotated[float, Field(gt=0, allow_inf_nan=False)]] | None = Field(
-        default=None, description="a table of quantity = step > 0 (quantity: return or a component)")
-    survive_component: Text | Name | None = Field(default=None, description="a component name, or false")
-    healthy_reward: Number | None = Field(default=None, description="a number (reward units per step)")
-    ctrl_component: Text | Name | None = Field(default=None, description="a component name, or false")
-    ctrl_per_step: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = Field(default=None, description="a number >= 0")
-    time_limit: Annotated[int, Field(ge=1)] | Name | None = Field(default=None, description="a positive integer (steps), or false")
-    components_sum_to_return: bool | None = Field(default=None, description="true or false")
-    return_determining: list[Text] | None = Field(default=None, description="a list of diagnostic names")
-    residual_component: Text | Name | None = Field(default=None, description="a component name, or false")
-    reward_scale: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = Field(default=None, description="a number > 0 (reward units)")
-
-    @model_validator(mode="after")
-    def _consistent(self) -> PrivacyTable:
-        if self.return_formula_constant is not None and not self.return_formula:
-            raise ValueError("privacy.return_formula_constant needs privacy.return_formula")
-        if self.healthy_reward is not None and not self.survive_component:
-            raise ValueError("privacy.healthy_reward needs privacy.survive_component")
-        if self.ctrl_per_step is not None and not self.ctrl_component:
-            raise ValueError("privacy.ctrl_per_step needs privacy.ctrl_component")
-        if self.return_range and self.return_range[0] > self.return_range[1]:
-            raise ValueError(f"privacy.return_range must be [low, high] with low <= high, got {self.return_range!r}")
-        return self
-
-    def facts(self) -> PrivacyFacts:
-        """The declared facts as the stored value type."""
-        d = self.model_dump()
-        return PrivacyFacts.from_json({k: v for k, v in d.items() if v is not None and k in FACT_NAMES})
-
-
 # -- the task file -------------------------------------------------------------------------------
 class TaskFile(_Table):
     """A task file's table after ``extends`` (every key: docs/own-robot.md)."""
@@ -160,7 +103,7 @@ class TaskFile(_Table):
     imports: list[Text] = Field(default_factory=list, description="a list of strings (module names)")
     max_episode_steps: Annotated[int, Field(ge=1)] | None = Field(default=None, description="a positive integer")
     env_kwargs: dict[str, Any] = Field(default_factory=dict, description="a table (the env constructor's keyword arguments)")
-    observation: ObservationTable = Field(default=ObservationTable(), description="a table")
+    observation: ObservationTable = Field(default_factory=ObservationTable, description="a table")
     action_type: Literal["discrete", "continuous"] | None = Field(default=None, description="discrete or continuous")
     actions: list[Text] = Field(default_factory=list, description="a list of strings (one per policy output)")
     action_low: Bound | list[Bound] | None = Field(default=None, description="a number or a list of numbers, one per action")
@@ -176,7 +119,7 @@ class TaskFile(_Table):
     optimal_return: Number | None = Field(default=None, description="a number")
     recorder: Text | None = Field(default=None, description="module:name of a recorder")
     setup: Text | None = Field(default=None, description="module:function of a setup check")
-    privacy: PrivacyTable = Field(default=PrivacyTable(), description="a table")
+    privacy: PrivacyFacts = Field(default_factory=PrivacyFacts, description="a table")
 
     @field_validator("components", "diagnostics", mode="before")
     @classmethod
@@ -389,5 +332,5 @@ def _value_at(table: Any, path: Sequence[Any]) -> Any:
     return node
 
 
-__all__ = ["REDUCE", "RESERVED", "ComponentEntry", "DiagnosticEntry", "ObservationTable", "PrivacyTable", "TaskFile",
-           "TaskFileError", "describe_error", "validate_table"]  # fmt: skip
+__all__ = ["REDUCE", "RESERVED", "ComponentEntry", "DiagnosticEntry", "ObservationTable", "TaskFile", "TaskFileError", "describe_error",
+           "validate_table"]  # fmt: skip

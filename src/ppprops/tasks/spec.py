@@ -5,7 +5,12 @@ outside Python), which parts of the observation the policy sees, what the observ
 actions mean, the reward components and diagnostics with the info keys they come from, the
 prompt's prose and display name, and the task's privacy facts. It is stored with every run
 (``RunConfig.task_spec``) and in every policy file, so any process rebuilds the task from it
-without the code that first declared it.
+without the code that first declared it. It is the one model of a declaration, a pydantic model
+serialised by pydantic (``model_dump(mode="json")`` / ``model_validate``, format ``ppprops.task/1``).
+A task file is read by its own input schema (``tasks.schema.TaskFile``: the file's syntax, such as
+``name = "meaning"`` shorthands and the ``[observation.values]`` table, and the one-line errors that
+name the file's keys), which ``spec_from_table`` turns into the one ``TaskSpec``; its ``[privacy]``
+table validates directly into the facts the declaration stores (``tasks.facts.PrivacyFacts``).
 
 A task file::
 
@@ -51,14 +56,14 @@ from __future__ import annotations
 import difflib
 import json
 import tomllib
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Final, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import ConfigError, UnknownTaskError
 from .base import NoEnv, Selection, Task, TaskText
@@ -67,13 +72,19 @@ from .facts import PrivacyFacts
 from .feedback import InfoFeedback, InfoKey
 from .schema import RESERVED, TaskFile, TaskFileError, validate_table
 
-FORMAT = "ppprops.task/1"
+if TYPE_CHECKING:
+    from ..config import TaskOptions
+
+FORMAT: Final = "ppprops.task/1"
 _TEXT = "ppprops.tasks.descriptions"
 LOCAL_PREFIX = "ppprops-local/"  # ids of env factories with no importable name (this process only)
 
+# The declaration's models: lenient types (Python callers pass lists or tuples), frozen, and their
+# validators built on first use, not when ppprops.tasks is imported.
+_SPEC = ConfigDict(frozen=True, defer_build=True)
 
-@dataclass(frozen=True)
-class Declared:
+
+class Declared(BaseModel):
     """A reward component or diagnostic: its name, meaning, and the info key it is read from.
 
     ``info`` is None for feedback a task's ``recorder`` computes itself, and for every component
@@ -81,20 +92,12 @@ class Declared:
     every entry of a dict-valued info key; only ``check_task``'s episode expands it.
     """
 
+    model_config = _SPEC
+
     name: str
     description: str = ""
     info: str | None = None
     reduce: str = "last"
-
-    def to_json(self) -> dict[str, Any]:
-        """The stored form."""
-        return {"name": self.name, "description": self.description, "info": self.info, "reduce": self.reduce}
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Declared:
-        """The inverse of ``to_json``."""
-        return cls(name=str(d["name"]), description=str(d.get("description", "")), info=d.get("info"),
-                   reduce=str(d.get("reduce", "last")))  # fmt: skip
 
     @property
     def wildcard(self) -> bool:
@@ -102,29 +105,72 @@ class Declared:
         return self.info is not None and self.info.endswith(".*")
 
 
-@dataclass(frozen=True)
-class TaskSpec:
+class OneHot(BaseModel):
+    """A Discrete observation as a one-hot vector: ``n`` values, the space's first state ``start``."""
+
+    model_config = _SPEC
+
+    n: int
+    start: int
+
+
+class ObservationSpec(BaseModel):
+    """Which values of the env's observation the policy sees, and what each means.
+
+    A Dict observation keeps ``keys`` (each flattened, concatenated in this order); a Discrete one
+    becomes ``one_hot``; ``indices`` keep some values of the flattened result. ``names`` and
+    ``descriptions`` describe the kept values (empty until resolved against the env when the file
+    gave none).
+    """
+
+    model_config = _SPEC
+
+    keys: tuple[str, ...] | None = None
+    indices: tuple[int, ...] | None = None
+    one_hot: OneHot | None = None
+    names: tuple[str, ...] = ()
+    descriptions: tuple[str, ...] = ()
+
+    def selection(self) -> Selection:
+        """The observation adapter of these values (``base.Selection``)."""
+        one_hot = None if self.one_hot is None else (self.one_hot.n, self.one_hot.start)
+        return Selection(names=self.names, indices=self.indices, keys=self.keys, one_hot=one_hot)
+
+
+def _unset(value: Any) -> bool:
+    return value is None
+
+
+def _no_facts(value: PrivacyFacts | None) -> bool:
+    return value is None or value.is_empty()
+
+
+class TaskSpec(BaseModel):
     """A task's whole declaration (see the module docstring). ``complete`` specs know every count.
+
+    Stored as ``model_dump(mode="json")`` (format ``ppprops.task/1``: keys added after its first
+    version, ``action_low`` / ``action_high`` / ``prompt_name`` / ``privacy``, are written only when
+    set, so a declaration that sets none of them is stored exactly as before) and read back with
+    ``model_validate``, also a declaration an earlier ppprops stored: a stored declaration (it
+    names its ``format``) is complete, and one without ``privacy`` predates the privacy facts
+    (``privacy`` None: every fact unknown; ``ppprops.tasks.privacy_facts`` completes the paper's
+    tasks).
 
     ``env`` is None for a task without env (a robot outside Python, driven with ask/tell); its
     continuous actions are bounded by ``action_low`` / ``action_high`` (one value per action). For a
-    task with an env those are None: the env's action space bounds the actions.
-    ``observation`` holds ``keys`` / ``one_hot`` / ``indices`` and the ``names`` and ``descriptions``
-    of the kept values (empty until resolved against the env when the file gave none). ``actions``
+    task with an env those are None: the env's action space bounds the actions. ``actions``
     describes each policy output; ``action_type`` is ``"discrete"`` (argmax) or ``"continuous"``
-    (clipped to the action bounds). ``prompt_name`` is the name a prompt may show the provider (None:
-    not set). ``privacy`` holds the declared privacy facts (``tasks.facts``); None for a
-    declaration stored before facts existed.
+    (clipped to the action bounds). ``prompt_name`` is the name a prompt may show the provider
+    (None: not set). ``privacy`` holds the declared privacy facts (``tasks.facts``).
     """
 
+    model_config = _SPEC
+
+    format: Literal["ppprops.task/1"] = FORMAT
     name: str
     env: EnvRecipe | None
-    keys: tuple[str, ...] | None = None
-    indices: tuple[int, ...] | None = None
-    one_hot: tuple[int, int] | None = None
-    names: tuple[str, ...] = ()
-    descriptions: tuple[str, ...] = ()
-    action_type: str | None = None
+    observation: ObservationSpec = Field(default_factory=ObservationSpec)
+    action_type: Literal["discrete", "continuous"] | None = None
     actions: tuple[str, ...] = ()
     components: tuple[Declared, ...] = ()
     diagnostics: tuple[Declared, ...] = ()
@@ -134,11 +180,20 @@ class TaskSpec:
     reward_hint: str = ""
     hints: str = ""
     optimal_return: float | None = None
-    complete: bool = False  # every count known: checked against the env's spaces, or declared (paper task, no env)
-    action_low: tuple[float, ...] | None = None
-    action_high: tuple[float, ...] | None = None
-    prompt_name: str | None = None
-    privacy: PrivacyFacts | None = PrivacyFacts()
+    action_low: tuple[float, ...] | None = Field(default=None, exclude_if=_unset)
+    action_high: tuple[float, ...] | None = Field(default=None, exclude_if=_unset)
+    prompt_name: str | None = Field(default=None, exclude_if=_unset)
+    privacy: PrivacyFacts | None = Field(default_factory=PrivacyFacts, exclude_if=_no_facts)
+    # every count known: checked against the env's spaces, or declared (paper task, no env); not stored
+    complete: bool = Field(default=False, exclude=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _stored(cls, data: Any) -> Any:
+        """A stored declaration (one that names its format) is complete; without ``privacy`` it predates the facts."""
+        if isinstance(data, Mapping) and "format" in data:
+            return {"privacy": None, **data, "complete": True}
+        return data
 
     @property
     def has_env(self) -> bool:
@@ -146,7 +201,7 @@ class TaskSpec:
         return self.env is not None
 
     def public_env(self) -> bool:
-        """Whether an attacker can build and simulate the env (privacy fact ``public_env``; issue 20).
+        """Whether an attacker can build and simulate the env (privacy fact ``public_env``).
 
         The declared value when there is one. Otherwise True for an env every installation has
         under its plain id (a Gymnasium id, a paper task, an id of an installed package such as
@@ -163,121 +218,31 @@ class TaskSpec:
             return False
         return env.entry_point is None or not env.entry_point.startswith(tuple(f"{m}." for m in ("__main__", "__mp_main__")))
 
-    def to_json(self) -> dict[str, Any]:
-        """The declaration as JSON values (what a run and a policy file store).
-
-        Keys added after the format's first version (``action_low``, ``action_high``,
-        ``prompt_name``, ``privacy``) are written only when set, so a declaration that sets none of
-        them is stored exactly as before; ``env`` is null for a task without env.
-        """
-        out: dict[str, Any] = {
-            "format": FORMAT,
-            "name": self.name,
-            "env": None if self.env is None else self.env.to_json(),
-            "observation": {"keys": _list(self.keys), "indices": _list(self.indices),
-                            "one_hot": None if self.one_hot is None else {"n": self.one_hot[0], "start": self.one_hot[1]},
-                            "names": list(self.names), "descriptions": list(self.descriptions)},  # fmt: skip
-            "action_type": self.action_type,
-            "actions": list(self.actions),
-            "components": [c.to_json() for c in self.components],
-            "diagnostics": [d.to_json() for d in self.diagnostics],
-            "recorder": self.recorder,
-            "summary": self.summary,
-            "reward_structure": self.reward_structure,
-            "reward_hint": self.reward_hint,
-            "hints": self.hints,
-            "optimal_return": self.optimal_return,
-        }
-        if self.action_low is not None and self.action_high is not None:
-            out["action_low"], out["action_high"] = list(self.action_low), list(self.action_high)
-        if self.prompt_name is not None:
-            out["prompt_name"] = self.prompt_name
-        if self.privacy is not None and not self.privacy.is_empty():
-            out["privacy"] = self.privacy.to_json()
-        return out
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> TaskSpec:
-        """A stored declaration (``to_json``, of this or any earlier ppprops); complete by construction.
-
-        A declaration without a ``privacy`` key (stored before privacy facts existed) has
-        ``privacy=None``: every fact unknown (``ppprops.tasks.privacy_facts`` completes the paper's
-        tasks). Raises TaskFileError for another format; KeyError/TypeError/ValueError when damaged.
-        """
-        if d.get("format") != FORMAT:
-            raise TaskFileError(f"stored task is not a {FORMAT} declaration")
-        obs = d["observation"]
-        oh = obs.get("one_hot")
-        low, high = d.get("action_low"), d.get("action_high")
-        return cls(
-            name=str(d["name"]),
-            env=None if d["env"] is None else EnvRecipe.from_json(d["env"]),
-            keys=_tuple(obs.get("keys")),
-            indices=None if obs.get("indices") is None else tuple(int(i) for i in obs["indices"]),
-            one_hot=None if oh is None else (int(oh["n"]), int(oh["start"])),
-            names=tuple(obs["names"]),
-            descriptions=tuple(obs["descriptions"]),
-            action_type=d["action_type"],
-            actions=tuple(d["actions"]),
-            components=tuple(Declared.from_json(c) for c in d.get("components", ())),
-            diagnostics=tuple(Declared.from_json(c) for c in d.get("diagnostics", ())),
-            recorder=d.get("recorder"),
-            summary=d.get("summary", ""),
-            reward_structure=d.get("reward_structure", ""),
-            reward_hint=d.get("reward_hint", ""),
-            hints=d.get("hints", ""),
-            optimal_return=d.get("optimal_return"),
-            complete=True,
-            action_low=None if low is None else tuple(float(v) for v in low),
-            action_high=None if high is None else tuple(float(v) for v in high),
-            prompt_name=d.get("prompt_name"),
-            privacy=PrivacyFacts.from_json(d["privacy"]) if "privacy" in d else None,
-        )
-
-    def with_options(
-        self,
-        *,
-        env_kwargs: Mapping[str, Any] | None = None,
-        max_episode_steps: int | None = None,
-        gym_packages: Sequence[str] = (),
-        obs_keys: Sequence[str] | None = None,
-        components: Sequence[str] = (),
-        diagnostics: Sequence[str] = (),
-    ) -> TaskSpec:
+    def with_options(self, options: TaskOptions) -> TaskSpec:
         """This declaration with the quick options of ``ppprops run`` applied (they win); not yet resolved.
 
-        Raises TaskFileError for a task without env (every option but the feedback names concerns
-        an env; a task without env declares its feedback in its file).
+        ``options`` is a ``config.TaskOptions``; its ``env`` and ``task_file`` (which name the task)
+        are not read here. Raises TaskFileError for a task without env (every option but the
+        feedback names concerns an env; a task without env declares its feedback in its file).
         """
         env = self.env
         if env is None:
             raise TaskFileError(f"task {self.name} has no env (a robot outside Python): --env-kwargs, --max-episode-steps, "
                                 "--gym-packages, --obs-keys, --component and --diagnostic apply to an env; declare the "
                                 "feedback in the task file")  # fmt: skip
-        if env_kwargs:
-            env = replace(env, kwargs={**env.kwargs, **check_json_kwargs(env_kwargs, self.name)})
-        if max_episode_steps is not None:
-            if max_episode_steps < 1:
-                raise TaskFileError(f"--max-episode-steps must be >= 1, got {max_episode_steps}")
-            env = replace(env, max_episode_steps=int(max_episode_steps))
-        if gym_packages:
-            env = replace(env, imports=tuple(dict.fromkeys((*env.imports, *gym_packages))))
-        spec = replace(self, env=env)
-        if obs_keys is not None:
-            spec = replace(spec, keys=tuple(obs_keys), indices=None, names=(), descriptions=(), one_hot=None)
-        if components or diagnostics:
-            comps = self.components + tuple(Declared(k, info=k, reduce="sum") for k in components)
-            diags = self.diagnostics + tuple(Declared(k, info=k) for k in diagnostics)
-            spec = replace(spec, components=comps, diagnostics=diags)
-        return replace(spec, complete=False)
-
-
-def _list(v: Sequence[Any] | None) -> list[Any] | None:
-    return None if v is None else list(v)
-
-
-def _tuple(v: Sequence[Any] | None) -> tuple[Any, ...] | None:
-    return None if v is None else tuple(v)
+        if options.env_kwargs:
+            env = env.model_copy(update={"kwargs": {**env.kwargs, **check_json_kwargs(options.env_kwargs, self.name)}})
+        if options.max_episode_steps is not None:
+            env = env.model_copy(update={"max_episode_steps": options.max_episode_steps})
+        if options.gym_packages:
+            env = env.model_copy(update={"imports": tuple(dict.fromkeys((*env.imports, *options.gym_packages)))})
+        update: dict[str, Any] = {"env": env, "complete": False}
+        if options.obs_keys is not None:
+            update["observation"] = ObservationSpec(keys=tuple(options.obs_keys))
+        if options.components or options.diagnostics:
+            update["components"] = self.components + tuple(Declared(name=k, info=k, reduce="sum") for k in options.components)
+            update["diagnostics"] = self.diagnostics + tuple(Declared(name=k, info=k) for k in options.diagnostics)
+        return self.model_copy(update=update)
 
 
 # -- reading task files ------------------------------------------------------------------------
@@ -352,7 +317,7 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
         recipe = EnvRecipe(id=f.env, kwargs=check_json_kwargs(f.env_kwargs, where), max_episode_steps=f.max_episode_steps,
                            imports=tuple(f.imports), paths=paths, setup=f.setup)  # fmt: skip
         if factory is not None:
-            recipe = replace(recipe, entry_point=factory.entry_point, paths=tuple(dict.fromkeys(paths + factory.paths)))
+            recipe = recipe.model_copy(update={"entry_point": factory.entry_point, "paths": tuple(dict.fromkeys(paths + factory.paths))})
         elif not builtin:
             recipe = _entry_point_recipe(recipe, where)
     names, descriptions, indices = _observed(f)
@@ -360,10 +325,8 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
     spec = TaskSpec(
         name=f.name,
         env=recipe,
-        keys=None if f.observation.keys is None else tuple(f.observation.keys),
-        indices=indices,
-        names=names,
-        descriptions=descriptions,
+        observation=ObservationSpec(keys=None if f.observation.keys is None else tuple(f.observation.keys), indices=indices, names=names,
+                                    descriptions=descriptions),
         action_type=f.action_type,
         actions=tuple(f.actions),
         components=_declared(f, "components"),
@@ -378,7 +341,7 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
         action_low=None if bounds is None else bounds[0],
         action_high=None if bounds is None else bounds[1],
         prompt_name=f.prompt_name,
-        privacy=f.privacy.facts(),
+        privacy=f.privacy,
     )
     if builtin:
         _check_complete(spec, where)
@@ -424,20 +387,21 @@ def _entry_point_recipe(recipe: EnvRecipe, where: str) -> EnvRecipe:
     mod = import_module(module, where)
     root = import_root(module)
     if root is not None:
-        recipe = replace(recipe, paths=tuple(dict.fromkeys((*recipe.paths, root))))
+        recipe = recipe.model_copy(update={"paths": tuple(dict.fromkeys((*recipe.paths, root)))})
     if attr in gym.registry:
         return recipe  # the Gymnasium form module:EnvId
     if not callable(getattr(mod, attr.split(".")[0], None)):
         raise UnknownTaskError(f"{where}: module {module!r} has no env {attr!r} (neither an id it registers nor a class or "
                                "function returning an env)")  # fmt: skip
-    return replace(recipe, entry_point=recipe.id)
+    return recipe.model_copy(update={"entry_point": recipe.id})
 
 
 def _check_complete(spec: TaskSpec, where: str) -> None:
-    if not spec.names or len(spec.names) != len(spec.descriptions):
+    obs = spec.observation
+    if not obs.names or len(obs.names) != len(obs.descriptions):
         raise TaskFileError(f"{where}: a paper task must describe every observed value")
-    if spec.indices is not None and len(spec.indices) != len(spec.names):
-        raise TaskFileError(f"{where}: {len(spec.names)} observed values for {len(spec.indices)} indices")
+    if obs.indices is not None and len(obs.indices) != len(obs.names):
+        raise TaskFileError(f"{where}: {len(obs.names)} observed values for {len(obs.indices)} indices")
     if spec.action_type is None or not spec.actions:
         raise TaskFileError(f"{where}: a paper task must give action_type and actions")
 
@@ -489,19 +453,20 @@ def _bounds(low: float, high: float) -> str:
     return _generic_text()["bounds"].format(low=_fmt(low), high=_fmt(high)) if np.isfinite(low) and np.isfinite(high) else ""
 
 
-def _observation_layout(spec: TaskSpec, space: Any) -> tuple[tuple[int, int] | None, list[str], list[str]]:
+def _observation_layout(spec: TaskSpec, space: Any) -> tuple[OneHot | None, list[str], list[str]]:
     """One-hot of a Discrete observation, and a default (name, description) for every flattened value."""
     from gymnasium import spaces
 
     text = _generic_text()
     where = f"task {spec.name}"
     env_id = spec.env.id if spec.env is not None else spec.name
+    keys = spec.observation.keys
     if isinstance(space, spaces.Dict):
-        if spec.keys is None:
+        if keys is None:
             raise TaskFileError(f"{env_id} has a Dict observation ({', '.join(space.spaces)}); choose the entries the "
                                 "policy sees with --obs-keys K1,K2 (or observation.keys in a task file)")  # fmt: skip
         names, descs = [], []
-        for key in spec.keys:
+        for key in keys:
             if key not in space.spaces:
                 close = difflib.get_close_matches(key, list(space.spaces), n=1)
                 hint = f"; did you mean {close[0]}?" if close else ""
@@ -516,12 +481,12 @@ def _observation_layout(spec: TaskSpec, space: Any) -> tuple[tuple[int, int] | N
                 names.append(f"{key}_{i}")
                 descs.append(text["observation_key"].format(index=i, key=key, bounds=_bounds(lows[i], highs[i])))
         return None, names, descs
-    if spec.keys is not None:
-        raise TaskFileError(f"{where}: observation keys {', '.join(spec.keys)} given, but {env_id} observes a "
+    if keys is not None:
+        raise TaskFileError(f"{where}: observation keys {', '.join(keys)} given, but {env_id} observes a "
                             f"{type(space).__name__}, not a Dict")  # fmt: skip
     if isinstance(space, spaces.Discrete):
         n, start = int(space.n), int(space.start)
-        return (n, start), [f"state_{start + i}" for i in range(n)], [text["observation_one_hot"].format(index=start + i) for i in range(n)]
+        return OneHot(n=n, start=start), [f"state_{start + i}" for i in range(n)], [text["observation_one_hot"].format(index=start + i) for i in range(n)]
     if isinstance(space, (spaces.Box, spaces.MultiBinary)):
         size = int(np.prod(space.shape))
         lows = np.broadcast_to(np.asarray(getattr(space, "low", 0.0), dtype=float), space.shape).reshape(-1)
@@ -567,7 +532,7 @@ def resolve(spec: TaskSpec) -> TaskSpec:
     if spec.env is None:
         return finish_spec(spec)
     recipe = spec.env.pinned()
-    spec = replace(spec, env=recipe)
+    spec = spec.model_copy(update={"env": recipe})
     env = recipe.make()
     try:
         spec = resolve_spaces(spec, env)
@@ -584,13 +549,13 @@ def resolve_spaces(spec: TaskSpec, env: Any) -> TaskSpec:
     one_hot, all_names, all_descs = _observation_layout(spec, env.observation_space)
     size = len(all_names)
     where = f"task {spec.name}"
-    indices = spec.indices
+    indices = spec.observation.indices
     if indices is not None:
         out = [i for i in indices if i >= size]
         if out:
             raise TaskFileError(f"{where}: observation index {out[0]} is out of range: the observation has {size} values (0-{size - 1})")
     kept = list(range(size)) if indices is None else list(indices)
-    names, descs = spec.names, spec.descriptions
+    names, descs = spec.observation.names, spec.observation.descriptions
     if not names:
         names, descs = tuple(all_names[i] for i in kept), tuple(all_descs[i] for i in kept)
     elif len(names) == size and len(kept) != size:
@@ -604,7 +569,8 @@ def resolve_spaces(spec: TaskSpec, env: Any) -> TaskSpec:
     actions = spec.actions or tuple(action_descs)
     if len(actions) != len(action_descs):
         raise TaskFileError(f"{where}: actions describes {len(actions)} outputs, but {env_id} has {len(action_descs)}")
-    return replace(spec, one_hot=one_hot, names=tuple(names), descriptions=tuple(descs), action_type=action_type, actions=tuple(actions))
+    observation = spec.observation.model_copy(update={"one_hot": one_hot, "names": tuple(names), "descriptions": tuple(descs)})
+    return spec.model_copy(update={"observation": observation, "action_type": action_type, "actions": tuple(actions)})
 
 
 def refuse_wildcards(spec: TaskSpec) -> None:
@@ -627,23 +593,22 @@ def finish_spec(spec: TaskSpec) -> TaskSpec:
     """``spec`` (its counts known: resolved against the env's spaces, or without env) with generic text for
     whatever it leaves undescribed; complete. Raises TaskFileError for a name declared twice or reserved."""
     text = _generic_text()
-    n_s, n_a = len(spec.names), len(spec.actions)
-    # the id of a public env (CartPole-v1) may be named; a user's module, class or task name may not (issue 20)
+    n_s, n_a = len(spec.observation.names), len(spec.actions)
+    # the id of a public env (CartPole-v1) may be named; a user's module, class or task name may not
     summary = text["summary"].format(env_id=spec.env.id, n_s=n_s, n_a=n_a) if spec.env is not None and spec.public_env() \
         else text["summary_unnamed"].format(n_s=n_s, n_a=n_a)  # fmt: skip
     computed = tuple(d for d in spec.diagnostics if d.info is None)  # episode_length, a recorder's, a driver's
     declared = tuple(d for d in spec.diagnostics if d.info is not None)
-    spec = replace(
-        spec,
-        summary=spec.summary or summary.strip(),
-        reward_structure=spec.reward_structure or text["reward_structure"].strip(),
-        reward_hint=spec.reward_hint or text["reward_hint"].strip(),
-        hints=spec.hints or text.get("hints", "").strip(),
-        components=tuple(replace(c, description=c.description or _component_text(c)) for c in spec.components),
-        diagnostics=tuple(replace(d, description=d.description or _diag_text(d)) for d in (*computed, *declared)
-                          if d.info is not None or d.description or spec.env is None),  # fmt: skip
-        complete=True,
-    )
+    spec = spec.model_copy(update={
+        "summary": spec.summary or summary.strip(),
+        "reward_structure": spec.reward_structure or text["reward_structure"].strip(),
+        "reward_hint": spec.reward_hint or text["reward_hint"].strip(),
+        "hints": spec.hints or text.get("hints", "").strip(),
+        "components": tuple(c.model_copy(update={"description": c.description or _component_text(c)}) for c in spec.components),
+        "diagnostics": tuple(d.model_copy(update={"description": d.description or _diag_text(d)}) for d in (*computed, *declared)
+                             if d.info is not None or d.description or spec.env is None),
+        "complete": True,
+    })  # fmt: skip
     _check_names(spec)
     return spec
 
@@ -665,7 +630,7 @@ def _check_names(spec: TaskSpec) -> None:
     twice = sorted({n for n in names if names.count(n) > 1} | (reserved if spec.recorder is None else set()))
     if twice:
         raise TaskFileError(f"task {spec.name}: info key(s) declared twice or reserved: {', '.join(twice)}")
-    if len(set(spec.names)) != len(spec.names):
+    if len(set(spec.observation.names)) != len(spec.observation.names):
         raise TaskFileError(f"task {spec.name}: two observed values share a name")
 
 
@@ -689,7 +654,7 @@ def build_task(spec: TaskSpec) -> Task:
     diag_text.update({d.name: d.description for d in spec.diagnostics if d.description})
     text = TaskText(
         summary=spec.summary,
-        observations=spec.descriptions,
+        observations=spec.observation.descriptions,
         actions=spec.actions,
         reward_structure=spec.reward_structure,
         reward_hint=spec.reward_hint,
@@ -697,14 +662,14 @@ def build_task(spec: TaskSpec) -> Task:
         components={c.name: c.description for c in spec.components},
         diagnostics=diag_text,
     )
-    assert spec.action_type in ("discrete", "continuous")
+    assert spec.action_type is not None
     return Task(
         name=spec.name,
         env_id="" if spec.env is None else spec.env.id,
-        n_s=len(spec.names),
+        n_s=len(spec.observation.names),
         n_a=len(spec.actions),
-        action_type=spec.action_type,  # type: ignore[arg-type]
-        observation=Selection(names=spec.names, indices=spec.indices, keys=spec.keys, one_hot=spec.one_hot),
+        action_type=spec.action_type,
+        observation=spec.observation.selection(),
         feedback=factory,
         text=text,
         components=tuple(c.name for c in spec.components),
@@ -721,21 +686,28 @@ def build_task(spec: TaskSpec) -> Task:
 
 @cache
 def _task_from_json_text(text: str) -> Task:
-    return build_task(TaskSpec.from_json(json.loads(text)))
+    return build_task(TaskSpec.model_validate(json.loads(text)))
 
 
 def task_from_json(d: Mapping[str, Any]) -> Task:
-    """The task of a stored declaration (one Task object per distinct declaration in a process).
+    """The task of a stored declaration (``TaskSpec.model_dump(mode="json")``, of this or any earlier
+    ppprops); one Task object per distinct declaration in a process.
 
     Raises TaskFileError when the declaration is damaged or of another format.
     """
+    if not isinstance(d, Mapping) or d.get("format") != FORMAT:
+        raise TaskFileError(f"stored task is not a {FORMAT} declaration")
     try:
         return _task_from_json_text(json.dumps(d, sort_keys=True))
+    except ValidationError as e:
+        err = e.errors(include_url=False)[0]
+        where = ".".join(map(str, err["loc"]))
+        raise TaskFileError(f"stored task declaration is damaged ({where}: {err['msg']})") from None
     except (KeyError, TypeError, ValueError) as e:
         if isinstance(e, ConfigError):
             raise
         raise TaskFileError(f"stored task declaration is damaged ({type(e).__name__}: {e})") from None
 
 
-__all__ = ["FORMAT", "Declared", "TaskFileError", "TaskSpec", "build_task", "read_task_file", "finish_spec", "refuse_wildcards", "resolve",
-           "resolve_spaces", "spec_for_env", "spec_from_table", "task_from_json"]  # fmt: skip
+__all__ = ["FORMAT", "Declared", "ObservationSpec", "OneHot", "TaskFileError", "TaskSpec", "build_task", "read_task_file", "finish_spec",
+           "refuse_wildcards", "resolve", "resolve_spaces", "spec_for_env", "spec_from_table", "task_from_json"]  # fmt: skip
