@@ -20,11 +20,11 @@ import pytest
 
 import ppprops
 from ppprops.cli import main
-from ppprops.config import TaskOptions
 from ppprops.errors import ConfigError
 from ppprops.evaluation import make_policy, run_episode
 from ppprops.store import open_store
 from ppprops.tasks import get_task, load_task, register, task_from_json
+from ppprops.tasks.options import TaskOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "own_robot"

@@ -17,7 +17,6 @@ import pytest
 import ppprops
 from ppprops.cli import main
 from ppprops.client.hardening import residual_component, return_determining, reward_scale
-from ppprops.config import TaskOptions
 from ppprops.errors import ConfigError
 from ppprops.evaluation import make_policy, run_episode
 from ppprops.fileio import write_json_atomic
@@ -36,6 +35,7 @@ from ppprops.tasks import (
     task_from_json,
 )
 from ppprops.tasks.facts import Cap
+from ppprops.tasks.options import TaskOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = ROOT / "examples" / "robot_outside" / "robot.toml"

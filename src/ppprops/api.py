@@ -30,13 +30,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .config import TASK_OPTIONS, RunConfig, TaskOptions
+from .config import RunConfig
 from .errors import ConfigError
 from .llm.protocol import LLM
 from .policy_file import Policy, load_policy
 from .rundir import open_run
 from .status import RunKind
 from .study import Study
+from .tasks.options import TASK_OPTIONS, TaskOptions
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
@@ -120,7 +121,7 @@ GROUPS: dict[str, dict[str, str]] = {
                "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries", "explore": "explore"},
     "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers", "select_top": "select_top",
                    "select_episodes": "select_episodes"},
-    "task_options": {name: name for name in TASK_OPTIONS},  # the fields of config.TaskOptions
+    "task_options": {name: name for name in TASK_OPTIONS},  # the fields of tasks.options.TaskOptions
 }  # fmt: skip
 
 

@@ -1,9 +1,9 @@
 """Run settings: one schema, validated by pydantic, stored with the run.
 
 ``RunConfig`` (with its ``LLMConfig`` and the method's ``Mechanisms``) is what a run stores and
-resumes from; ``TaskOptions`` is how a user names the task, which becomes the config's ``task`` and
-``task_spec`` (the task's whole declaration). Every user-facing setting is a field of one of them
-carrying a ``Flag``: its ``ppprops run`` flag, help text and error wording. ``ppprops.settings``
+resumes from; ``tasks.options.TaskOptions`` is how a user names the task, which becomes the
+config's ``task`` and ``task_spec`` (the task's whole declaration). Every user-facing setting is a
+field of one of them carrying a ``Flag``: its ``ppprops run`` flag, help text and error wording. ``ppprops.settings``
 derives the command-line flags, the keys of config and experiment-spec files and the
 one-line errors from these fields, so a setting is declared once, here.
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -29,12 +29,12 @@ from .client.hardening import EncodingSettings
 from .errors import ConfigError, MissingExtraError
 from .llm.settings import LLMConfig
 from .methods import SWITCH_HELP, SWITCHES, Mechanisms, search_method_names
-from .schema import SCHEMA, Box, Flag, Int, JsonObject, Names, OnOff, one_line_errors
+from .schema import SCHEMA, Box, Flag, Int, JsonObject, OnOff, one_line_errors
 
 if TYPE_CHECKING:
     from .tasks import Task
 
-__all__ = ["TASK_OPTIONS", "LLMConfig", "OnOff", "PromptSettings", "RunConfig", "TaskOptions", "read_table", "read_text", "read_toml"]
+__all__ = ["LLMConfig", "OnOff", "PromptSettings", "RunConfig", "read_table", "read_text", "read_toml"]
 
 # Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
 MAX_WARMUP = 10_000
@@ -207,61 +207,6 @@ class RunConfig:
         if self.components or self.diagnostics:
             return generic_task(self.task, self.components, self.diagnostics)
         return get_task(self.task)
-
-
-@one_line_errors
-@dataclass(frozen=True, config=SCHEMA)
-class TaskOptions:
-    """How a user names the task of a run: ``--env`` or ``--task-file``, and the options of a task
-    that is not a paper task (``TASK_OPTIONS``). ``load()`` turns them into the ``Task`` whose name
-    and declaration (``task_spec``) the RunConfig stores. The one object that carries those options:
-    ``ppprops.tasks.load_task`` / ``check_task`` and ``TaskSpec.with_options`` take it, and
-    ``ppprops.search``'s ``task_options`` mapping becomes one.
-
-    Raises:
-        ConfigError: on construction, for a value of the wrong type.
-    """
-
-    env: Annotated[str | None, Flag(
-        "task name (see `ppprops envs`), a Gymnasium id, module:EnvId, or module:attr (an env class or factory)")] = None
-    task_file: Annotated[Path | None, Flag(
-        "a task described in TOML (env, observation, feedback keys, prose; docs/own-robot.md) instead of --env",
-        metavar="FILE")] = None
-    env_kwargs: Annotated[JsonObject, Flag("keyword arguments of the env's constructor, as a JSON object", metavar="JSON")] = None
-    max_episode_steps: Annotated[Int | None, Field(ge=1), Flag(
-        "time limit of an episode (needed when the env has none of its own)", metavar="N")] = None
-    gym_packages: Annotated[tuple[str, ...], Flag(
-        "a module to import first, e.g. one that registers the env (repeatable)", metavar="MOD", repeatable=True)] = ()
-    obs_keys: Annotated[Names, Flag("a Dict observation: the entries the policy sees, in this order", metavar="K1,K2")] = None
-    components: Annotated[tuple[str, ...], Flag(
-        "an info key to sum as a reward component (repeatable); KEY.SUB picks an entry of a dict, KEY.* all",
-        name="component", metavar="KEY", repeatable=True)] = ()
-    diagnostics: Annotated[tuple[str, ...], Flag(
-        "an info key to report as a diagnostic (its last value; repeatable)", name="diagnostic", metavar="KEY",
-        repeatable=True)] = ()
-
-    @property
-    def has_options(self) -> bool:
-        """True when an option of a task that is not a paper task is set (one of ``TASK_OPTIONS``)."""
-        return bool(self.env_kwargs or self.max_episode_steps is not None or self.gym_packages or self.obs_keys is not None
-                    or self.components or self.diagnostics)  # fmt: skip
-
-    def load(self) -> Task:
-        """The task (``ppprops.tasks.load_task``).
-
-        Raises:
-            ConfigError: neither ``env`` nor ``task_file``, or the task cannot be made (an unknown
-                id, a bad task file, a module that fails to import, an info key the env lacks).
-        """
-        if self.env is None and self.task_file is None:
-            raise ConfigError("--env or --task-file is required (on the command line, or in the --config file)")
-        from .tasks import load_task
-
-        return load_task(options=self)
-
-
-# The options of a task that is not a paper task: the fields of TaskOptions but the two naming the task.
-TASK_OPTIONS: tuple[str, ...] = tuple(f.name for f in fields(TaskOptions) if f.name not in ("env", "task_file"))
 
 
 SWITCH_FLAGS: dict[str, Flag] = {name: Flag(SWITCH_HELP[name], metavar="on|off") for name in SWITCHES}

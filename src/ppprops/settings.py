@@ -1,6 +1,6 @@
 """Run settings as users give them: ``ppprops run`` flags, config files, experiment-spec tables.
 
-Every setting is a field of the schema in ``ppprops.config`` that carries a ``Flag`` (``TaskOptions``,
+Every setting is a field of the schema in ``ppprops.config`` (and ``tasks.options``) that carries a ``Flag`` (``TaskOptions``,
 ``RunConfig``, ``LLMConfig``) or a mechanism switch of ``ppprops.methods.Mechanisms``. ``SETTINGS``
 lists them once, and everything here is derived from it:
 
@@ -29,10 +29,11 @@ from typing import Any, Literal
 
 from pydantic import BeforeValidator, TypeAdapter, ValidationError
 
-from .config import SWITCH_FLAGS, LLMConfig, RunConfig, TaskOptions
+from .config import SWITCH_FLAGS, LLMConfig, RunConfig
 from .errors import ConfigError
 from .methods import SWITCHES, Mechanisms, get_method
 from .schema import Flag, OnOff, describe_error, flag_info
+from .tasks.options import TaskOptions
 
 if typing.TYPE_CHECKING:
     from .tasks import Task
@@ -319,9 +320,10 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
                           "answers without one): give --base-url too, or drop --model")
     name = task.name if task is not None else str(options.env or options.task_file) if options is not None else ""
     config = RunConfig(task=name, mechanisms=mechanisms, llm=llm, **run)  # every number checked before an env is made
+    from .tasks import is_builtin, load_task
+
     if task is None:
         assert options is not None
-        task = options.load()
-    from .tasks import is_builtin
+        task = load_task(options=options)
 
     return dataclasses.replace(config, task=task.name, task_spec=None if is_builtin(task) or task.spec is None else task.spec.model_dump(mode="json"))

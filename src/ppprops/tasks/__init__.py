@@ -3,7 +3,7 @@
 ``get_task(name)`` finds a task by its name, its env id, a task file path, or builds one for any
 Gymnasium id. ``load_task(source, options=...)`` is the general form behind ``ppprops run`` and
 ``ppprops.search``: the source may also be an env factory or a ``TaskSpec``, with the quick options
-of a ``config.TaskOptions`` (env kwargs, a step limit, packages to import, Dict keys, info keys)
+of a ``tasks.options.TaskOptions`` (env kwargs, a step limit, packages to import, Dict keys, info keys)
 applied.
 
 The registry reads the paper's task files the first time it is used (importing ``ppprops.tasks``
@@ -44,7 +44,7 @@ from .spec import (
 )
 
 if TYPE_CHECKING:
-    from ..config import TaskOptions
+    from .options import TaskOptions
 
 _REGISTRY: dict[str, Task] = {}  # read through _tasks(): the paper's tasks are read into it on first use
 _NAME_ONLY: set[str] = set()  # tasks an env id never resolves to (presets sharing a paper task's env)
@@ -194,7 +194,7 @@ def generic_task(
 
 @cache
 def _generic(name: str, components: tuple[str, ...], diagnostics: tuple[str, ...]) -> Task:
-    from ..config import TaskOptions
+    from .options import TaskOptions
 
     found = registered_id(name)
     if found is None and ":" not in name:
@@ -213,7 +213,7 @@ def load_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[
     ``module:EnvId`` or ``module:attr`` string (an Env class or a function returning an env), a path
     to a task file (``.toml``), a dict with a task file's keys (``{"name": ..., "env": ...,
     "observation": {"indices": [...]}}``), an env factory callable, a ``TaskSpec``, or a ``Task``;
-    ``task_file`` names a task file instead. ``options`` (a ``ppprops.config.TaskOptions``) holds
+    ``task_file`` names a task file instead. ``options`` (a ``ppprops.tasks.options.TaskOptions``) holds
     the options of ``ppprops run`` (``--env-kwargs``, ``--max-episode-steps``, ``--gym-packages``,
     ``--obs-keys``, ``--component``, ``--diagnostic``), which win over the declaration; its ``env``
     or ``task_file`` names the task when neither ``source`` nor ``task_file`` does

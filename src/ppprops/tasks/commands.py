@@ -87,8 +87,8 @@ def cmd_task(a: argparse.Namespace) -> int:
     Raises:
         ConfigError: no task or two, or what stops the check before the episode (``check_task``).
     """
-    from ..config import TASK_OPTIONS, TaskOptions
     from . import check_task
+    from .options import TASK_OPTIONS, TaskOptions
 
     given = [x for x in (a.file, a.env, a.task_file) if x is not None]
     if len(given) != 1:

@@ -73,7 +73,7 @@ from .feedback import InfoFeedback, InfoKey
 from .schema import RESERVED, TaskFile, TaskFileError, validate_table
 
 if TYPE_CHECKING:
-    from ..config import TaskOptions
+    from .options import TaskOptions
 
 FORMAT: Final = "ppprops.task/1"
 _TEXT = "ppprops.tasks.descriptions"
@@ -221,7 +221,7 @@ class TaskSpec(BaseModel):
     def with_options(self, options: TaskOptions) -> TaskSpec:
         """This declaration with the quick options of ``ppprops run`` applied (they win); not yet resolved.
 
-        ``options`` is a ``config.TaskOptions``; its ``env`` and ``task_file`` (which name the task)
+        ``options`` is a ``tasks.options.TaskOptions``; its ``env`` and ``task_file`` (which name the task)
         are not read here. Raises TaskFileError for a task without env (every option but the
         feedback names concerns an env; a task without env declares its feedback in its file).
         """
