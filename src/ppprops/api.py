@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +37,7 @@ from .policy_file import Policy, load_policy
 from .rundir import open_run
 from .status import RunKind
 from .study import Study
-from .tasks.options import TASK_OPTIONS, TaskOptions
+from .tasks.options import TaskOptions
 from .values import Candidate
 
 Pathish = str | os.PathLike[str]
@@ -110,120 +110,26 @@ class SearchResult:
                 f"final={final})")
 
 
-# The option groups of ``search`` / ``create_study``: group -> {key a user writes: setting key}.
-# The setting keys are the ``ppprops run`` flags with underscores (``ppprops.settings``).
-GROUPS: dict[str, dict[str, str]] = {
-    "llm": {"base_url": "base_url", "model": "model", "api_key_env": "api_key_env", "temperature": "temperature",
-            "max_tokens": "max_tokens", "timeout": "timeout", "reasoning_effort": "reasoning_effort", "structured": "structured",
-            "context_size": "context_size", "retries": "retries", "retry_base_delay": "retry_base_delay",
-            "retry_max_delay": "retry_max_delay", "retry_after_cap": "retry_after_cap", "on_llm_failure": "on_llm_failure"},
-    "prompt": {"top_k": "top_k", "form": "prompt_form", "params": "prompt_params", "digits": "param_digits",
-               "layout": "prompt_layout", "decimals": "decimals", "parse_retries": "parse_retries", "explore": "explore"},
-    "evaluation": {"episodes": "episodes", "final_episodes": "final_episodes", "workers": "workers", "select_top": "select_top",
-                   "select_episodes": "select_episodes"},
-    "task_options": {name: name for name in TASK_OPTIONS},  # the fields of tasks.options.TaskOptions
-}  # fmt: skip
+class StudyOptions(TypedDict, total=False):
+    """The options of ``search`` and ``create_study`` (every key optional; paper Sec. III's settings).
 
+    Options come in groups, each a mapping whose keys are the ``ppprops run`` flags of that group
+    with underscores (``ppprops run --help``); the groups are derived from the settings themselves
+    (``ppprops.settings.api_groups``)::
 
-def _group_values(group: str, given: Any) -> dict[str, Any]:
-    """One option group (a mapping, or a settings object such as ``LLMConfig``) as setting keys.
-
-    Raises ConfigError for a value that is not a mapping or an unknown key (naming the group and
-    the closest key)."""
-    import difflib
-    from dataclasses import asdict, is_dataclass
-
-    if given is None:
-        return {}
-    if is_dataclass(given) and not isinstance(given, type):
-        given = asdict(given)
-        if group == "llm":  # LLMConfig's field names -> its flags' keys
-            renames = {"timeout_s": "timeout", "transport_retries": "retries", "retry_base_s": "retry_base_delay",
-                       "retry_max_s": "retry_max_delay", "retry_after_cap_s": "retry_after_cap"}
-            given = {renames.get(k, k): v for k, v in given.items()}
-    if not isinstance(given, Mapping):
-        raise ConfigError(f"{group}= must be a mapping of options (e.g. {group}={{...}}), got {type(given).__name__}")
-    keys = GROUPS[group]
-    out: dict[str, Any] = {}
-    for key, value in given.items():
-        if key not in keys:
-            close = difflib.get_close_matches(str(key), list(keys), n=1)
-            hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(keys)}"
-            raise ConfigError(f"{group}: unknown option {key!r} ({hint})")
-        out[keys[key]] = tuple(value) if isinstance(value, list) else value
-    return out
-
-
-def _build(task: TaskLike, *, method: str, warmup: int, iterations: int, seed: int | None, box: tuple[float, float],
-           llm: Any, privacy: Mapping[str, bool | None] | None, prompt: Any, evaluation: Any, method_options: Mapping[str, Any] | None,
-           task_options: Any) -> tuple[RunConfig, LLM | None]:  # fmt: skip
-    """The RunConfig of ``search``'s arguments, and the model ``llm`` names when it is one (an ``LLM``) rather than settings."""
-    from .methods import get_method
-    from .seeding import draw_seed
-    from .settings import build_config
-    from .tasks import load_task
-
-    model: LLM | None = None
-    if isinstance(llm, LLM):
-        model, llm = llm, None
-    switches = dict(privacy or {})
-    entry = get_method(method)  # a bad method or switch fails before the env is made
-    entry.mechanisms(**switches)
-    values: dict[str, Any] = {"method": method, "warmup": warmup, "iterations": iterations, "box": tuple(box),
-                              "seed": draw_seed() if seed is None else seed}  # fmt: skip
-    for group, given in (("llm", llm), ("prompt", prompt), ("evaluation", evaluation)):
-        values.update(_group_values(group, given))
-    values.update({k: v for k, v in switches.items() if v is not None})
-    if method_options:
-        values["method_options"] = dict(method_options)
-    t = load_task(task, options=TaskOptions(**_group_values("task_options", task_options)))
-    return build_config(values, task=t), model
-
-
-def search(
-    task: TaskLike,
-    *,
-    method: str = "pp",
-    warmup: int = 10,
-    iterations: int = 50,
-    seed: int | None = None,
-    out: Pathish | None = None,
-    box: tuple[float, float] = (-6.0, 6.0),
-    llm: Any = None,
-    privacy: Mapping[str, bool | None] | None = None,
-    prompt: Mapping[str, Any] | None = None,
-    evaluation: Mapping[str, Any] | None = None,
-    method_options: Mapping[str, Any] | None = None,
-    task_options: Mapping[str, Any] | None = None,
-    callbacks: Sequence[Callable[[Candidate, Any], bool | None]] = (),
-    progress: bool = False,
-) -> SearchResult:
-    """Run a policy search (paper Sec. II-E, Algorithm 1; settings of Sec. III) on ``task`` and return its result.
-
-    A short loop over a study (``create_study``: ask, evaluate on the task's env, tell; then the
-    final evaluation and the policy file). Options come in groups, each a mapping whose keys are
-    the ``ppprops run`` flags of that group with underscores (``ppprops run --help``)::
-
-        ppprops.search("CartPole", method="pp", seed=0, out="runs/x",
+        ppprops.search("CartPole", method="pp", warmup=5, iterations=20, seed=0, out="runs/x",
                        llm={"base_url": "http://localhost:11434/v1", "model": "gpt-oss:20b"},
                        prompt={"top_k": 10, "form": "chat"}, evaluation={"final_episodes": 20, "workers": 2},
-                       privacy={"scale_rewards": False}, method_options=None)
+                       privacy={"scale_rewards": False})
 
-    Args:
-        task: a paper task name (``"Ant-Ultra"``), a Gymnasium id, ``"module:EnvId"`` or
-            ``"module:attr"``, a task file path (``.toml``), an env factory (an ``Env`` class or a
-            function returning an env, called with ``task_options["env_kwargs"]``), a ``TaskSpec``
-            or a ``Task``. A factory with no importable name (a lambda, a local function) works in
-            this process only; one defined at the top level of a module (or of the script being
-            run) also works with ``workers > 1``, ``resume`` and ``policy eval`` from a fresh process.
+    Keys:
         method: a search method of the registry (``ppprops.methods``): ``vanilla``, ``pe``, ``df``,
             ``pp`` (default), ``pp-hardened``, ``r2po``, ``random`` or ``cmaes``.
-        warmup: random warm-up policies.
-        iterations: LLM proposals (r2po: LLM calls; random, cmaes: samples) after the warm-up.
-        seed: the run seed (episode seeds, with the run's key; never the secrets). None draws one
-            from the OS (stored with the run; pass it back to reproduce).
-        out: the run directory (default ``runs/<run id>``); it must not hold anything yet.
-        box: (low, high), the feasible range of every raw parameter.
+        warmup: random warm-up policies (default 10).
+        iterations: LLM proposals (r2po: LLM calls; random, cmaes: samples) after the warm-up (default 50).
+        seed: the run seed (episode seeds, with the run's key; never the secrets). None (default)
+            draws one from the OS (stored with the run).
+        box: (low, high), the feasible range of every raw parameter (default (-6, 6)).
         llm: the LLM: None for the embedded model; the endpoint's settings as a mapping or an
             ``LLMConfig`` (``base_url``, ``model``, ``api_key_env``, ``temperature``, ``max_tokens``,
             ``timeout``, ``reasoning_effort``, ``structured``, ``context_size``, ``retries``,
@@ -249,9 +155,104 @@ def search(
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
+    """
+
+    method: str
+    warmup: int
+    iterations: int
+    seed: int | None
+    box: tuple[float, float]
+    llm: Any
+    privacy: Mapping[str, bool | None] | None
+    prompt: Any
+    evaluation: Any
+    method_options: Mapping[str, Any] | None
+    task_options: Any
+
+
+def _group_values(group: str, given: Any, *, fields: bool = False) -> dict[str, Any]:
+    """One option group (a mapping, or a settings object such as ``LLMConfig``) as setting keys
+    (``fields``: as the field names of the settings' schema class).
+
+    Raises ConfigError for a value that is not a mapping or an unknown key (naming the group and
+    the closest key)."""
+    import difflib
+    from dataclasses import asdict, is_dataclass
+
+    from .settings import api_groups
+
+    known = api_groups()[group]
+    if given is None:
+        return {}
+    if is_dataclass(given) and not isinstance(given, type):  # a settings object: its field names
+        by_field = {s.field: name for name, s in known.items()}
+        given = {by_field.get(k, k): v for k, v in asdict(given).items()}
+    if not isinstance(given, Mapping):
+        raise ConfigError(f"{group}= must be a mapping of options (e.g. {group}={{...}}), got {type(given).__name__}")
+    out: dict[str, Any] = {}
+    for key, value in given.items():
+        if key not in known:
+            close = difflib.get_close_matches(str(key), list(known), n=1)
+            hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(known)}"
+            raise ConfigError(f"{group}: unknown option {key!r} ({hint})")
+        out[known[key].field if fields else known[key].key] = tuple(value) if isinstance(value, list) else value
+    return out
+
+
+def _build(task: TaskLike, options: StudyOptions) -> tuple[RunConfig, LLM | None]:
+    """The RunConfig of ``search``'s / ``create_study``'s arguments, and the model ``llm`` names when
+    it is one (an ``LLM``) rather than settings. Raises ConfigError for an unknown option."""
+    from .methods import get_method
+    from .seeding import draw_seed
+    from .settings import build_config
+    from .tasks import load_task
+
+    unknown = sorted(set(options) - set(StudyOptions.__annotations__))
+    if unknown:
+        raise ConfigError(f"unknown option {unknown[0]!r} (known: {', '.join(StudyOptions.__annotations__)})")
+    method = options.get("method", "pp")
+    llm = options.get("llm")
+    model: LLM | None = None
+    if isinstance(llm, LLM):
+        model, llm = llm, None
+    switches = dict(options.get("privacy") or {})
+    get_method(method).mechanisms(**switches)  # a bad method or switch fails before the env is made
+    seed = options.get("seed")
+    values: dict[str, Any] = {"method": method, "warmup": options.get("warmup", 10), "iterations": options.get("iterations", 50),
+                              "box": tuple(options.get("box", (-6.0, 6.0))), "seed": draw_seed() if seed is None else seed}  # fmt: skip
+    for group, given in (("llm", llm), ("prompt", options.get("prompt")), ("evaluation", options.get("evaluation"))):
+        values.update(_group_values(group, given))
+    values.update({k: v for k, v in switches.items() if v is not None})
+    if options.get("method_options"):
+        values["method_options"] = dict(options["method_options"] or {})
+    t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True)))
+    return build_config(values, task=t), model
+
+
+def search(task: TaskLike, *, out: Pathish | None = None, callbacks: Sequence[Callable[[Candidate, Study], bool | None]] = (),
+           progress: bool = False, **options: Unpack[StudyOptions]) -> SearchResult:
+    """Run a policy search (paper Sec. II-E, Algorithm 1; settings of Sec. III) on ``task`` and return its result.
+
+    A short loop over a study (``create_study``: ask, evaluate on the task's env, tell; then the
+    final evaluation and the policy file)::
+
+        result = ppprops.search("CartPole", method="pp", warmup=5, iterations=20, out="runs/x",
+                                evaluation={"final_episodes": 20})
+
+    Args:
+        task: a paper task name (``"Ant-Ultra"``), a Gymnasium id, ``"module:EnvId"`` or
+            ``"module:attr"``, a task file path (``.toml``), an env factory (an ``Env`` class or a
+            function returning an env, called with ``task_options["env_kwargs"]``), a ``TaskSpec``
+            or a ``Task``. A factory with no importable name (a lambda, a local function) works in
+            this process only; one defined at the top level of a module (or of the script being
+            run) also works with ``workers > 1``, ``resume`` and ``policy eval`` from a fresh process.
+        out: the run directory (default ``runs/<run id>``); it must not hold anything yet.
         callbacks: called after each told candidate as ``callback(candidate, study)``; one returning
             ``False`` stops the search cleanly (status ``stopped: stopped by a callback``).
         progress: show a progress bar on stderr.
+        **options: the run's options (``StudyOptions``): ``method``, ``warmup``, ``iterations``,
+            ``seed``, ``box``, and the groups ``llm``, ``privacy``, ``prompt``, ``evaluation``,
+            ``method_options``, ``task_options``.
 
     Returns:
         The finished run (``SearchResult``).
@@ -266,47 +267,31 @@ def search(
     from .evaluation import exit_if_importing_main_in_a_worker
 
     exit_if_importing_main_in_a_worker()  # an unguarded script re-imported by a worker must not start a second run
-    config, model = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
-                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    config, model = _build(task, options)
     from .naming import default_run_dir
     from .runner import start
 
     run_dir = Path(out) if out is not None else default_run_dir(config)
-    with _progress(progress, f"{config.task} {method}") as events:
+    with _progress(progress, f"{config.task} {config.method}") as events:
         start(config, run_dir, events, llm=model, callbacks=callbacks)
     return load_run(run_dir)
 
 
-def create_study(
-    task: TaskLike,
-    *,
-    method: str = "pp",
-    storage: Pathish | None = None,
-    warmup: int = 10,
-    iterations: int = 50,
-    seed: int | None = None,
-    box: tuple[float, float] = (-6.0, 6.0),
-    llm: Any = None,
-    privacy: Mapping[str, bool | None] | None = None,
-    prompt: Mapping[str, Any] | None = None,
-    evaluation: Mapping[str, Any] | None = None,
-    method_options: Mapping[str, Any] | None = None,
-    task_options: Mapping[str, Any] | None = None,
-) -> Study:
+def create_study(task: TaskLike, *, storage: Pathish | None = None, **options: Unpack[StudyOptions]) -> Study:
     """A new study in ``storage`` (a run directory, default ``runs/<run id>``), to drive by hand:
     ``trial = study.ask()``, evaluate ``trial.theta`` (or ``trial.W``, ``trial.b``) on your robot
     or simulator, ``study.tell(trial, episode_return, components=..., diagnostics=...)``, until
-    ``study.done``; then ``study.finalize()``. Arguments as for ``search``. Use it in a ``with``
-    block (it holds the store and, once asked, the LLM client). ``ppprops.load_study(storage)``
-    reopens it in another process, after a restart or a crash (``ppprops.study``).
+    ``study.done``; then ``study.finalize()``. ``task`` and ``options`` (``StudyOptions``) as for
+    ``search``. Use it in a ``with`` block (it holds the store and, once asked, the LLM client).
+    ``ppprops.load_study(storage)`` reopens it in another process, after a restart or a crash
+    (``ppprops.study``).
 
     Raises:
         ConfigError: bad settings or task, an occupied ``storage``.
     """
     from .naming import default_run_dir
 
-    config, model = _build(task, method=method, warmup=warmup, iterations=iterations, seed=seed, box=box, llm=llm, privacy=privacy,
-                           prompt=prompt, evaluation=evaluation, method_options=method_options, task_options=task_options)
+    config, model = _build(task, options)
     run_dir = Path(storage) if storage is not None else default_run_dir(config)
     return Study.create(config, run_dir, llm=model)
 
@@ -441,5 +426,5 @@ class _progress:
         self._events.__exit__(*exc)
 
 
-__all__ = ["Evaluation", "Policy", "SearchResult", "Study", "create_study", "evaluate_policy", "load_policy", "load_run", "load_study",
+__all__ = ["Evaluation", "Policy", "SearchResult", "Study", "StudyOptions", "create_study", "evaluate_policy", "load_policy", "load_run", "load_study",
            "resume", "search"]

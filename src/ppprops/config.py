@@ -67,45 +67,48 @@ class RunConfig:
     warmup: Annotated[Int, Field(ge=1, le=MAX_WARMUP), Flag("random warm-up policies", hint="the history starts from it")] = 10
     iterations: Annotated[Int, Field(ge=0, le=MAX_ITERATIONS), Flag(
         "LLM iterations; r2po: LLM calls, two per two-stage iteration; random, cmaes: samples")] = 50
-    top_k: Annotated[Int, Field(ge=0), Flag("history entries in the prompt; 0 = all", hint="0 keeps every entry")] = 10
-    episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag("episodes per candidate", default_text="1; 20 for r2po")] = 1
-    final_episodes: Annotated[Int, Field(ge=0, le=MAX_EPISODES), Flag("fresh episodes for the best policy")] = 20
+    top_k: Annotated[Int, Field(ge=0), Flag("history entries in the prompt; 0 = all", hint="0 keeps every entry", group="prompt")] = 10
+    episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag("episodes per candidate", default_text="1; 20 for r2po", group="evaluation")] = 1
+    final_episodes: Annotated[Int, Field(ge=0, le=MAX_EPISODES), Flag("fresh episodes for the best policy", group="evaluation")] = 20
     # The selection stage (proposers.selection): the top candidates of the search run again on fresh
     # episodes, and the best pooled mean is handed over. None: 5 for a task with an env, 0 without one.
     select_top: Annotated[Int | None, Field(ge=0, le=MAX_EPISODES), Flag(
         "candidates of the search re-evaluated on fresh episodes before the best is chosen (0: none, the best "
-        "search-time return is handed over)", default_text="5; 0 for a task without an env")] = None
+        "search-time return is handed over)", default_text="5; 0 for a task without an env", group="evaluation")] = None
     select_episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag(
-        "fresh episodes per re-evaluated candidate")] = 10
+        "fresh episodes per re-evaluated candidate", group="evaluation")] = 10
     seed: Annotated[Int, Field(ge=0, lt=2**63), Flag(
         "run seed; the draws the provider sees are keyed by it and the run's fresh secrets, so it repeats a run "
         "only with the same secrets (a grid's master.key: ppprops experiment)", range_text="[0, 2^63)",
         default_text="drawn from the OS, printed and stored")] = 0
     box: Annotated[Box, Flag("feasible range of every parameter", metavar="LOW,HIGH", default_text="-6,6")] = (-6.0, 6.0)
-    decimals: Annotated[Int, Field(ge=0, le=8), Flag("decimals of numbers in the prompt", range_text="[0, 8]")] = 2
-    parse_retries: Annotated[Int, Field(ge=0, le=MAX_PARSE_RETRIES), Flag("corrections asked for before a fallback")] = 2
+    decimals: Annotated[Int, Field(ge=0, le=8), Flag("decimals of numbers in the prompt", range_text="[0, 8]", group="prompt")] = 2
+    parse_retries: Annotated[Int, Field(ge=0, le=MAX_PARSE_RETRIES), Flag("corrections asked for before a fallback", group="prompt")] = 2
     llm: LLMConfig = Field(default_factory=LLMConfig)
     on_llm_failure: Annotated[Literal["stop", "skip"], Flag(
-        "when the endpoint stays down past --retries: stop, resumable, or skip: record a fallback candidate and go on")] = "stop"
-    workers: Annotated[Int, Field(ge=1, le=256), Flag("processes running episodes in parallel", range_text="[1, 256]")] = 1
+        "when the endpoint stays down past --retries: stop, resumable, or skip: record a fallback candidate and go on",
+        group="llm")] = "stop"
+    workers: Annotated[Int, Field(ge=1, le=256), Flag("processes running episodes in parallel", range_text="[1, 256]", group="evaluation")] = 1
     components: tuple[str, ...] = ()  # runs stored before task_spec existed: a generic task's component info keys
     diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: Annotated[Literal["list", "indexed"], Flag(
-        "history parameters as one list (compact) or as ProPS-style params[i]: value pairs")] = "list"
+        "history parameters as one list (compact) or as ProPS-style params[i]: value pairs", group="prompt", api_name="params")] = "list"
     # None: the prompt form's default (wire.forms.PromptForm.default_digits: 3 for chat, 2 for the document form)
     param_digits: Annotated[Int | None, Field(ge=0, le=8), Flag(
         "significant digits of each parameter, at most --decimals decimals; 0 = fixed decimals",
-        range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form")] = None
+        range_text="[0, 8]", default_text="3 in the chat form's list, 2 in the document form", group="prompt", api_name="digits")] = None
     # The document form's exploration rule (wire.document.STALL_AFTER, EXPLORE_TEMPERATURE)
     explore: Annotated[OnOff, Flag("document form: after 3 LLM iterations without a new best shown return, sample one at "
-                                   "temperature 2.0 (wire.document.EXPLORE_TEMPERATURE)", metavar="on|off", default_text="on")] = True
+                                   "temperature 2.0 (wire.document.EXPLORE_TEMPERATURE)", metavar="on|off", default_text="on",
+                                   group="prompt")] = True
     prompt_layout: Annotated[Literal["static-first", "history-first"], Flag(
-        "fixed sections before the history (a server's prefix cache reuses them) or history first")] = "static-first"
+        "fixed sections before the history (a server's prefix cache reuses them) or history first", group="prompt",
+        api_name="layout")] = "static-first"
     # chat: the paper's instruction prompt (/chat/completions); document: the history as a document for a
     # base model to continue (/completions, wire.document); auto: document for the embedded model, chat otherwise
     prompt_form: Annotated[Literal["auto", "chat", "document"], Flag(
         "chat: the paper's instruction prompt; document: the history as a document for a base model to continue "
-        "(completions endpoint); auto: document for the embedded model, chat otherwise")] = "auto"
+        "(completions endpoint); auto: document for the embedded model, chat otherwise", group="prompt", api_name="form")] = "auto"
     # The task's whole declaration (ppprops.tasks.spec.TaskSpec.model_dump(mode="json")): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).

@@ -40,6 +40,10 @@ class Flag:
             a collection other than a list is lazy (``methods.MethodChoices``: the plugins' methods
             are listed when a name is not found), and the flag then shows ``metavar`` (default the
             key in capitals) instead of the choices, which only ``--help`` lists.
+        group: the option group of ``ppprops.search`` / ``create_study`` the setting is given in
+            (``prompt``, ``evaluation``, ``llm``), for a run setting that is not a keyword of its own;
+            ``settings.Setting.api_group`` says where every setting goes.
+        api_name: its key in that group when not the setting's key (``form`` for ``--prompt-form``).
     """
 
     help: str
@@ -50,6 +54,8 @@ class Flag:
     default_text: str | None = None
     repeatable: bool = False
     choices: Callable[[], Collection[str]] | None = None
+    group: str | None = None
+    api_name: str | None = None
 
 
 # -- values as users write them -------------------------------------------------------------------

@@ -68,6 +68,25 @@ class Setting:
     group: str
 
     @property
+    def api_group(self) -> str | None:
+        """Where ``ppprops.search`` / ``create_study`` take this setting: an option group (``llm``,
+        ``privacy``, ``prompt``, ``evaluation``, ``task_options``), or None for a keyword of its own
+        (``method``, ``warmup``, ``iterations``, ``seed``, ``box``, ``method_options``) and for
+        ``env`` / ``task_file`` (the ``task`` argument)."""
+        if self.owner is Mechanisms:
+            return "privacy"
+        if self.owner is LLMConfig:
+            return "llm"
+        if self.owner is TaskOptions:
+            return None if self.key in ("env", "task_file") else "task_options"
+        return self.info.group
+
+    @property
+    def api_name(self) -> str:
+        """The key of this setting in its option group (``Flag.api_name``, else the setting's key)."""
+        return self.info.api_name or self.key
+
+    @property
     def names(self) -> tuple[str, ...]:
         """The keys a file may use: the flag's name with dashes and with underscores."""
         return tuple(dict.fromkeys((self.flag[2:], self.key)))
@@ -183,6 +202,19 @@ def _all_settings() -> tuple[Setting, ...]:
 SETTINGS: tuple[Setting, ...] = _all_settings()
 BY_KEY: dict[str, Setting] = {s.key: s for s in SETTINGS}
 _BY_NAME: dict[str, Setting] = {name: s for s in SETTINGS for name in s.names}
+
+API_GROUPS = ("llm", "privacy", "prompt", "evaluation", "task_options")
+
+
+def api_groups() -> dict[str, dict[str, Setting]]:
+    """The option groups of ``ppprops.search`` / ``create_study``, derived from ``SETTINGS``:
+    group -> {the key a user writes in it: the setting}."""
+    out: dict[str, dict[str, Setting]] = {g: {} for g in API_GROUPS}
+    for s in SETTINGS:
+        if s.api_group is not None:
+            out[s.api_group][s.api_name] = s
+    return out
+
 
 GROUP_TITLES = {
     "mechanisms": "mechanisms (override the preset one by one)",

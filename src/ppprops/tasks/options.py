@@ -45,10 +45,10 @@ class TaskOptions:
     obs_keys: Annotated[Names, Flag("a Dict observation: the entries the policy sees, in this order", metavar="K1,K2")] = None
     components: Annotated[tuple[str, ...], Flag(
         "an info key to sum as a reward component (repeatable); KEY.SUB picks an entry of a dict, KEY.* all",
-        name="component", metavar="KEY", repeatable=True)] = ()
+        name="component", metavar="KEY", repeatable=True, api_name="components")] = ()
     diagnostics: Annotated[tuple[str, ...], Flag(
         "an info key to report as a diagnostic (its last value; repeatable)", name="diagnostic", metavar="KEY",
-        repeatable=True)] = ()
+        repeatable=True, api_name="diagnostics")] = ()
 
     @property
     def has_options(self) -> bool:
