@@ -460,6 +460,9 @@ class Study:
             store.set_status(RunStatus.FINISHED)
         from .llm.embedded import stop_warm_server
 
+        if self._warm_llm:  # let go of the warm server first: stopping it waits for every process using it
+            self._stack.close()
+            self._recording = None
         stop_warm_server(self.run_dir)  # nothing more will be asked: the study's warm server (ppprops ask), if any, stops
         return fe
 
