@@ -162,9 +162,13 @@ def _failure(proc: subprocess.Popen[str], log: IO[bytes]) -> str:
         proc.wait(timeout=STOP_WAIT_S)
     except subprocess.TimeoutExpired:
         pass
+    return _last_line(log) or f"the server process ended with code {proc.returncode}"
+
+
+def _last_line(log: IO[bytes]) -> str:
     log.seek(0)
     lines = [ln.strip() for ln in log.read().decode("utf-8", "replace").splitlines() if ln.strip()]
-    return lines[-1] if lines else f"the server process ended with code {proc.returncode}"
+    return lines[-1] if lines else ""
 
 
 # -- the warm server of a study driven from the shell -------------------------------------------
@@ -373,7 +377,8 @@ def _spawn_detached(cmd: list[str], token: str) -> tuple[int, str]:
                 pid = int(first.split()[1])
             line = proc.stdout.readline() if pid is not None else ""  # blocks while the model loads; Ctrl-C interrupts it
             if pid is None or not line.startswith(READY):
-                raise LLMError(f"the embedded llama.cpp server failed to start: {_failure(proc, log)}")
+                why = _last_line(log) or "the server process ended before it listened"
+                raise LLMError(f"the embedded llama.cpp server failed to start: {why}")
         except BaseException:
             if pid is not None and _ours({"pid": pid, "token": token}):
                 _end({"pid": pid, "token": token})
