@@ -30,6 +30,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -90,10 +91,15 @@ class Study:
             started on the first LLM request and closed with the study.
         llm_gate: held around every LLM request (a grid's cap on concurrent requests).
         events: progress hooks (the embedded model's start, the final evaluation).
+        warm_llm: for the embedded model, use the server kept warm for this study directory
+            (``llm.embedded.WarmServer``: started by the first process that needs it, left
+            running for the next, stopped when idle or by ``finalize``) instead of one started
+            and stopped with this study object (``ppprops ask``, one process per trial).
     """
 
     def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, llm: LLM | None = None,
-                 llm_gate: AbstractContextManager[object] | None = None, events: RunEvents = NO_EVENTS) -> None:  # fmt: skip
+                 llm_gate: AbstractContextManager[object] | None = None, events: RunEvents = NO_EVENTS,
+                 warm_llm: bool = False) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.store = store
         self.config = config
@@ -105,6 +111,7 @@ class Study:
         self.events = events
         self._llm_given = llm
         self._gate = llm_gate
+        self._warm_llm = warm_llm
         self._stack = ExitStack()
         self._recording: RecordingLLM | None = None
         self._phases: list[Phase] | None = None
@@ -421,8 +428,9 @@ class Study:
         stored; otherwise, for a task with an env, the best policy runs on ``final_episodes``
         fresh seeds (``seeding.final_eval_seeds``, never used during the search). A final
         evaluation already stored for the same candidate is kept. Returns it (None when there is
-        none). Raises ConfigError before any trial is told or while one is pending, StoreError when
-        the policy file cannot be written (the study stays resumable).
+        none). A server kept warm for this study (``ppprops ask``: ``llm.embedded.WarmServer``) is
+        stopped. Raises ConfigError before any trial is told or while one is pending, StoreError
+        when the policy file cannot be written (the study stays resumable).
         """
         events = events if events is not None else self.events
         store = self.store
@@ -450,6 +458,12 @@ class Study:
             store.set_status(RunStatus.STOPPED, reason)
         else:
             store.set_status(RunStatus.FINISHED)
+        from .llm.embedded import stop_warm_server
+
+        if self._warm_llm:  # let go of the warm server first: stopping it waits for every process using it
+            self._stack.close()
+            self._recording = None
+        stop_warm_server(self.run_dir)  # nothing more will be asked: the study's warm server (ppprops ask), if any, stops
         return fe
 
     def policy_document(self, best: Candidate | None = None, fe: FinalEval | None = None) -> dict[str, Any]:
@@ -525,8 +539,13 @@ class Study:
             if model is None:
                 from .llm.client import connect
 
+                server = None
+                if self._warm_llm and self.config.llm.embedded:
+                    from .llm.embedded import WarmServer
+
+                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size)
                 model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
-                                                                  on_ready=self.events.on_llm_ready)))
+                                                                  on_ready=self.events.on_llm_ready, server=server)))
             self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session)
         return self._recording
 

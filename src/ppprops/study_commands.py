@@ -113,14 +113,18 @@ def _stdin_feedback() -> tuple[Any, Any, Any]:
 def cmd_ask(a: argparse.Namespace) -> int:
     """``ppprops ask DIR``: print the next trial (or the pending one again) as one JSON object.
 
-    Returns 0, or ``EXIT_DONE`` (3) with one line on stderr when the study has nothing more to ask.
+    The embedded model is the study's warm server (``llm.embedded.WarmServer``): the first ask that
+    needs it starts it, the next ones reuse it. Returns 0, or ``EXIT_DONE`` (3) with one line on
+    stderr when the study has nothing more to ask (its warm server, if any, then stops).
     """
+    from .llm.embedded import stop_warm_server
     from .study import Study, StudyComplete
 
-    with Study.load(a.dir) as study:
+    with Study.load(a.dir, warm_llm=True) as study:
         try:
             trial = study.ask()
         except StudyComplete as e:
+            stop_warm_server(a.dir)
             print(f"ppprops: {e}" + ("" if e.finalized else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
             return EXIT_DONE
         print(json.dumps(trial.to_json()))
@@ -129,7 +133,9 @@ def cmd_ask(a: argparse.Namespace) -> int:
 
 def cmd_tell(a: argparse.Namespace) -> int:
     """``ppprops tell DIR TRIAL ...``: record a trial's raw feedback; prints one line (the
-    candidate's return and the best so far). Errors store nothing."""
+    candidate's return and the best so far). Errors store nothing. After the last trial the
+    study's warm server (``cmd_ask``), if any, stops."""
+    from .llm.embedded import stop_warm_server
     from .study import Study
 
     if a.stdin:
@@ -149,6 +155,8 @@ def cmd_tell(a: argparse.Namespace) -> int:
         cand = study.tell(a.trial, returns, components=components, diagnostics=diagnostics)
         best = study.best
         told, total = study.store.candidate_count(), study.total
+        if study.done:
+            stop_warm_server(a.dir)
     best_text = f"; best {best.ret:.4g} (trial {best.index})" if best is not None else ""
     print(f"trial {cand.index}: return {cand.ret:.4g}{best_text}; {told} of {total} told")
     return 0

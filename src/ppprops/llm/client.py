@@ -348,8 +348,11 @@ class EndpointClient:
     study's recording client stores them all, so the audit sees all of it. Without ``base_url``
     the configured endpoint is used, and for the embedded model (``config.embedded``) the shipped
     llama.cpp server is started on the first ``send`` (``on_loading()`` before, ``on_ready(seconds)``
-    after) and stopped by ``close``. ``gate`` (a grid's cap on concurrent requests) is held around
-    every request. The SDK is imported on the first request, not before.
+    after) and stopped by ``close``; ``server`` replaces how: a factory of a context manager whose
+    entered value has the server's ``base_url`` (``embedded.WarmServer``: a server shared by the
+    processes that drive one study, left running on ``close``). ``gate`` (a grid's cap on
+    concurrent requests) is held around every request. The SDK is imported on the first request,
+    not before.
 
     Raises:
         ConfigError: a named API-key variable that is empty or unset (at construction, before
@@ -360,7 +363,8 @@ class EndpointClient:
 
     def __init__(self, config: LLMConfig, *, base_url: str | None = None, api_key: str | None = None, model: str | None = None,
                  grammar_ok: bool = False, shape: RequestShape | None = None, gate: AbstractContextManager[object] | None = None,
-                 on_loading: Callable[[], None] = _ignore, on_ready: Callable[[float], None] = _ignore) -> None:  # fmt: skip
+                 on_loading: Callable[[], None] = _ignore, on_ready: Callable[[float], None] = _ignore,
+                 server: Callable[[], AbstractContextManager[Any]] | None = None) -> None:  # fmt: skip
         if shape is None:
             shape = RequestShape(config, model=model, grammar_ok=grammar_ok) if model is not None else RequestShape.for_config(config)
         self.config = config
@@ -369,6 +373,7 @@ class EndpointClient:
         self.base_url = base_url if base_url is not None else (config.base_url or "")
         self._key = api_key if api_key is not None else read_api_key(config)
         self._start_server = base_url is None and config.embedded
+        self._server = server if server is not None else self._own_server
         self._on_loading, self._on_ready = on_loading, on_ready
         self.gate = gate if gate is not None else nullcontext()
         self._stack = ExitStack()
@@ -387,15 +392,18 @@ class EndpointClient:
         """The URL document continuations go to (the completions endpoint)."""
         return self.base_url.rstrip("/") + "/completions"
 
+    def _own_server(self) -> AbstractContextManager[Any]:
+        from .embedded import EmbeddedServer
+
+        return EmbeddedServer(context_size=self.config.context_size)
+
     def _client(self) -> OpenAI:
         """The SDK client, made on first use (starting the embedded server first when this client runs it)."""
         if self._sdk is None:
             if self._start_server:
-                from .embedded import EmbeddedServer
-
                 self._on_loading()
                 t0 = time.monotonic()
-                server = self._stack.enter_context(EmbeddedServer(context_size=self.config.context_size))
+                server = self._stack.enter_context(self._server())
                 self._on_ready(time.monotonic() - t0)
                 self.base_url = server.base_url
             from openai import OpenAI
@@ -565,11 +573,11 @@ class EndpointClient:
 
 
 def connect(config: LLMConfig, *, gate: AbstractContextManager[object] | None = None, on_loading: Callable[[], None] = _ignore,
-            on_ready: Callable[[float], None] = _ignore) -> EndpointClient:
+            on_ready: Callable[[float], None] = _ignore, server: Callable[[], AbstractContextManager[Any]] | None = None) -> EndpointClient:
     """The ``LLM`` a study talks to when it is given none: the configured endpoint's client, or the
-    embedded model's, started on the first request. Raises ConfigError when the named API-key
-    variable is empty or unset."""
-    return EndpointClient(config, gate=gate, on_loading=on_loading, on_ready=on_ready)
+    embedded model's, started on the first request (by ``server`` when given: ``EndpointClient``).
+    Raises ConfigError when the named API-key variable is empty or unset."""
+    return EndpointClient(config, gate=gate, on_loading=on_loading, on_ready=on_ready, server=server)
 
 
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
