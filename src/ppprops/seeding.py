@@ -77,7 +77,7 @@ def final_eval_seeds(seed: int, episodes: int) -> list[int]:
 
 
 def llm_seed(seed: int, iteration: int, attempt: int) -> int:
-    """The per-request sampling seed runs sent before issue 16, derived from the run seed alone.
+    """The per-request sampling seed older runs sent, derived from the run seed alone.
 
     No longer sent: a provider could search run seeds for it (docs/threat-model.md). Requests now
     carry ``Codec.sampling_seed``, keyed by the secrets; this stays so the audit and the attacks

@@ -50,7 +50,7 @@ def warmup_box(box: tuple[float, float]) -> tuple[float, float]:
     return (-half, half)
 
 
-NEUTRAL_TITLE = "Task"  # what a prompt calls a task whose file names nothing for the provider (issue 20)
+NEUTRAL_TITLE = "Task"  # what a prompt calls a task whose file names nothing for the provider
 
 
 def prompt_title(task: Task, mechanisms: Mechanisms) -> str:

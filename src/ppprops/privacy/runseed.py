@@ -4,8 +4,8 @@ The paper's warm-up (and the hardened encoded one) is drawn from ``seeding.rng(s
 and each candidate's episodes from ``seeding.episode_seeds(seed, index, episodes)``: whoever knows
 the run seed replays both. A provider finds a small run seed from what the first prompt shows:
 an encoded warm-up prints the draws themselves (a table lookup), the paper's raw warm-up prints
-a_j times them (the signs, then one consistent scale per coordinate); transcripts made before
-issue 16 also carried a sampling seed derived from the run seed.
+a_j times them (the signs, then one consistent scale per coordinate); transcripts of older runs
+also carried a sampling seed derived from the run seed.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ RANGE_STATED = re.compile(r"(?:must lie in|drawn uniformly from) \[([^\],]+), ([
 
 def find_run_seed(v: View) -> tuple[int | None, str]:
     """The run seed, if the transcript gives it away: from the request's sampling seed when that was
-    derived from the run seed (``seeding.llm_seed``, before issue 16), else by trying small seeds
+    derived from the run seed (``seeding.llm_seed``, in older runs), else by trying small seeds
     against the sign pattern of the warm-up (drawn from the run seed under the paper's warm-up)."""
     if "run_seed" not in v.memo:
         v.memo["run_seed"] = _find_run_seed(v)

@@ -805,7 +805,7 @@ def _run_fit(v: View, mode: str) -> Fit | str:
 
 def _reward_scale(task: Any) -> float:
     """The public bound S of the reward origins (``client.hardening.reward_scale``: |optimal return|,
-    else a per-task constant). Adapter: the task files will declare it (issue 20)."""
+    else a per-task constant; a task file may declare it as its ``reward_scale`` fact)."""
     from ..client.hardening import reward_scale
 
     return float(reward_scale(task))

@@ -36,8 +36,8 @@ from numpy.typing import NDArray
 if TYPE_CHECKING:
     from ..tasks.base import Task
 
-# Env ids whose dynamics are public: every Gymnasium id is, the user's own module env is not.
-# ``env_is_public`` is the adapter until each task file declares it (issue 20).
+# Env ids whose dynamics are public: every Gymnasium id is, the user's own module env is not
+# (``env_is_public``, when the task's declaration does not say).
 _PRIVATE_PREFIXES = ("__main__",)
 
 
@@ -89,9 +89,9 @@ def env_is_public(task: Task) -> bool:
     """True when an attacker can build ``task``'s env: a Gymnasium id (the paper's tasks, any id
     registered by Gymnasium or an installed package), false for a user's own module env.
 
-    Adapter until task files declare it (issue 20: a ``[privacy]`` table with ``public_env``);
-    then this reads that declaration. A task without a declaration counts as a Gymnasium id when
-    its env id has no ``module:`` part and no entry point.
+    The task's declared ``public_env`` fact (its ``[privacy]`` table) when there is one. A task
+    without a declaration counts as a Gymnasium id when its env id has no ``module:`` part and no
+    entry point.
     """
     spec = getattr(task, "spec", None)
     declared = getattr(spec, "public_env", None) if spec is not None else None

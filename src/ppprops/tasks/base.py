@@ -143,7 +143,7 @@ class Task:
     A task without env (``has_env`` False: a robot outside Python, driven with ask/tell) has
     ``env_id == ""``, declares its continuous action bounds (``action_low`` / ``action_high``, one
     value per action), and its ``make_env`` raises ``NoEnvError``. ``prompt_name`` is the name the
-    task file allows a prompt to show the provider (None: not set; issue 20).
+    task file allows a prompt to show the provider (None: not set).
     """
 
     name: str

@@ -379,7 +379,7 @@ def chatty_explainer(turn: Turn) -> Reply:
     """An instruction-tuned chat model that explains before it answers (about ``EXPLANATION_TOKENS``);
     cut off at the token limit when the budget cannot hold both; a JSON schema holds it to the object."""
     # Instruction-tuned chat models (Qwen2.5-Coder-1.5B-Instruct, SmolLM2-135M-Instruct behind
-    # llama.cpp, issue 23) write a paragraph on the history before the answer object unless a JSON
+    # llama.cpp) write a paragraph on the history before the answer object unless a JSON
     # schema holds them to it; at 24 + 8 D tokens that cut off 2 of 14 and 30 of 45 answers.
     ans = params_json(turn.answer)
     if turn.schema:
@@ -396,7 +396,7 @@ def chatty_explainer(turn: Turn) -> Reply:
 def bullet_list_once(turn: Turn) -> Reply:
     """A small chat model that first answers with a bullet list of only 4 of the D numbers; the
     answer object once corrected."""
-    # SmolLM2-135M-Instruct without a schema (issue 23): a bullet list holding 4 of the 10 numbers.
+    # SmolLM2-135M-Instruct without a schema: a bullet list holding 4 of the 10 numbers.
     if not turn.corrected:
         items = "\n".join(f"- {v}" for v in turn.answer[:4])
         return completion(turn, f"Here are the new parameters:\n{items}")
@@ -433,7 +433,7 @@ def slow_cpu_reasoner(turn: Turn) -> Reply:
     """A reasoning model on a CPU llama.cpp server: ``SLOW_TOKENS_PER_S`` tokens a second (it
     sleeps for them), ``REASONING_TOKENS`` of reasoning in ``reasoning_content`` before the answer;
     cut off at the token limit when the budget cannot hold them."""
-    # llama-server on CPU cores with a reasoning model (issue 23): 7 tokens/s against a budget of
+    # llama-server on CPU cores with a reasoning model: 7 tokens/s against a budget of
     # 8,296 tokens is about 20 minutes, past a 300 s timeout; here everything is 1000 times faster.
     ans = params_json(turn.answer)
     if short_of_budget(turn, ans):
@@ -484,7 +484,7 @@ def base_model_runs_on(turn: Turn) -> Reply:
     until the token limit. A ``stop`` sequence ends it there (the stop text is not returned, as
     llama.cpp, vLLM and OpenAI do); a ``grammar`` ends it at ``]``. Neither: cut off, "length"."""
     # Gemma 3 270M behind a remote llama-server, continuing the document without a grammar
-    # (issue 23, twice 18 of 18 iterations): after the list it writes "return: ...", "params: [...",
+    # (twice 18 of 18 iterations): after the list it writes "return: ...", "params: [...",
     # and so on until max_tokens, so every answer ended with finish_reason "length".
     listed = labelled_list(turn.answer)
     more = "".join(f"\n\nreturn: {100 + 10 * k:.2f}\nparams: [" + labelled_list([round(turn.rng.uniform(-3, 3), 2)
