@@ -1,6 +1,6 @@
 """The provider's side of the trust boundary: everything that may reach the LLM.
 
-Rules, checked by ``tests/test_trust_boundary.py``:
+Rules, checked by ``tests/unit/test_trust_boundary.py``:
 - no module here imports ``ppprops.client``, ``ppprops.evaluation``, ``ppprops.store`` or any
   other client-side module; it depends only on the standard library and itself;
 - prompts are built only from ``EncodedEntry`` and ``PromptContext`` values, which the client's

@@ -27,7 +27,7 @@ from ppprops.store import open_store
 
 from support import make_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _choices(parser, dest: str) -> list[str]:  # type: ignore[no-untyped-def]

@@ -37,7 +37,7 @@ from ppprops.tasks import (
 from ppprops.tasks.facts import Cap
 from ppprops.tasks.options import TaskOptions
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ROBOT = ROOT / "examples" / "robot_outside" / "robot.toml"
 
 # Envs of a user's module; each counts how often it was made, reset and stepped.

@@ -23,7 +23,7 @@ from ppprops.experiments.grid import MASTER_KEY, Grid, create_master_key, derive
 from ppprops.experiments.spec import build_spec, flags_table, load_spec, read_spec_file
 from ppprops.methods import get_method
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SPECS = ROOT / "experiments"
 # The paper's LaTeX source is not part of the repository: $PPPROPS_PAPER_TEX names it, else a
 # workspace that keeps it beside the clone (../shared/paper); without it the check is skipped.
