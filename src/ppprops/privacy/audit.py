@@ -512,10 +512,18 @@ class _Auditor:
             self.answered[(req.iteration, req.attempt)] = row
 
     def _request(self, form: PromptForm, req: Request, entries: list[EncodedEntry], stalled: int = 0) -> FormRequest:
-        """The request ``form`` makes at this call from public values (its payload is a placeholder:
-        the payload is compared by ``messages`` / ``prompt``)."""
+        """The request ``form`` makes at this call from what the proposer had: the public context,
+        the entries shown, the settings, the stall count and, on a retry, the previous attempt's
+        answer and the form's verdict on it (its payload is a placeholder: the payload is compared
+        by ``messages`` / ``prompt``)."""
+        previous = self.answered.get((req.iteration, req.attempt - 1)) if req.attempt > 0 else None
+        content, detail = None, ""
+        if previous is not None:
+            finish, _ = rc.response_facts(previous.get("response"))
+            content = previous.get("content")
+            detail = form.judge(content, previous.get("reasoning"), self.ctx, entries, finish_reason=finish).detail
         return form.request(rc.PROMPT_MARK, ctx=self.ctx, shown=entries, iteration=req.iteration, attempt=req.attempt,
-                            temperature=self.config.llm.temperature, stalled=stalled)
+                            previous=content, detail=detail, temperature=self.config.llm.temperature, stalled=stalled)
 
     def seed(self, value: object, req: Request) -> None:
         at = f"{req.where}, field seed"
