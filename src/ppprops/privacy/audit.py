@@ -56,7 +56,7 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import StoreError
 from ..methods import Mechanisms
-from ..proposers.llm import stall_count
+from ..proposers.llm import StallCounter
 from ..rundir import open_run
 from ..store import Candidate
 from ..wire.encoded import EncodedEntry
@@ -256,7 +256,9 @@ class _Auditor:
                                        c.get("form")) for c in self.calls]
         self.secrets = secrets
         self.codec = rc.client_codec(self.task, config, secrets)
-        self.ctx = rc.context(self.task, config, self.codec, FORMS[config.form])  # the context of the call being read (``body``)
+        self._rebuilt: dict[str, rc.Rebuilt] = {}  # per prompt form: its context, and each candidate's entry built once
+        self.rebuilt = self._rebuilt_for(FORMS[config.form])  # that of the call being read (``body``)
+        self.ctx = self.rebuilt.ctx
         self.replay = rc.ClientReplay(config.llm, self.task.D, sessions, endpoint_changes)
         self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # (iteration, attempt) -> its latest usable answer
         self.adaptations = [str(a.get("change")) for a in adaptations]
@@ -265,6 +267,22 @@ class _Auditor:
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
+        self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
+        counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
+        self._stalls = [0]
+        for c in self.cands:
+            counter.tell(c)
+            self._stalls.append(counter.count)
+
+    def _rebuilt_for(self, form: PromptForm) -> rc.Rebuilt:
+        """The public prompt context of ``form`` (``reconstruct.context``) and its entries, built once per run."""
+        if form.name not in self._rebuilt:
+            self._rebuilt[form.name] = rc.Rebuilt(self.codec, rc.context(self.task, self.config, self.codec, form), form)
+        return self._rebuilt[form.name]
+
+    def _stall_count(self, n: int) -> int:
+        """``stall_count`` of the first ``n`` candidates."""
+        return self._stalls[max(0, min(n, len(self.cands)))]
 
     def finding(self, severity: str, kind: str, detail: str, where: str, *, by_design: bool = False) -> None:
         key = (severity, kind, detail)
@@ -272,6 +290,8 @@ class _Auditor:
             self._findings[key] = Finding(severity, kind, detail, by_design)
             self.report.findings.append(self._findings[key])
         self._findings[key].add(where)
+        if severity != "channel":
+            self._problems += 1
 
     # -- one printed scalar against its raw and encoded value ------------------------------------
     def scalar(self, tok: str, raw: float | None, enc: float | None, protected: bool, kind: str, label: str, where: str) -> None:
@@ -472,7 +492,8 @@ class _Auditor:
         decisions recorded with the call checked by the form."""
         where = req.where
         form = FORMS.get(str(row.get("form")))
-        self.ctx = rc.context(self.task, self.config, self.codec, form or CHAT)
+        self.rebuilt = self._rebuilt_for(form or CHAT)
+        self.ctx = self.rebuilt.ctx
         try:
             doc = json.loads(str(row["request"]))
         except json.JSONDecodeError:
@@ -497,8 +518,8 @@ class _Auditor:
         else:
             self.free(doc[key], f"a {form.name} prompt that is not a string", f"{where}, field {key}")
         verified = bool(shown) and all(c is not None for c in shown)
-        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if verified else []
-        stalled = stall_count(self.cands[: self.config.warmup + req.iteration]) if self.config.explore is not False else 0
+        entries = [self.rebuilt.entry(c) for c in shown if c is not None] if verified else []
+        stalled = self._stall_count(self.config.warmup + req.iteration) if self.config.explore is not False else 0
         want = self._request(form, req, entries, stalled)
         expected = self.replay.fields(want)  # what the client's request shape sends for it at this call
         decisions = row.get("decisions")
@@ -590,7 +611,7 @@ class _Auditor:
                 self.spans(message["content"], text, [], at, "text the correction template does not produce")
         if repeated is not None:
             finish, _ = rc.response_facts(repeated.get("response"))
-            entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
+            entries = [self.rebuilt.entry(c) for c in shown if c is not None]
             verdict = form.judge(repeated.get("content"), repeated.get("reasoning"), self.ctx, entries, finish_reason=finish)
             if verdict.error != "repeats_history":
                 self.finding("unverified", "request", "a correction after an answer the client takes (it repeats no policy "
@@ -644,16 +665,18 @@ class _Auditor:
             return []
         inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
             and len(text) >= len(before) + len(after) else text
-        entries = form.entries(text)
+        # the entries ``parse_request`` read in the same text with the same form, else read here
+        entries = list(req.entries) if text == req.text and form.name == req.form else form.entries(text)
         shown: list[Candidate | None] = []
         flagged: list[tuple[int, int]] = []
         for k, e in enumerate(entries):
-            before_count = sum(f.count for f in self.report.findings if f.severity != "channel")
+            before_count = self._problems
             c = self.entry(req, k, e)
             shown.append(c)
-            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before_count:
+            if c is None or self._problems > before_count:
                 flagged.append((e.start, e.end))
-        verified = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if all(c is not None for c in shown) else []
+        rebuilt = self._rebuilt_for(form)
+        verified = [rebuilt.entry(c) for c in shown if c is not None] if all(c is not None for c in shown) else []
         skips = []
         for d in form.derived(text, verified):
             parsed = token_value(d.token) if d.token else None
@@ -662,7 +685,7 @@ class _Auditor:
             else:
                 self.finding("unverified", d.kind, d.detail, f"{req.where}, prose at character {d.offset}" if d.token else req.where)
         self.prose(req, inner, entries if inner == text else form.entries(inner), skips)
-        for a, b in rc.prompt_spans(form, self.codec, self.ctx, text, entries, shown, before, after):
+        for a, b in rc.prompt_spans(rebuilt, text, entries, shown, before, after):
             if any(s <= a and b <= e for s, e in flagged) or any(a <= at < b for at in skips):
                 continue  # inside an entry already reported, or a derived number checked above
             self.free(text[a:b], f"text the {form.name} form's templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
