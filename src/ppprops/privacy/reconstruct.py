@@ -14,6 +14,7 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
@@ -279,14 +280,22 @@ class ClientReplay:
 
 
 def differing_spans(expected: str, recorded: str) -> list[tuple[int, int]]:
-    """Spans of ``recorded`` that ``expected`` does not have, widened to whole number tokens."""
+    """Spans of ``recorded`` that ``expected`` does not have, widened to whole number tokens.
+
+    The head and the tail the two texts share are equal where they stand; only what lies between
+    them is compared character by character (``difflib``, whose time grows with the product of the
+    lengths it compares: a prompt of 70,000 characters took a minute whole)."""
     if expected == recorded:
         return []
-    sm = difflib.SequenceMatcher(None, expected, recorded, autojunk=False)
+    head = len(os.path.commonprefix([expected, recorded]))
+    most = min(len(expected), len(recorded)) - head
+    tail = len(os.path.commonprefix([expected[::-1][:most], recorded[::-1][:most]]))
+    sm = difflib.SequenceMatcher(None, expected[head:len(expected) - tail], recorded[head:len(recorded) - tail], autojunk=False)
     spans: list[tuple[int, int]] = []
     for tag, _, _, j1, j2 in sm.get_opcodes():
         if tag == "equal":
             continue
+        j1, j2 = j1 + head, j2 + head
         if j1 == j2:  # something the templates write is missing: report where
             j1, j2 = max(0, j1 - 1), min(len(recorded), j1 + 1)
         while j1 > 0 and (recorded[j1 - 1].isalnum() or recorded[j1 - 1] in ".-+_"):
