@@ -12,6 +12,7 @@ seed, no final evaluation), as ``ppprops run`` would have just done, and then ti
 
     PYTHONPATH=src python benchmarks/self_audit_cpu.py                      # 5 runs of each, pp
     PYTHONPATH=src python benchmarks/self_audit_cpu.py --runs 5 --method pp-hardened --what finished quick
+    PYTHONPATH=src python benchmarks/self_audit_cpu.py --task Humanoid-Torso --iterations 30 --what quick
 
 A measurement the code under test cannot make (``quick`` before ``audit_run`` took ``attacks``)
 is reported as not available.
@@ -34,7 +35,7 @@ from pathlib import Path
 WHAT = ("finished", "quick", "full")
 
 
-def _child(what: str, method: str, seed: int, out: Path) -> dict[str, object]:
+def _child(what: str, a: argparse.Namespace, out: Path) -> dict[str, object]:
     from ppprops import cli
     from ppprops.privacy.audit import audit_run
     from ppprops.privacy.simulate import EchoOptimizer
@@ -42,8 +43,8 @@ def _child(what: str, method: str, seed: int, out: Path) -> dict[str, object]:
     from ppprops.settings import build_config
     from ppprops.tasks import get_task
 
-    config = build_config({"method": method, "warmup": 10, "iterations": 50, "seed": seed, "final_episodes": 0},
-                          task=get_task("CartPole"))
+    config = build_config({"method": a.method, "warmup": a.warmup, "iterations": a.iterations, "seed": a.seed, "final_episodes": 0},
+                          task=get_task(a.task))
     start(config, out, llm=EchoOptimizer(config.llm))
     if what == "quick" and "attacks" not in inspect.signature(audit_run).parameters:
         return {"what": what, "cpu_s": None}
@@ -65,18 +66,22 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=5, help="fresh processes per measurement (default 5)")
     p.add_argument("--method", default="pp", help="the run's method (default pp)")
     p.add_argument("--seed", type=int, default=12345, help="the run's seed (default 12345)")
+    p.add_argument("--task", default="CartPole", help="the run's task (default CartPole)")
+    p.add_argument("--warmup", type=int, default=10, help="warm-up policies (default 10)")
+    p.add_argument("--iterations", type=int, default=50, help="LLM iterations (default 50)")
     p.add_argument("--what", nargs="+", choices=WHAT, default=list(WHAT), help="what to time (default all)")
     p.add_argument("--child", nargs=2, metavar=("WHAT", "DIR"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
-        print(json.dumps(_child(a.child[0], a.method, a.seed, Path(a.child[1]))))
+        print(json.dumps(_child(a.child[0], a, Path(a.child[1]))))
         return 0
     for what in a.what:
         times: list[float] = []
         line = ""
         for i in range(a.runs):
             with tempfile.TemporaryDirectory() as tmp:
-                cmd = [sys.executable, __file__, "--method", a.method, "--seed", str(a.seed), "--child", what, str(Path(tmp) / "run")]
+                cmd = [sys.executable, __file__, "--method", a.method, "--seed", str(a.seed), "--task", a.task, "--warmup",
+                       str(a.warmup), "--iterations", str(a.iterations), "--child", what, str(Path(tmp) / "run")]
                 proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
             doc = json.loads(proc.stdout.strip().splitlines()[-1])
             if doc["cpu_s"] is None:
