@@ -60,8 +60,9 @@ def test_the_quick_report_never_says_clean(tmp_path: Path, capsys: pytest.Captur
     out = tmp_path / "hard"
     _run(out, capsys, "--method", "pp-hardened", "--seed", "987654")
     quick, full = audit_run(out, attacks=False), audit_run(out)
-    assert full.verdict().startswith("CLEAN") and full.attacked
+    assert full.attacked and full.verdict().startswith(("CLEAN", "EXPOSED"))  # EXPOSED only if a fit lands on fresh secrets
     assert quick.verdict().startswith("NOTHING RAW SENT:") and quick.verdict().endswith("the attacks on the transcript did not run")
+    assert "CLEAN" not in quick.verdict()
     assert quick.to_json()["attacked"] is False and "attacks: not run" in quick.format()
     assert not quick.not_run and not quick.sim_bound and not quick.public_dynamics  # nothing of the attacks' is claimed
     # the transcript checks are the full audit's own
@@ -71,8 +72,8 @@ def test_the_quick_report_never_says_clean(tmp_path: Path, capsys: pytest.Captur
 
 def test_audit_full_prints_the_verdict_of_ppprops_audit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "pp"
-    line = _run(out, capsys, "--method", "pp", "--audit", "full")
-    assert main(["audit", str(out)]) == 1  # pp: EXPOSED by the paper's channels
+    line = _run(out, capsys, "--method", "pp", "--prompt-form", "chat", "--audit", "full")
+    assert main(["audit", str(out)]) == 1  # pp: EXPOSED by the paper's channels (c = printed return / episode_length)
     verdict = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("verdict: "))[len("verdict: "):]
     assert verdict.startswith("EXPOSED: no raw value was sent")
     assert line == f"privacy audit: {verdict.rstrip('.')}.{_channels(audit_run(out))} Details: ppprops audit {out}"
