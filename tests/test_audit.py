@@ -93,7 +93,6 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
 def small_simulations(monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulator attacks (tests/test_simulator_attacks.py) run within a small bound here: these tests are about the rest."""
     monkeypatch.setattr(simfit, "DEFAULT_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000, seconds=60.0))
-    monkeypatch.setattr(simfit, "QUICK_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000, seconds=60.0))
 
 
 def _last_request(run_dir: Path) -> tuple[int, str]:
@@ -282,7 +281,7 @@ def test_cli_audit_exit_codes_and_the_self_audit_after_a_run(tmp_path: Path, cap
     with offline_llm():
         # a run seed beyond the provider's search (a small one is read off the transcript: test_simulator_attacks)
         assert main(["run", "--env", "CartPole", "--method", "pp-hardened", "--warmup", "3", "--iterations", "2",
-                     "--final-episodes", "0", "--seed", "987654", "--out", str(tmp_path / "h"), "--quiet"]) == 0
+                     "--final-episodes", "0", "--seed", "987654", "--out", str(tmp_path / "h"), "--quiet", "--audit", "full"]) == 0
     out = capsys.readouterr().out
     assert "privacy audit: CLEAN" in out and "Known channels" not in out
     key = json.loads((tmp_path / "h" / "secrets.key").read_text())

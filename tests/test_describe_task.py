@@ -77,7 +77,8 @@ def test_the_sent_prompts_carry_no_description_and_are_audited(tmp_path: Path, c
     with offline_llm():
         # the chat form: the document form (the embedded model's default) carries no task text at all
         assert main(["run", "--env", "Acrobot", "--method", "pp", "--describe-task", "off", "--warmup", "3", "--iterations", "3",
-                     "--prompt-form", "chat", "--final-episodes", "0", "--out", str(tmp_path / "r"), "--quiet"]) == 0  # fmt: skip
+                     "--prompt-form", "chat", "--final-episodes", "0", "--out", str(tmp_path / "r"), "--quiet",
+                     "--audit", "full"]) == 0  # fmt: skip
     out = capsys.readouterr().out
     assert "privacy audit: EXPOSED: no raw value was sent" in out  # pp: the paper's channels, nothing else
     report = audit_run(tmp_path / "r")

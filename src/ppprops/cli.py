@@ -55,6 +55,7 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
 
     r = sub.add_parser("run", help="start a search")
     add_run_flags(r)
+    _audit_flag(r)
 
     rs = sub.add_parser("resume", help="continue an interrupted run with its own secrets")
     rs.add_argument("dir", type=Path, help="the run directory (as `run` printed it)")
@@ -62,6 +63,7 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     add_flags(ep, only=ENDPOINT_KEYS, groups=None, help_suffix=" (default: the run's)")
     rs.add_argument("--quiet", action="store_true", help="no progress on stderr")
     rs.add_argument("--json", action="store_true", help="print one JSON object (as `run --json`) on stdout")
+    _audit_flag(rs)
 
     sh = sub.add_parser("show", help="summarise a run")
     sh.add_argument("dir", type=Path, help="a run directory")
@@ -133,6 +135,15 @@ def add_run_flags(r: argparse.ArgumentParser) -> None:
                    help="print one JSON object (the `show --json` summary, the run directory, the audit verdict) on stdout")
 
 
+def _audit_flag(p: argparse.ArgumentParser) -> None:
+    """``--audit quick|full|off`` of ``run`` and ``resume``: the audit printed at the end (a command option, not stored)."""
+    from .privacy.commands import AUDIT_MODES
+
+    p.add_argument("--audit", choices=AUDIT_MODES, default="quick",
+                   help="the privacy audit of the run's last line: quick (default: no raw value sent, every request accounted "
+                        "for; the attacks do not run), full (every attack too, as `ppprops audit DIR`), off")
+
+
 def run_parser() -> argparse.ArgumentParser:
     """The parser of ``ppprops run``; its namespace holds only the settings given (``settings.given``)."""
     return _build_parsers()[1]
@@ -161,13 +172,14 @@ def _say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def _finished(run_dir: Path, as_json: bool) -> int:
-    """What `run` and `resume` print at the end: the summary (or one JSON object) and the audit verdict."""
+def _finished(run_dir: Path, as_json: bool, audit_mode: str = "quick") -> int:
+    """What `run` and `resume` print at the end: the summary (or one JSON object) and the audit verdict
+    (``--audit``: quick, full or off; ``privacy.commands.self_audit_line``)."""
     from .privacy.commands import self_audit_line
     from .summary import format_summary, run_summary
 
     summary = run_summary(run_dir)
-    audit = self_audit_line(run_dir)  # the run checks its own transcript
+    audit = self_audit_line(run_dir, audit_mode)  # the run checks its own transcript
     if as_json:
         print(json.dumps({**summary, "run_dir": str(run_dir), "privacy_audit": audit}))
     else:
@@ -190,7 +202,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
         _say(f"run directory: {out} (seed {config.seed})")
     with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
         start(config, out, events.hooks())
-    return _finished(out, a.json)
+    return _finished(out, a.json, a.audit)
 
 
 def _cmd_resume(a: argparse.Namespace) -> int:
@@ -203,7 +215,7 @@ def _cmd_resume(a: argparse.Namespace) -> int:
     endpoint = Endpoint(**{key: getattr(a, key, None) for key in ENDPOINT_KEYS})
     with ProgressEvents(enabled=not a.quiet, label=str(a.dir)) as events:
         resume(a.dir, events.hooks(), endpoint=endpoint if endpoint.given else None)
-    return _finished(a.dir, a.json)
+    return _finished(a.dir, a.json, a.audit)
 
 
 def _cmd_show(a: argparse.Namespace) -> int:

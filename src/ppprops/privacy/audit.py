@@ -33,6 +33,10 @@ file, folder) in any request is an **identifier** finding.
 Exit code: 0 when nothing leaked, no identifier was sent, everything was accounted for and nothing
 is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
 checked (named in every report).
+
+``audit_run(..., attacks=False)`` is the quick audit a finished run prints about itself: every
+check above but the attacks (no exposure, no public-dynamics line, no run seed read off the
+transcript); its report says so and its verdict is never CLEAN.
 """
 from __future__ import annotations
 
@@ -52,7 +56,7 @@ from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import StoreError
 from ..methods import Mechanisms
-from ..proposers.llm import stall_count
+from ..proposers.llm import StallCounter
 from ..rundir import open_run
 from ..store import Candidate
 from ..wire.encoded import EncodedEntry
@@ -126,6 +130,7 @@ class AuditReport:
     sim_bound: str = ""  # the time bound of the simulator attacks, in words
     public_dynamics: str = ""  # the line naming a task whose env the provider can simulate
     estimates: list[Estimate] = field(default_factory=list, repr=False)  # every attack's estimate (not in the JSON)
+    attacked: bool = True  # the attacks ran (``audit_run(attacks=False)``: the transcript checks only)
 
     def _of(self, severity: str) -> list[Finding]:
         return [f for f in self.findings if f.severity == severity]
@@ -157,7 +162,10 @@ class AuditReport:
 
     @property
     def clean(self) -> bool:
-        """True with no leak, no identifier, nothing unverified and nothing exposed (channels allowed)."""
+        """True with no leak, no identifier, nothing unverified and nothing exposed (channels allowed).
+
+        Without the attacks (``attacked`` false) nothing can be exposed: then it speaks for the
+        transcript checks only, and ``verdict`` says so."""
         return not self.leaks and not self.identifiers and not self.unverified and not self.exposed
 
     def exit_code(self, strict: bool = False) -> int:
@@ -165,7 +173,8 @@ class AuditReport:
         return 0 if self.clean and not (strict and self.channels) else 1
 
     def verdict(self, strict: bool = False) -> str:
-        """One line naming the worst outcome: LEAK, IDENTIFIERS, UNVERIFIED, EXPOSED, CHANNELS (``strict`` only) or CLEAN."""
+        """One line naming the worst outcome: LEAK, IDENTIFIERS, UNVERIFIED, EXPOSED, CHANNELS (``strict`` only) or
+        CLEAN; without the attacks NOTHING RAW SENT where it would say CLEAN (or CHANNELS)."""
         if self.leaks:
             design = all(f.by_design for f in self.leaks)
             kinds = ", ".join(sorted({f.kind for f in self.leaks}))
@@ -185,6 +194,9 @@ class AuditReport:
             return f"EXPOSED: no raw value was sent, but attacks on the transcript recover secrets or raw values within 1%: {what}.{why}"
         n = len(self.channels)
         tail = f"; {n} known channel(s) remain (warnings)" if n else ""
+        if not self.attacked:
+            return (f"NOTHING RAW SENT: no raw parameter, return, reward component or optimal return was sent{tail}; the attacks "
+                    "on the transcript did not run")
         if strict and n:
             return f"CHANNELS (strict): no raw value was sent, but {n} known channel(s) remain"
         return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}"
@@ -196,7 +208,7 @@ class AuditReport:
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
                 "findings": [f.to_json() for f in self.findings], "notes": self.notes,
                 "not_run": [{"attack": a, "why": w} for a, w in self.not_run], "simulator_bound": self.sim_bound,
-                "public_dynamics": self.public_dynamics}
+                "public_dynamics": self.public_dynamics, "attacked": self.attacked}
 
     def format(self, strict: bool = False) -> str:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
@@ -208,6 +220,8 @@ class AuditReport:
             f"verdict: {self.verdict(strict)}",
             f"not checked: {NOT_CHECKED}",
         ]
+        if not self.attacked:
+            lines.append(f"attacks: not run (the transcript checks only; ppprops audit {self.run_dir} runs them)")
         if self.public_dynamics:
             lines.append(f"public dynamics: {self.public_dynamics}")
         if self.sim_bound:
@@ -227,8 +241,10 @@ class _Auditor:
     def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
-                 limits: SimLimits | None = None, simulate: bool = True, keyed_streams: bool = False) -> None:
+                 limits: SimLimits | None = None, simulate: bool = True, keyed_streams: bool = False,
+                 attacks: bool = True) -> None:
         self.limits = limits or simfit.DEFAULT_LIMITS
+        self.attacks = attacks
         self.keyed_streams = keyed_streams  # the run's draws are keyed by its secrets (seeding.Streams): no seed replay
         self.simulate = simulate
         self.config = config
@@ -240,15 +256,33 @@ class _Auditor:
                                        c.get("form")) for c in self.calls]
         self.secrets = secrets
         self.codec = rc.client_codec(self.task, config, secrets)
-        self.ctx = rc.context(self.task, config, self.codec, FORMS[config.form])  # the context of the call being read (``body``)
+        self._rebuilt: dict[str, rc.Rebuilt] = {}  # per prompt form: its context, and each candidate's entry built once
+        self.rebuilt = self._rebuilt_for(FORMS[config.form])  # that of the call being read (``body``)
+        self.ctx = self.rebuilt.ctx
         self.replay = rc.ClientReplay(config.llm, self.task.D, sessions, endpoint_changes)
         self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # (iteration, attempt) -> its latest usable answer
         self.adaptations = [str(a.get("change")) for a in adaptations]
-        self.report = AuditReport(str(run_dir), config.method, self.mech.to_json())
+        self.report = AuditReport(str(run_dir), config.method, self.mech.to_json(), attacked=attacks)
         self._findings: dict[tuple[str, str, str], Finding] = {}
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
+        self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
+        counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
+        self._stalls = [0]
+        for c in self.cands:
+            counter.tell(c)
+            self._stalls.append(counter.count)
+
+    def _rebuilt_for(self, form: PromptForm) -> rc.Rebuilt:
+        """The public prompt context of ``form`` (``reconstruct.context``) and its entries, built once per run."""
+        if form.name not in self._rebuilt:
+            self._rebuilt[form.name] = rc.Rebuilt(self.codec, rc.context(self.task, self.config, self.codec, form), form)
+        return self._rebuilt[form.name]
+
+    def _stall_count(self, n: int) -> int:
+        """``stall_count`` of the first ``n`` candidates."""
+        return self._stalls[max(0, min(n, len(self.cands)))]
 
     def finding(self, severity: str, kind: str, detail: str, where: str, *, by_design: bool = False) -> None:
         key = (severity, kind, detail)
@@ -256,6 +290,8 @@ class _Auditor:
             self._findings[key] = Finding(severity, kind, detail, by_design)
             self.report.findings.append(self._findings[key])
         self._findings[key].add(where)
+        if severity != "channel":
+            self._problems += 1
 
     # -- one printed scalar against its raw and encoded value ------------------------------------
     def scalar(self, tok: str, raw: float | None, enc: float | None, protected: bool, kind: str, label: str, where: str) -> None:
@@ -456,7 +492,8 @@ class _Auditor:
         decisions recorded with the call checked by the form."""
         where = req.where
         form = FORMS.get(str(row.get("form")))
-        self.ctx = rc.context(self.task, self.config, self.codec, form or CHAT)
+        self.rebuilt = self._rebuilt_for(form or CHAT)
+        self.ctx = self.rebuilt.ctx
         try:
             doc = json.loads(str(row["request"]))
         except json.JSONDecodeError:
@@ -481,8 +518,8 @@ class _Auditor:
         else:
             self.free(doc[key], f"a {form.name} prompt that is not a string", f"{where}, field {key}")
         verified = bool(shown) and all(c is not None for c in shown)
-        entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if verified else []
-        stalled = stall_count(self.cands[: self.config.warmup + req.iteration]) if self.config.explore is not False else 0
+        entries = [self.rebuilt.entry(c) for c in shown if c is not None] if verified else []
+        stalled = self._stall_count(self.config.warmup + req.iteration) if self.config.explore is not False else 0
         want = self._request(form, req, entries, stalled)
         expected = self.replay.fields(want)  # what the client's request shape sends for it at this call
         decisions = row.get("decisions")
@@ -582,7 +619,7 @@ class _Auditor:
                 self.spans(message["content"], text, [], at, "text the correction template does not produce")
         if repeated is not None:
             finish, _ = rc.response_facts(repeated.get("response"))
-            entries = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None]
+            entries = [self.rebuilt.entry(c) for c in shown if c is not None]
             verdict = form.judge(repeated.get("content"), repeated.get("reasoning"), self.ctx, entries, finish_reason=finish)
             if verdict.error != "repeats_history":
                 self.finding("unverified", "request", "a correction after an answer the client takes (it repeats no policy "
@@ -636,16 +673,18 @@ class _Auditor:
             return []
         inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
             and len(text) >= len(before) + len(after) else text
-        entries = form.entries(text)
+        # the entries ``parse_request`` read in the same text with the same form, else read here
+        entries = list(req.entries) if text == req.text and form.name == req.form else form.entries(text)
         shown: list[Candidate | None] = []
         flagged: list[tuple[int, int]] = []
         for k, e in enumerate(entries):
-            before_count = sum(f.count for f in self.report.findings if f.severity != "channel")
+            before_count = self._problems
             c = self.entry(req, k, e)
             shown.append(c)
-            if c is None or sum(f.count for f in self.report.findings if f.severity != "channel") > before_count:
+            if c is None or self._problems > before_count:
                 flagged.append((e.start, e.end))
-        verified = [rc.entry_for(self.codec, self.ctx, c) for c in shown if c is not None] if all(c is not None for c in shown) else []
+        rebuilt = self._rebuilt_for(form)
+        verified = [rebuilt.entry(c) for c in shown if c is not None] if all(c is not None for c in shown) else []
         skips = []
         for d in form.derived(text, verified):
             parsed = token_value(d.token) if d.token else None
@@ -654,7 +693,7 @@ class _Auditor:
             else:
                 self.finding("unverified", d.kind, d.detail, f"{req.where}, prose at character {d.offset}" if d.token else req.where)
         self.prose(req, inner, entries if inner == text else form.entries(inner), skips)
-        for a, b in rc.prompt_spans(form, self.codec, self.ctx, text, entries, shown, before, after):
+        for a, b in rc.prompt_spans(rebuilt, text, entries, shown, before, after):
             if any(s <= a and b <= e for s, e in flagged) or any(a <= at < b for at in skips):
                 continue  # inside an entry already reported, or a derived number checked above
             self.free(text[a:b], f"text the {form.name} form's templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
@@ -738,7 +777,8 @@ class _Auditor:
                          "llm_adaptations")
         self.channels()
         self.identifiers()
-        self.exposure()
+        if self.attacks:
+            self.exposure()
         order = {"leak": 0, "identifier": 1, "unverified": 2, "exposed": 3, "channel": 4}
         self.report.findings.sort(key=lambda f: order.get(f.severity, 3))
         return self.report
@@ -899,14 +939,16 @@ def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
     return RunConfig.from_json(stored)
 
 
-def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool = True) -> AuditReport:
+def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool = True, attacks: bool = True) -> AuditReport:
     """Audit every recorded outgoing request of a run against the raw values in its store.
 
     Every field of every request body is read; attacks on the transcript are scored against the
     key file when it is in the run directory (else against the store, for pure scales). A key file
     that does not load is treated as absent. The simulator attacks run within ``limits`` (default
     ``simfit.DEFAULT_LIMITS``, stated in the report); ``simulate=False`` leaves them out (listed
-    as not run).
+    as not run). ``attacks=False`` runs none of the attacks, transcript or simulator (the quick
+    audit after a run): every request is still read and accounted for, the run-level channels and
+    identifiers still found; the report's ``attacked`` is false and its verdict never CLEAN.
 
     Raises:
         StoreError: ``run_dir`` is not a directory, holds no readable store, or is not a prompted
@@ -925,4 +967,4 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         keyed = store.streams_keyed()
         secrets = run.load_secrets(optional=True)  # a key file that does not load counts as absent
     return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed).run()
+                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks).run()

@@ -133,18 +133,50 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
 PRIVACY_HANDLERS: dict[str, Callable[[argparse.Namespace], int]] = {"audit": cmd_audit, "privacy-report": cmd_privacy_report}
 
 
-def self_audit_line(run_dir: Path) -> str:
-    """The verdict a finished run prints about its own transcript (never any value, never the key)."""
-    from .audit import audit_run
-    from .simfit import QUICK_LIMITS
+AUDIT_MODES = ("quick", "full", "off")  # ``run --audit`` / ``resume --audit``: the audit a finished run prints about itself
 
+
+def self_audit_line(run_dir: Path, mode: str = "quick") -> str:
+    """The verdict a finished run prints about its own transcript (never any value, never the key).
+
+    ``quick`` (the default): the transcript checks of ``audit_run(attacks=False)``: every request
+    read and accounted for, no raw value in it; the line says the attacks did not run and names
+    ``ppprops audit DIR``, and under a preset that keeps the paper's channels, that the full audit
+    usually finds the run EXPOSED by design. ``full``: every attack too, as ``ppprops audit DIR``
+    runs them (same limits, same verdict). ``off``: no audit, only the command that runs it.
+    """
+    from .audit import audit_run
+
+    if mode not in AUDIT_MODES:
+        raise ValueError(f"audit mode {mode!r} is not one of {', '.join(AUDIT_MODES)}")
+    how = f"'ppprops audit {run_dir}' runs them"
+    if mode == "off":
+        return f"privacy audit: not run (--audit off): 'ppprops audit {run_dir}' checks the transcript and runs the attacks on it"
+    full = mode == "full"
     try:
-        report = audit_run(run_dir, limits=QUICK_LIMITS)
+        report = audit_run(run_dir, attacks=full)
     except Exception as e:  # the run itself succeeded; a failing check must not turn that into an error
         return f"privacy audit: could not check this run ({e.__class__.__name__}: {e}); try ppprops audit {run_dir}"
     if report.requests == 0:
         return "privacy audit: no LLM request was sent"
     kinds = sorted({f.kind for f in report.channels})
-    tail = f" Known channels: {', '.join(kinds)}." if kinds else ""
-    verdict = report.verdict().rstrip(".")  # an EXPOSED verdict ends with its own sentence
-    return f"privacy audit: {verdict}.{tail} Details: ppprops audit {run_dir}"
+    channels = f" Known channels: {', '.join(kinds)}." if kinds else ""
+    if full:
+        verdict = report.verdict().rstrip(".")  # an EXPOSED verdict ends with its own sentence
+        return f"privacy audit: {verdict}.{channels} Details: ppprops audit {run_dir}"
+    checked = f"quick check of {report.requests} request{'s' if report.requests != 1 else ''}"
+    if not report.clean:  # a leak, an identifier or something unaccounted for: the attacks cannot make it better
+        return f"privacy audit: {report.verdict()} ({checked}).{channels} The attacks on the transcript did not run: {how}."
+    paper = ""
+    if _keeps_paper_channels(report.mechanisms):
+        paper = (f" {report.method} keeps the side channels of the paper's scheme, so the full audit usually finds such a run "
+                 "EXPOSED by design (pp-hardened closes them).")
+    return f"privacy audit: nothing raw was sent ({checked}).{channels}{paper} The attacks on the transcript did not run: {how}."
+
+
+def _keeps_paper_channels(mechanisms: dict[str, bool]) -> bool:
+    """The preset hides something and closes none of the channels the paper's scheme keeps (no hardening switch)."""
+    from ..client.mechanisms import HARDENING
+
+    hides = mechanisms.get("encode_params", False) or mechanisms.get("scale_rewards", False)
+    return bool(hides) and not any(mechanisms.get(k, False) for k in HARDENING)

@@ -14,8 +14,9 @@ from __future__ import annotations
 import difflib
 import json
 import math
+import os
 import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -66,9 +67,33 @@ def entry_for(codec: Codec, ctx: PromptContext, c: Candidate) -> EncodedEntry:
                        _finite_diagnostics(fb.diagnostics) if detailed else {})
 
 
-def prompt_spans(form: PromptForm, codec: Codec, ctx: PromptContext, text: str, entries: list[ShownEntry],
-                 shown: list[Candidate | None], before: str = "", after: str = "") -> list[tuple[int, int]]:
-    """Spans of a recorded prompt of ``form`` that its templates do not produce from the shown candidates.
+class Rebuilt:
+    """What the client builds for each candidate in one prompt form: its history entry
+    (``entry_for``) and that entry as the form prints it, each built once per candidate (the
+    audit reads the same candidates in many requests; a candidate's entry depends on nothing else).
+    """
+
+    def __init__(self, codec: Codec, ctx: PromptContext, form: PromptForm) -> None:
+        self.codec, self.ctx, self.form = codec, ctx, form
+        self._entries: dict[int, EncodedEntry] = {}
+        self._texts: dict[int, str] = {}
+
+    def entry(self, c: Candidate) -> EncodedEntry:
+        """The history entry the proposer builds for ``c`` (``entry_for``)."""
+        if c.index not in self._entries:
+            self._entries[c.index] = entry_for(self.codec, self.ctx, c)
+        return self._entries[c.index]
+
+    def text(self, c: Candidate) -> str:
+        """``c``'s entry as the form prints it (``PromptForm.render_entry``)."""
+        if c.index not in self._texts:
+            self._texts[c.index] = self.form.render_entry(self.ctx, self.entry(c))
+        return self._texts[c.index]
+
+
+def prompt_spans(rebuilt: Rebuilt, text: str, entries: list[ShownEntry], shown: list[Candidate | None], before: str = "",
+                 after: str = "") -> list[tuple[int, int]]:
+    """Spans of a recorded prompt of ``rebuilt.form`` that its templates do not produce from the shown candidates.
 
     The prose around the entries is compared as a skeleton (each entry one placeholder, so a
     missing or extra entry cannot shift the comparison); each matched entry is compared with the
@@ -76,13 +101,14 @@ def prompt_spans(form: PromptForm, codec: Codec, ctx: PromptContext, text: str, 
     ``before`` and ``after`` are text the client puts around the prompt in the same message (a
     correction after it, ``wire.turns``).
     """
-    built = [entry_for(codec, ctx, c) if c is not None else _dummy(ctx) for c in shown]
+    form, ctx = rebuilt.form, rebuilt.ctx
+    built = [rebuilt.entry(c) if c is not None else _dummy(ctx) for c in shown]
     try:
         expected = before + form.prompt(ctx, built) + after
         expected_entries = form.entries(expected)
     except ValueError:  # a form that cannot write a prompt without an entry (the document form's target)
         expected, expected_entries = before + form.prompt(ctx, [_dummy(ctx)]) + after, []
-    return _spans(text, entries, shown, built, expected, expected_entries, lambda e: form.render_entry(ctx, e))
+    return _spans(text, entries, expected, expected_entries, [rebuilt.text(c) if c is not None else None for c in shown])
 
 
 def _dummy(ctx: PromptContext) -> EncodedEntry:
@@ -90,16 +116,17 @@ def _dummy(ctx: PromptContext) -> EncodedEntry:
     return EncodedEntry(index=-1, params=(0.0,) * ctx.D, ret=0.0)
 
 
-def _spans(text: str, entries: list[ShownEntry], shown: list[Candidate | None], built: list[EncodedEntry], expected: str,
-           expected_entries: list[ShownEntry], render_entry: Callable[[EncodedEntry], str]) -> list[tuple[int, int]]:
+def _spans(text: str, entries: list[ShownEntry], expected: str, expected_entries: list[ShownEntry],
+           rendered: Sequence[str | None]) -> list[tuple[int, int]]:
     """The spans of ``text`` the expected prompt does not account for: the prose as a skeleton
-    (each entry one placeholder), then each matched entry against ``render_entry`` of its own."""
+    (each entry one placeholder), then each matched entry against its own printed text
+    (``rendered``, None for an entry that matched no candidate)."""
     exp_skel, _ = _skeleton(expected, expected_entries)
     rec_skel, where = _skeleton(text, entries)
     out = [(where[a], where[min(b, len(where) - 1)] if b < len(where) else len(text)) for a, b in differing_spans(exp_skel, rec_skel)]
-    for e, c, mine in zip(entries, shown, built, strict=True):
-        if c is not None:
-            out += [(e.start + a, e.start + b) for a, b in differing_spans(render_entry(mine), text[e.start:e.end])]
+    for e, mine in zip(entries, rendered, strict=True):
+        if mine is not None:
+            out += [(e.start + a, e.start + b) for a, b in differing_spans(mine, text[e.start:e.end])]
     return sorted(out)
 
 
@@ -253,14 +280,22 @@ class ClientReplay:
 
 
 def differing_spans(expected: str, recorded: str) -> list[tuple[int, int]]:
-    """Spans of ``recorded`` that ``expected`` does not have, widened to whole number tokens."""
+    """Spans of ``recorded`` that ``expected`` does not have, widened to whole number tokens.
+
+    The head and the tail the two texts share are equal where they stand; only what lies between
+    them is compared character by character (``difflib``, whose time grows with the product of the
+    lengths it compares: a prompt of 70,000 characters took a minute whole)."""
     if expected == recorded:
         return []
-    sm = difflib.SequenceMatcher(None, expected, recorded, autojunk=False)
+    head = len(os.path.commonprefix([expected, recorded]))
+    most = min(len(expected), len(recorded)) - head
+    tail = len(os.path.commonprefix([expected[::-1][:most], recorded[::-1][:most]]))
+    sm = difflib.SequenceMatcher(None, expected[head:len(expected) - tail], recorded[head:len(recorded) - tail], autojunk=False)
     spans: list[tuple[int, int]] = []
     for tag, _, _, j1, j2 in sm.get_opcodes():
         if tag == "equal":
             continue
+        j1, j2 = j1 + head, j2 + head
         if j1 == j2:  # something the templates write is missing: report where
             j1, j2 = max(0, j1 - 1), min(len(recorded), j1 + 1)
         while j1 > 0 and (recorded[j1 - 1].isalnum() or recorded[j1 - 1] in ".-+_"):

@@ -80,7 +80,6 @@ class SimLimits:
 
 
 DEFAULT_LIMITS = SimLimits()
-QUICK_LIMITS = SimLimits(vector_steps=5_000_000, env_steps=20_000, seconds=10.0)  # the verdict printed after every run
 
 
 # -- what the prompt says about the encodings ------------------------------------------------------

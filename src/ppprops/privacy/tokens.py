@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 import re
 
 _TOKEN = re.compile(r"([-+]?)(\d*)(?:\.(\d*))?(?:[eE]([-+]?\d+))?")
 
 
+@functools.lru_cache(maxsize=1 << 16)  # the audit reads the same printed entries in many requests
 def token_value(tok: str) -> tuple[float, float] | None:
     """A printed number and half its last printed digit (how far the value it renders may lie)."""
     m = _TOKEN.fullmatch(tok.strip())
