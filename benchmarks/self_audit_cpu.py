@@ -5,8 +5,8 @@ warm-up policies and 50 LLM iterations answered by ``privacy.simulate.EchoOptimi
 seed, no final evaluation), as ``ppprops run`` would have just done, and then times with
 ``time.process_time`` one of:
 
-- ``finished``: ``cli._finished``, what ``run`` and ``resume`` do at the end (the summary and the
-  privacy audit line, in its default mode);
+- ``finished``: what ``run`` and ``resume`` do at the end: the summary (``summary.run_summary``,
+  ``format_summary``) and the privacy audit line in its default mode (``self_audit_line``);
 - ``quick``: ``audit_run(DIR, attacks=False)``, the transcript checks alone;
 - ``full``: ``audit_run(DIR)``, every attack too (what ``ppprops audit DIR`` runs).
 
@@ -36,8 +36,8 @@ WHAT = ("finished", "quick", "full")
 
 
 def _child(what: str, a: argparse.Namespace, out: Path) -> dict[str, object]:
-    from ppprops import cli
     from ppprops.privacy.audit import audit_run
+    from ppprops.privacy.commands import self_audit_line
     from ppprops.privacy.simulate import EchoOptimizer
     from ppprops.runner import start
     from ppprops.settings import build_config
@@ -51,8 +51,11 @@ def _child(what: str, a: argparse.Namespace, out: Path) -> dict[str, object]:
     sink = io.StringIO()
     t0, w0 = time.process_time(), time.perf_counter()
     if what == "finished":
+        from ppprops.summary import format_summary, run_summary
+
         with contextlib.redirect_stdout(sink):
-            cli._finished(out, False)
+            print(format_summary(run_summary(out)))
+            print(self_audit_line(out))
         line = sink.getvalue().strip().splitlines()[-1]
     elif what == "quick":
         line = audit_run(out, attacks=False).verdict()
