@@ -5,6 +5,8 @@ read back, and what its recorded decisions may be. No model, no HTTP."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
@@ -20,6 +22,7 @@ from ppprops.wire.forms import (
     ENDPOINT_CHAT,
     ENDPOINT_COMPLETIONS,
     FORMS,
+    REPEAT_PENALTY,
     answer_budget,
     params_grammar,
     params_schema,
@@ -67,6 +70,15 @@ def test_the_document_form_asks_for_a_continuation_on_its_schedule() -> None:
     assert req.decisions == {"temperature": TEMPERATURES[1], "target": document_target(SHOWN), "stalled": 0}
     stuck = DOCUMENT.request("DOC", ctx=CTX, shown=SHOWN, iteration=1, attempt=0, stalled=STALL_AFTER)
     assert dict(stuck.sampling) == {"temperature": EXPLORE_TEMPERATURE, **EXPLORE_SAMPLING} and stuck.decisions["stalled"] == STALL_AFTER
+
+
+def test_a_document_retry_after_a_copied_entry_penalises_repeats_and_is_sent_as_it_is() -> None:
+    first = DOCUMENT.request("DOC", ctx=CTX, shown=SHOWN, iteration=2, attempt=0)
+    copied = DOCUMENT.request("DOC", ctx=CTX, shown=SHOWN, iteration=2, attempt=1, previous="0:1.5]", detail=REPEATS_HISTORY)
+    cut = DOCUMENT.request("DOC", ctx=CTX, shown=SHOWN, iteration=2, attempt=1, previous="0:1.", detail="cut off")
+    assert "repeat_penalty" not in first.sampling and "repeat_penalty" not in cut.sampling
+    assert copied.sampling["repeat_penalty"] == REPEAT_PENALTY
+    assert RequestShape.for_config(EMBEDDED).body(copied, 1)["repeat_penalty"] == REPEAT_PENALTY
 
 
 @pytest.mark.parametrize("llm,chat_fields,document_fields", [
@@ -133,3 +145,29 @@ def test_a_decision_the_form_did_not_make_is_named() -> None:
 ])
 def test_a_call_recorded_before_calls_named_their_form_gets_the_one_its_body_shows(body: str, form: str) -> None:
     assert recorded_form(body) == form
+
+
+def test_a_run_whose_retries_carry_the_repeat_penalty_is_accounted_for_by_the_audit(tmp_path: Path) -> None:
+    from ppprops.privacy.audit import audit_run
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.runner import start
+
+    from support import make_config, recorded_calls
+
+    class Copycat(EchoOptimizer):
+        """Continues the document with its best entry on a first attempt, a new policy on a retry."""
+
+        def send(self, request, *, seed=None):  # type: ignore[no-untyped-def]
+            ex = super().send(request, seed=seed)
+            if request.attempt == 0:
+                best = DOCUMENT.entries(request.prompt)[-1]
+                ex = replace(ex, content=",".join(f"{i}:{v}" for i, v in enumerate(best.params)) + "]")
+            return ex
+
+    config = make_config("CartPole", "pp", warmup=3, iterations=2, final_episodes=0, prompt_form="document")
+    start(config, tmp_path / "r", llm=Copycat(config.llm))
+    calls = recorded_calls(tmp_path / "r")
+    assert [(c["attempt"], c["parse_error"], c["body"].get("repeat_penalty")) for c in calls] == [
+        (0, "repeats_history", None), (1, None, REPEAT_PENALTY)] * 2
+    report = audit_run(tmp_path / "r", attacks=False)
+    assert not report.unverified and not report.leaks, report.format()

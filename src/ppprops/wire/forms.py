@@ -35,11 +35,15 @@ from .encoded import EncodedEntry, PromptContext
 from .parse import ParseResult, read_answer, read_continuation
 from .prompt import build_prompt, history_entry, template
 from .transcript import ShownEntry, history_entries, open_target
-from .turns import correction_messages, judge_answer, judge_continuation, prompt_messages
+from .turns import REPEATS_HISTORY, correction_messages, judge_answer, judge_continuation, prompt_messages
 
 ENDPOINT_CHAT = "chat"  # /chat/completions: a list of messages
 ENDPOINT_COMPLETIONS = "completions"  # /completions: one raw prompt, continued
 CHAT_TEMPERATURE = 1.0  # the chat form's sampling temperature when --temperature is not set
+# The document form's retry after a continuation that copied an entry of the history: llama.cpp's
+# repeat penalty (over its last 64 tokens, which end the document with the best entries) makes the
+# copied tokens less likely to come again.
+REPEAT_PENALTY = 1.3
 
 
 def params_schema(D: int) -> dict[str, Any]:
@@ -233,12 +237,15 @@ class DocumentForm(PromptForm):
                 previous: str | None = None, detail: str = "", temperature: float | None = None, stalled: int = 0) -> FormRequest:
         """The same document at every attempt, with the continuation grammar, the temperature
         ``document_temperature(iteration, attempt, temperature, stalled)`` and, when exploring, the
-        untruncated sampling of ``document_sampling``; the stop sequence ``]`` ends the list on a
-        server that does not hold the model to the grammar."""
+        untruncated sampling of ``document_sampling``; a retry after a continuation that repeated an
+        entry of the history (``detail``) also carries ``REPEAT_PENALTY``; the stop sequence ``]``
+        ends the list on a server that does not hold the model to the grammar."""
         t = document_temperature(iteration, attempt, temperature, stalled)
         decisions = {"temperature": t, "target": document_target(shown) if shown else None, "stalled": stalled}
-        return FormRequest(self.name, self.endpoint, ctx.D, iteration, attempt, prompt=prompt,
-                           sampling={"temperature": t, **document_sampling(stalled, temperature)},
+        sampling: dict[str, float] = {"temperature": t, **document_sampling(stalled, temperature)}
+        if attempt > 0 and detail == REPEATS_HISTORY:
+            sampling["repeat_penalty"] = REPEAT_PENALTY
+        return FormRequest(self.name, self.endpoint, ctx.D, iteration, attempt, prompt=prompt, sampling=sampling,
                            answer_tokens=answer_budget(ctx.D, labels=True), grammar=continuation_grammar(ctx.D, shown, ctx),
                            stop=("]",), decisions=decisions)
 
