@@ -16,7 +16,7 @@ from _common import Context, Section, config, count_tokens, embedded, pct_less, 
 TASK = "Ant-Ultra"
 PAPER_K10_CHARS = 22_000  # the paper's final prompt, D=88, K=10 (ProPS form, gpt-oss-20b)
 PAPER_FULL_CHARS = 114_000  # the same with the whole history
-TARGET_CHARS = 8_000  # issue 14
+TARGET_CHARS = 8_000  # the final Ant-Ultra K=10 prompt, in characters
 HISTORY_MARK = "5. Here is the history:\n"
 # (key, prompt form, parameter style, label)
 FORMS = (("document", "document", "list", "document (embedded default)"), ("list", "chat", "list", "chat, list (default elsewhere)"),

@@ -9,7 +9,7 @@ document form (``wire.document``). The grid also runs pp without its exploration
 CartPole (``--explore off``), the rule's ablation. (The paper's chat form is reported when a grid
 holds it, as earlier rounds' did; this spec leaves it out for time.) The figure of merit is the final evaluation: the mean return over 20
 fresh episodes of the policy handed over. The old selection (the best single search return, as
-before issue 21) is evaluated on the same 20 episodes for every run, so both stand side by side.
+before the selection stage) is evaluated on the same 20 episodes for every run, so both stand side by side.
 Every pp run is also audited (``ppprops audit``).
 
 With ``run_all.py --keep`` a grid already recorded under ``--out`` is reused: ``ppprops
@@ -41,7 +41,7 @@ from ppprops.summary import run_summary
 
 SPEC = Path(__file__).with_name("quality.toml")
 ARMS = (("pp", "PP-ProPS (embedded Gemma 3 270M)"), ("random", "random search"), ("cmaes", "CMA-ES"))
-TARGET_TASKS = ("CartPole", "Acrobot", "Pendulum-v1")  # issue 14: above random in mean and median, at least CMA-ES's mean
+TARGET_TASKS = ("CartPole", "Acrobot", "Pendulum-v1")  # above random in mean and median, at least CMA-ES's mean
 TASKS = (*TARGET_TASKS, "Ant-Ultra")
 
 
@@ -78,7 +78,7 @@ def _steps(run_dir: Path, warmup: int) -> dict[str, float]:
 
 
 def old_selection_final(run_dir: Path) -> float | None:
-    """The final evaluation the run would have had before issue 21: the candidate with the best single
+    """The final evaluation the run would have had without the selection stage: the candidate with the best single
     search return, on the same fresh episodes as the run's own final evaluation (the same seeds)."""
     with open_store(run_dir) as store:
         cands, fe, config = store.candidates(), store.final_eval(), RunConfig.from_json(store.config())
@@ -161,7 +161,7 @@ def run(ctx: Context) -> Section:
         source = f"{n_runs} runs of the grid recorded under `{out}` (reused: finished runs kept, the rest resumed)"
     body = [f"{source} (2 jobs, one llama.cpp thread each); final evaluation: mean (std) and median over seeds of the mean "
             "return of 20 fresh episodes of the policy handed over, with the selection stage (new) and, on the same 20 episodes, "
-            "the candidate with the best single search return (old, before issue 21):", "",
+            "the candidate with the best single search return (old, without the selection stage):", "",
             table(["task", "method", "seeds", "final (new selection)", "median", "final (old selection)", "median",
                    "best single return in the search"], rows), ""]
     ep_rows = []

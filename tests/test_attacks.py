@@ -68,7 +68,7 @@ def test_paper_secrets_fall_on_cartpole(runs: dict[tuple[str, str, int], Path]) 
     for seed in range(3):
         err = _errors(runs["CartPole", "pp", seed], "CartPole", "pp", seed)
         assert err["diagnostic"] < 0.01  # c = printed return / episode_length
-        assert "seed-replay" not in err  # the warm-up is keyed by the secrets: the run seed replays nothing (issue 20)
+        assert "seed-replay" not in err  # the warm-up is keyed by the secrets: the run seed replays nothing
         assert err["warmup-range"] < 0.5  # a_j ~ max|theta~_j| / 6: the right order, not exact
         if "lattice" in err:
             assert err["lattice"] < 0.01

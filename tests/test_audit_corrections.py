@@ -1,4 +1,4 @@
-"""The audit accounts exactly for what the client sends since issue 12: correction turns (one user
+"""The audit accounts exactly for what the client sends: correction turns (one user
 message, or prompt + the provider's own final text + correction), and request fields the client
 adapted to its endpoint (a dropped seed, temperature or schema, max_completion_tokens, a token
 budget raised for reasoning), session by session across a resume. A value planted in any of these

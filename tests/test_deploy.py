@@ -1,4 +1,4 @@
-"""The policy file deploys on its own (issue 15, failure 1): the README's numpy + gymnasium recipe,
+"""The policy file deploys on its own: the README's numpy + gymnasium recipe,
 run where ppprops cannot be imported, gets exactly the returns of `ppprops policy eval` on every
 paper task, on the same episode seeds."""
 

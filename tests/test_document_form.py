@@ -1,4 +1,4 @@
-"""The document form (issue 14): the history as a document for the embedded base model to continue.
+"""The document form: the history as a document for the embedded base model to continue.
 
 Guards the mechanics, not the search quality (that is benchmark 6 in benchmarks/RESULTS.md): the
 format sent, the grammar, the parsing of what comes back, which vector is evaluated, and the audit.
@@ -208,7 +208,7 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
 def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
     report = audit_run(run_dir)
     # nothing raw sent and every byte accounted for; a pp run is EXPOSED by the channels the paper's
-    # scheme keeps (issue 16: lattice, the small run seed's warm-up), which the form does not change
+    # scheme keeps (the lattice, the small run seed's warm-up), which the form does not change
     assert not report.leaks and not report.unverified, report.format()
     assert all(f.by_design or f.kind == "seed-replay" for f in report.exposed), report.format()  # run seed 3 is small
     store = open_store(run_dir)

@@ -1,4 +1,4 @@
-"""A user's env that raises, and a script without its __main__ guard (issue 23, part 2).
+"""A user's env that raises, and a script without its __main__ guard.
 
 Each is one line naming the user's exception (type, message, where in their code), exit 2, the
 run marked ``failed: <reason>`` in the store and by ``show``, resumable, nothing lost.

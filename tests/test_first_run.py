@@ -1,4 +1,4 @@
-"""What a first run says (issue 23, part 3): every check that needs no episode runs before
+"""What a first run says: every check that needs no episode runs before
 anything is printed or written, flags are never matched by prefix, and a document-form run says
 once that it does not show the components and diagnostics asked for."""
 

@@ -1,4 +1,4 @@
-"""Bring your own robot (issue 15): task files, quick options, checked feedback keys, Dict and
+"""Bring your own robot: task files, quick options, checked feedback keys, Dict and
 Discrete observations, tasks registered from Python, the Python API, the examples and the guide.
 
 Each numbered failure of the issue is a test here that asserts the exact line, exit code and run
@@ -133,7 +133,7 @@ QUICK = ["--method", "random", "--warmup", "3", "--iterations", "2", "--final-ep
 
 
 # -- failure 3: feedback keys are checked by the first episode, or by `ppprops task check` ------
-# Loading a task never steps its env (issue 22): a declared key the env lacks stops the run at its
+# Loading a task never steps its env: a declared key the env lacks stops the run at its
 # first episode, with the same one line, and the run is marked stopped with it.
 BAD_KEYS = [
     (["--env", "Swimmer-v5", "--component", "reward_dst"],

@@ -1,4 +1,4 @@
-"""Issue 16: every outgoing byte is read by the audit, R2PO refuses privacy it cannot keep, grids take
+"""Every outgoing byte is read by the audit, R2PO refuses privacy it cannot keep, grids take
 each hardening switch alone, the request seed and the fallback state no secret, and the new attacks
 (warped lattice, locomotion components, fallbacks) are measured against pp and pp-hardened."""
 

@@ -1,4 +1,4 @@
-"""The user's identifiers stay home (issue 20, finding 5): under every preset that encodes
+"""The user's identifiers stay home: under every preset that encodes
 parameters a prompt names a user's task by a neutral name, or by the display name its task file
 gives for the provider; never by its module, class, file or directory."""
 

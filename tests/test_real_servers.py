@@ -1,4 +1,4 @@
-"""Issue 23, part 4: what real servers and real models did, replayed through the real client and a
+"""What real servers and real models did, replayed through the real client and a
 real HTTP server (the fault server's personas, ``ppprops.testing.personas``), one test (at least)
 per finding: a full context told apart from the answer budget, chat models that explain before
 they answer, a slow CPU server against the timeout, a bullet list of too few numbers, llama.cpp
@@ -222,7 +222,7 @@ def test_document_form_on_a_remote_server_sends_the_grammar_and_a_stop_sequence(
 
 def test_document_form_without_a_grammar_the_stop_sequence_ends_the_list(tmp_path: Path) -> None:
     # the base model writes on past "]" (another entry, and another) until the token limit: 18 of 18
-    # iterations were fallbacks in issue 23; the stop sequence ends it at the list
+    # iterations were fallbacks before; the stop sequence ends it at the list
     r = run(tmp_path, "base_model_runs_on", prompt_form="document", llm=dict(structured="none"))
     assert all("grammar" not in q and q["stop"] == ["]"] for q in r.requests())
     assert all("]" not in c["content"] and json.loads(c["response"])["choices"][0]["finish_reason"] == "stop"

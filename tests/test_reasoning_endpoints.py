@@ -1,4 +1,4 @@
-"""Issue 12: reasoning models and real endpoints, one test (at least) per row of its table.
+"""Reasoning models and real endpoints, one test (at least) per row of the table in docs/endpoints.md.
 
 Each test runs a real CartPole search against the fault server answering as a given server and
 model (``ppprops.testing.personas``) and asserts which vector was evaluated: every LLM

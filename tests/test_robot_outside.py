@@ -1,4 +1,4 @@
-"""A robot outside Python drives a study from the shell (issue 22, items 3-5).
+"""A robot outside Python drives a study from the shell.
 
 ``ppprops study create`` / ``ask`` / ``tell`` / ``study finalize`` in separate processes give the
 same trials, store and best policy as ``ppprops.search``'s loop with the same seeds, secrets and a

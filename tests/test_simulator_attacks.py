@@ -1,4 +1,4 @@
-"""Issue 20, attack side: an attacker who can build a public env fits the secrets by simulating it.
+"""The attack side: an attacker who can build a public env fits the secrets by simulating it.
 
 One test per finding that failed on the code before: (1) the run seed is read off a pp-hardened
 transcript and the audit warns; (2) with the initial states known, the exact fit recovers a
@@ -50,7 +50,7 @@ def small_budgets(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def make_run(root: Path, task: str, method: str, seed: int, secrets: Secrets, *, iterations: int = 10, keyed: bool = True) -> Path:
     """A run with the offline optimizer; ``keyed=False`` makes it as runs were made before its random
-    streams were keyed by its secrets (issue 20): warm-up and episode seeds from the run seed alone,
+    streams were keyed by its secrets: warm-up and episode seeds from the run seed alone,
     the transcripts the red team attacked (a user's old runs are such)."""
     out = root / f"{task}__{method}__{seed}"
     config = make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed)

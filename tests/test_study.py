@@ -132,7 +132,7 @@ def test_ask_after_the_budget_and_finalize_with_the_users_own_episodes(study: St
 
 
 def test_the_lucky_one_episode_candidate_is_not_handed_over(study: Study) -> None:
-    """Issue 21: candidate 9 had the best single episode (500), candidate 8 is the better policy.
+    """Candidate 9 had the best single episode (500), candidate 8 is the better policy.
     The selection stage re-runs the top 5 on 10 fresh episodes each; the pooled mean picks 8."""
     search = {9: 500.0, 8: 400.0, 7: 300.0, 6: 200.0, 5: 100.0}
     reeval = {9: [60.0] * 10, 8: [420.0] * 10, 7: [310.0] * 10, 6: [150.0] * 10, 5: [90.0] * 10}

@@ -79,7 +79,7 @@ def test_smoke_yaml_spec_parses() -> None:
 def test_a_grid_run_is_configured_exactly_as_ppprops_run() -> None:
     spec = build_spec(flags_table(["CartPole", "Acrobot"], ["vanilla", "pp", "cmaes"], 2),
                       overrides={"warmup": 3, "top_k": 0, "encode_params": True})  # fmt: skip
-    # r2po with encoded parameters is refused in a grid exactly as by ppprops run (issue 16)
+    # r2po with encoded parameters is refused in a grid exactly as by ppprops run
     with pytest.raises(ConfigError, match="--method r2po shows the critic raw states"):
         build_spec(flags_table(["CartPole"], ["r2po"], 1), overrides={"encode_params": True})
     for r in spec.runs:

@@ -1,4 +1,4 @@
-"""The document form explores when the search is stuck (issue 21): after STALL_AFTER LLM iterations
+"""The document form explores when the search is stuck: after STALL_AFTER LLM iterations
 in a row that did not raise the best shown return, an iteration is sampled at EXPLORE_TEMPERATURE.
 The decision is recorded with the call, made from public values only, and the audit recomputes it."""
 

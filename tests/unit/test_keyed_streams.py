@@ -1,4 +1,4 @@
-"""No public randomness reaches a prompt (issue 20, finding 1): every stream that shapes what the
+"""No public randomness reaches a prompt: every stream that shapes what the
 provider sees (warm-up, episode seeds and so initial states, fallback noise) is keyed by the run's
 secrets, so the run seed read off a transcript gives nothing; a run stays reproducible from its key file.
 """

@@ -51,7 +51,7 @@ BAD = [
     ("1. Push left harder.\n2. Keep the rest.", "no_numbers"),  # a numbered list of words holds no vector
 ]
 
-# A list of the wrong size is wrong_length in every layout (issue 23: a bullet list of 4 of 10 numbers
+# A list of the wrong size is wrong_length in every layout (a bullet list of 4 of 10 numbers
 # was classified no_numbers, "no parameter vector was found"). D = 10 here; each holds 4 numbers.
 SHORT_LISTS = {
     "bullets": "Here is my proposal:\n- 0.5\n- -1.2\n- 3.0\n- 0.1\n\nThis should keep the pole up.",

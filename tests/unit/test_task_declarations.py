@@ -1,4 +1,4 @@
-"""Task declarations (issues 20, 22, 23): the task file's schema, tasks without an env, no probe
+"""Task declarations: the task file's schema, tasks without an env, no probe
 episode at load (the checks run in the first episodes, or in `ppprops task check` when asked),
 each task's privacy facts in its file, the display name for the provider, and an env that raises
 named in one line."""
@@ -233,7 +233,7 @@ def test_a_task_without_env_declares_what_the_policy_sees_and_does() -> None:
 
 
 def test_generic_prose_names_nothing_of_the_user(tmp_path: Path, user_module: str) -> None:
-    """Issue 20: a task file without a summary gets generic prose that names no module, class or task of the user."""
+    """A task file without a summary gets generic prose that names no module, class or task of the user."""
     f = tmp_path / "acme_secret_arm.toml"
     f.write_text('name = "AcmeSecretArm"\naction_type = "discrete"\nactions = ["left", "right"]\n'
                  '[observation.values]\nx = "position"\n[diagnostics]\nreached = ""\n')  # fmt: skip
@@ -552,7 +552,7 @@ def test_public_env_defaults() -> None:
 
 
 def test_options_on_a_paper_tasks_env_id_give_a_task_of_that_env() -> None:
-    """Issue 23: `--env CartPole-v1 --diagnostic x` was refused with "... or give its env id CartPole-v1"."""
+    """`--env CartPole-v1 --diagnostic x` used to be refused with "... or give its env id CartPole-v1"."""
     task = load_task("CartPole-v1", options=TaskOptions(max_episode_steps=50))
     assert task.name == "CartPole-v1" and task.spec.env.max_episode_steps == 50 and task is not get_task("CartPole")
     with pytest.raises(ConfigError, match="^CartPole is a paper task"):
