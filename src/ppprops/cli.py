@@ -4,7 +4,13 @@ into a quiet exit.
 
 Public for other modules (the experiment specs build runs exactly as ``ppprops run`` does):
 ``build_parser``, ``run_parser`` (the ``run`` subcommand's parser) and ``run_config`` (parsed
-``run`` flags to a RunConfig).
+``run`` flags to a RunConfig); ``commands`` (every subcommand with its one-line help) and
+``parser_for`` (the parser of one command line).
+
+A command line builds only the parser of the subcommand it names (``parser_for``): the settings
+schema (pydantic), the tasks, the privacy and experiment modules load only for the subcommands
+that use them, so ``ppprops --help``, ``ppprops ask`` and ``ppprops tell`` (a robot driven from
+the shell calls the last two per trial) start fast. tests/test_startup.py keeps it so.
 """
 
 from __future__ import annotations
@@ -14,19 +20,23 @@ import json
 import os
 import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
-from .config import RunConfig, read_table
 from .errors import ConfigError, PPPropsError
-from .methods import rl_algos
-from .settings import SETTINGS, add_flags, build_config, given, read_settings, refuse_prompt_settings
 from .version import __version__
+
+if TYPE_CHECKING:
+    from .config import RunConfig
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command stopped by Ctrl-C
 EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: whoever read our output stopped reading (`| head`)
+
+
+_NEGATIVE_NUMBER = re.compile(r"^-\.?\d")  # a value, not an option (_Parser)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -36,7 +46,7 @@ class _Parser(argparse.ArgumentParser):
         # Values such as "-6,6" (--box) start like an option; argparse accepts only plain negative
         # numbers as values. Treat anything that starts with "-" and a digit (or "-." and a digit)
         # as a value, as Python 3.13's argparse does; no ppprops option looks like that.
-        self._negative_number_matcher = re.compile(r"^-\.?\d")
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str) -> NoReturn:  # one line, exit 2 (argparse's default prints usage too)
         self.exit(EXIT_INPUT, f"ppprops: error: {message}\n")
@@ -47,17 +57,119 @@ def build_parser() -> argparse.ArgumentParser:
     return _build_parsers()[0]
 
 
-def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
-    """The ``ppprops`` parser and its ``run`` subcommand's parser."""
+@dataclass(frozen=True)
+class Command:
+    """One subcommand of ``ppprops``: its one-line help (all that ``ppprops --help`` shows of it),
+    what adds its arguments to its parser, and its handler (the exit code)."""
+
+    help: str
+    add: Callable[[argparse.ArgumentParser], None]
+    handler: Callable[[argparse.Namespace], int]
+
+
+def commands() -> dict[str, Command]:
+    """The subcommands, in the order ``ppprops --help`` lists them. Made on each call (cheap: it
+    imports nothing), so that a handler replaced on this module (a test's monkeypatch) is the one called."""
+    return {
+        "run": Command("start a search", _add_run, _cmd_run),
+        "resume": Command("continue an interrupted run with its own secrets", _add_resume, _cmd_resume),
+        "show": Command("summarise a run", _add_show, _cmd_show),
+        "policy": Command("work with a policy file", _add_policy, _cmd_policy),
+        "baseline": Command("train a standard baseline and store it as a run", _add_baseline, _cmd_baseline),
+        "study": Command("a search driven from outside: create a study, finalize it (see ask, tell)", _add_study, _cmd_study),
+        "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask)", _add_ask, _cmd_ask),
+        "tell": Command("tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)", _add_tell,
+                         _cmd_tell),  # fmt: skip
+        "audit": Command("check every recorded request of a run for raw values (exit 0 clean; 1 leak, unverified or exposed)",
+                          _one_of(_privacy_commands, "audit"), _cmd_audit),  # fmt: skip
+        "privacy-report": Command("attacks x scheme (pp, pp-hardened) and their search results",
+                                   _one_of(_privacy_commands, "privacy-report"), _cmd_privacy_report),  # fmt: skip
+        "task": Command("work with a task: check a task file or env before a run", _one_of(_task_commands, "task"), _cmd_task),
+        "experiment": Command("run a grid of tasks x methods x seeds (resumable), locally or on Ray",
+                               _one_of(_experiment_commands, "experiment"), _cmd_experiment),  # fmt: skip
+        "report": Command("tables, reward curves, history-cost plots and index.html from a grid directory",
+                           _one_of(_experiment_commands, "report"), _cmd_report),  # fmt: skip
+        "envs": Command("list the tasks", _add_envs, _cmd_envs),
+    }
+
+
+def _build_parsers(only: Collection[str] | None = None) -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The ``ppprops`` parser and its subcommands' parsers, by name. Every subcommand is listed
+    (``ppprops --help``, the choices of an unknown command); only those in ``only`` (default: all)
+    get their arguments."""
     p = _Parser(prog="ppprops", description="Privacy-preserving prompted policy search with an LLM as optimizer.")
     p.add_argument("--version", action="version", version=f"ppprops {__version__}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parsers: dict[str, argparse.ArgumentParser] = {}
+    for name, command in commands().items():
+        parsers[name] = sub.add_parser(name, help=command.help)
+        if only is None or name in only:
+            command.add(parsers[name])
+    return p, parsers
 
-    r = sub.add_parser("run", help="start a search")
+
+def _command_in(argv: Sequence[str]) -> str | None:
+    """The subcommand argparse will run for ``argv``: its first argument that is not an option
+    (``ppprops`` itself has only -h and --version, which take no value), or None."""
+    for i, arg in enumerate(argv):
+        if arg == "--":  # what follows is positional (Python 3.11's argparse takes "--" itself as the command)
+            return argv[i + 1] if i + 1 < len(argv) else None
+        if not arg.startswith("-") or _NEGATIVE_NUMBER.match(arg):
+            return arg
+    return None
+
+
+def parser_for(argv: Sequence[str]) -> argparse.ArgumentParser:
+    """The ``ppprops`` parser for the command line ``argv``: every subcommand is listed, and only
+    the one ``argv`` names gets its arguments, so `ppprops ask DIR` costs no other subcommand's
+    flags. It parses ``argv`` as ``build_parser()`` does."""
+    return _build_parsers(only=(_command_in(argv) or "",))[0]
+
+
+class _Into:
+    """Stands in for the subparsers action that a module adding several subcommands at once takes
+    (``privacy.commands.add_privacy_commands(sub, ...)``): the subcommand ``name`` gets ``parser``
+    (made and listed by ``_build_parsers``), each other one a parser nobody keeps."""
+
+    def __init__(self, name: str, parser: argparse.ArgumentParser) -> None:
+        self.name = name
+        self.parser = parser
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        return self.parser if name == self.name else _Parser(prog=f"ppprops {name}")
+
+
+def _one_of(add_commands: Callable[[Any], None], name: str) -> Callable[[argparse.ArgumentParser], None]:
+    """What adds the arguments of ``name`` alone, of the subcommands ``add_commands(sub)`` adds together."""
+    return lambda parser: add_commands(_Into(name, parser))
+
+
+def _privacy_commands(sub: Any) -> None:
+    from .privacy.commands import add_privacy_commands  # audit, privacy-report
+
+    add_privacy_commands(sub, _Parser)
+
+
+def _task_commands(sub: Any) -> None:
+    from .tasks.commands import add_task_commands  # task check
+
+    add_task_commands(sub, _Parser)
+
+
+def _experiment_commands(sub: Any) -> None:
+    from .experiments.cli import add_subcommands  # argparse only; grids load on use
+
+    add_subcommands(sub)
+
+
+def _add_run(r: argparse.ArgumentParser) -> None:
     add_run_flags(r)
     _audit_flag(r)
 
-    rs = sub.add_parser("resume", help="continue an interrupted run with its own secrets")
+
+def _add_resume(rs: argparse.ArgumentParser) -> None:
+    from .settings import add_flags
+
     rs.add_argument("dir", type=Path, help="the run directory (as `run` printed it)")
     ep = rs.add_argument_group("a corrected or different LLM endpoint (recorded in the run; the secrets stay the same)")
     add_flags(ep, only=ENDPOINT_KEYS, groups=None, help_suffix=" (default: the run's)")
@@ -65,11 +177,13 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     rs.add_argument("--json", action="store_true", help="print one JSON object (as `run --json`) on stdout")
     _audit_flag(rs)
 
-    sh = sub.add_parser("show", help="summarise a run")
+
+def _add_show(sh: argparse.ArgumentParser) -> None:
     sh.add_argument("dir", type=Path, help="a run directory")
     sh.add_argument("--json", action="store_true", help="one JSON object with every candidate and LLM call")
 
-    pol = sub.add_parser("policy", help="work with a policy file")
+
+def _add_policy(pol: argparse.ArgumentParser) -> None:
     polsub = pol.add_subparsers(dest="policy_command", required=True, parser_class=_Parser)
     pe = polsub.add_parser("eval", help="run a best_policy.json with no encoding involved")
     pe.add_argument("file", type=Path, help="a policy file (best_policy.json of a run), or a run or study directory")
@@ -78,8 +192,13 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
                     help="seed of the fresh episode seeds; the run's seed and --final-episodes repeat its final evaluation (default 0)")
     pe.add_argument("--json", action="store_true", help="one JSON object (mean, std, every return) on stdout")
     pe.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    ps = polsub.add_parser("show", help="the best policy so far of a run or study directory (or a policy file) as one JSON object")
+    ps.add_argument("path", type=Path, help="a run or study directory, or a policy file")
 
-    bl = sub.add_parser("baseline", help="train a standard baseline and store it as a run")
+
+def _add_baseline(bl: argparse.ArgumentParser) -> None:
+    from .methods import rl_algos
+
     blsub = bl.add_subparsers(dest="baseline_command", required=True, parser_class=_Parser)
     brl = blsub.add_parser("rl", help="a Stable-Baselines3 agent with the library's default hyperparameters (the rl extra)")
     brl.add_argument("--algo", required=True, choices=rl_algos(),
@@ -93,28 +212,27 @@ def _build_parsers() -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
     brl.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: small MLPs gain nothing from more)")
     brl.add_argument("--quiet", action="store_true", help="no progress bar")
 
-    ps = polsub.add_parser("show", help="the best policy so far of a run or study directory (or a policy file) as one JSON object")
-    ps.add_argument("path", type=Path, help="a run or study directory, or a policy file")
 
-    from .study_commands import add_study_commands  # study create/finalize, ask, tell
+def _add_study(st: argparse.ArgumentParser) -> None:
+    from .study_commands import add_study_arguments  # study create, finalize
 
-    add_study_commands(sub, _Parser, add_run_flags)
+    add_study_arguments(st, _Parser, add_run_flags)
 
-    from .privacy.commands import add_privacy_commands  # audit, privacy-report
 
-    add_privacy_commands(sub, _Parser)
+def _add_ask(ask: argparse.ArgumentParser) -> None:
+    from .study_commands import add_ask_arguments
 
-    from .tasks.commands import add_task_commands  # task check
+    add_ask_arguments(ask)
 
-    add_task_commands(sub, _Parser)
 
-    from .experiments.cli import add_subcommands as add_experiment_subcommands  # argparse only; grids load on use
+def _add_tell(tell: argparse.ArgumentParser) -> None:
+    from .study_commands import add_tell_arguments
 
-    add_experiment_subcommands(sub)
+    add_tell_arguments(tell)
 
-    en = sub.add_parser("envs", help="list the tasks")
+
+def _add_envs(en: argparse.ArgumentParser) -> None:
     en.add_argument("--json", action="store_true", help="one JSON list of the tasks on stdout")
-    return p, r
 
 
 ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
@@ -123,6 +241,8 @@ ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` ma
 def add_run_flags(r: argparse.ArgumentParser) -> None:
     """The flags of ``ppprops run`` (``study create`` takes the same): every setting, ``--out``,
     ``--config``, ``--quiet`` and ``--json``."""
+    from .settings import SETTINGS, add_flags
+
     add_flags(r, groups=None, only=[s.key for s in SETTINGS if s.group in ("task", "run")])
     r.add_argument("--out", type=Path, default=None,
                    help="run directory (default runs/<task>__<method>__<seed>__<time>-<id>, named by the run's id)")
@@ -146,7 +266,7 @@ def _audit_flag(p: argparse.ArgumentParser) -> None:
 
 def run_parser() -> argparse.ArgumentParser:
     """The parser of ``ppprops run``; its namespace holds only the settings given (``settings.given``)."""
-    return _build_parsers()[1]
+    return _build_parsers(only=("run",))[1]["run"]
 
 
 def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None) -> RunConfig:
@@ -158,6 +278,8 @@ def run_config(a: argparse.Namespace, file_values: dict[str, Any] | None = None)
     Raises:
         ConfigError: one line naming the flag (``settings.build_config``).
     """
+    from .settings import build_config, given, refuse_prompt_settings
+
     values = {**(file_values if file_values is not None else getattr(a, "file_settings", None) or {}), **given(a)}
     refuse_prompt_settings(str(values.get("method", "pp")), given(a))
     if "seed" not in values:
@@ -279,12 +401,63 @@ def _cmd_envs(a: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_study(a: argparse.Namespace) -> int:
+    from .study_commands import cmd_study
+
+    return cmd_study(a, run_config)
+
+
+def _cmd_ask(a: argparse.Namespace) -> int:
+    from .study_commands import cmd_ask
+
+    return cmd_ask(a)
+
+
+def _cmd_tell(a: argparse.Namespace) -> int:
+    from .study_commands import cmd_tell
+
+    return cmd_tell(a)
+
+
+def _cmd_audit(a: argparse.Namespace) -> int:
+    from .privacy.commands import PRIVACY_HANDLERS
+
+    return PRIVACY_HANDLERS["audit"](a)
+
+
+def _cmd_privacy_report(a: argparse.Namespace) -> int:
+    from .privacy.commands import PRIVACY_HANDLERS
+
+    return PRIVACY_HANDLERS["privacy-report"](a)
+
+
+def _cmd_task(a: argparse.Namespace) -> int:
+    from .tasks.commands import TASK_HANDLERS
+
+    return TASK_HANDLERS["task"](a)
+
+
+def _cmd_experiment(a: argparse.Namespace) -> int:
+    from .experiments.cli import cmd_experiment
+
+    return cmd_experiment(a)
+
+
+def _cmd_report(a: argparse.Namespace) -> int:
+    from .experiments.cli import cmd_report
+
+    return cmd_report(a)
+
+
 COMMAND_KEYS = {"out": Path, "quiet": bool, "json": bool}  # `run` options a --config file may also hold
 
 
 def _read_config_file(a: argparse.Namespace, path: Path) -> None:
     """Put a ``--config`` file's settings under the flags given: they go to ``a.file_settings``,
     and its ``out``/``quiet``/``json`` fill those options unless given on the command line."""
+    from .config import read_table
+    from .settings import read_settings
+
     table = read_table(path)
     where = f"config file {path}"
     for key, kind in COMMAND_KEYS.items():
@@ -329,7 +502,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The ``ppprops`` command: 0 on success, 2 on bad input (one line on stderr), 130 on Ctrl-C
     (one line naming the run directory to resume), 141 when stdout's reader stops reading;
     ``audit`` and ``experiment`` return 1 for a leak or a failed run."""
-    parser = build_parser()
+    parser = parser_for(sys.argv[1:] if argv is None else argv)
     try:
         return _main(parser, argv)
     except BrokenPipeError:
@@ -348,22 +521,8 @@ def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
         except PPPropsError as e:
             print(f"ppprops: error: {e}", file=sys.stderr)
             return EXIT_INPUT
-    from .study_commands import cmd_ask, cmd_study, cmd_tell
-
-    handlers = {"run": _cmd_run, "resume": _cmd_resume, "show": _cmd_show, "envs": _cmd_envs, "baseline": _cmd_baseline,
-                "policy": _cmd_policy, "ask": cmd_ask, "tell": cmd_tell,
-                "study": lambda args: cmd_study(args, run_config)}  # fmt: skip
-    from .experiments.cli import cmd_experiment, cmd_report
-
-    handlers.update(experiment=cmd_experiment, report=cmd_report)
-    from .privacy.commands import PRIVACY_HANDLERS
-
-    handlers.update(PRIVACY_HANDLERS)
-    from .tasks.commands import TASK_HANDLERS
-
-    handlers.update(TASK_HANDLERS)
     try:
-        code = handlers[args.command](args)
+        code = commands()[args.command].handler(args)
         sys.stdout.flush()  # a closed pipe shows here, inside the handlers below, not at interpreter exit
         return code
     except PPPropsError as e:

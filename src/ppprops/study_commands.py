@@ -27,13 +27,12 @@ from .errors import ConfigError
 EXIT_DONE = 3  # `ppprops ask` on a study with nothing more to ask
 
 
-def add_study_commands(sub: argparse._SubParsersAction, parser_class: type[argparse.ArgumentParser],  # type: ignore[type-arg]
-                       add_run_flags: Any) -> None:  # fmt: skip
-    """Add ``study`` (create, finalize), ``ask`` and ``tell`` to the main CLI's subparsers ``sub``.
+def add_study_arguments(st: argparse.ArgumentParser, parser_class: type[argparse.ArgumentParser], add_run_flags: Any) -> None:
+    """Add ``create`` and ``finalize`` to the main CLI's ``study`` parser ``st`` (the main CLI lists
+    ``study``, ``ask`` and ``tell`` with their help, and adds the arguments of the one it runs).
 
     ``add_run_flags(parser)`` adds the flags of ``ppprops run`` (``study create`` takes the same).
     """
-    st = sub.add_parser("study", help="a search driven from outside: create a study, finalize it (see ask, tell)")
     stsub = st.add_subparsers(dest="study_command", required=True, parser_class=parser_class)
     cr = stsub.add_parser("create", help="create a study (the same flags as `run`); evaluate its trials with ask/tell")
     add_run_flags(cr)
@@ -44,10 +43,14 @@ def add_study_commands(sub: argparse._SubParsersAction, parser_class: type[argpa
                          "without it a task with an env runs its own final evaluation")  # fmt: skip
     fi.add_argument("--json", action="store_true", help="print the summary as one JSON object")
 
-    ask = sub.add_parser("ask", help="the next trial of a study as one JSON object (exit 3: nothing more to ask)")
+
+def add_ask_arguments(ask: argparse.ArgumentParser) -> None:
+    """Add the arguments of ``ppprops ask`` to its parser."""
     ask.add_argument("dir", type=Path, help="the study directory")
 
-    tell = sub.add_parser("tell", help="tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)")
+
+def add_tell_arguments(tell: argparse.ArgumentParser) -> None:
+    """Add the arguments of ``ppprops tell`` to its parser."""
     tell.add_argument("dir", type=Path, help="the study directory")
     tell.add_argument("trial", type=int, help="the trial number `ppprops ask` printed")
     tell.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
