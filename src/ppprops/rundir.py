@@ -26,16 +26,15 @@ from typing import TYPE_CHECKING, Any, Literal, overload
 import numpy as np
 
 from . import naming
-from .client.hardening import generate_secrets
 from .client.secrets import Secrets
-from .config import RunConfig
 from .errors import ConfigError, KeyFileError, StoreError
-from .evaluation import Evaluator, check_parallel
 from .events import NO_EVENTS, RunEvents
 from .status import RunKind
 from .store import DB_NAME, RunStore, open_store
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # imported where used: the names here and open_run cost no settings schema (ppprops ask)
+    from .config import RunConfig
+    from .evaluation import Evaluator
     from .tasks import Task
 
 KEY_NAME = "secrets.key"  # the run's secrets (ppprops.client.secrets), mode 0600, beside the store
@@ -55,6 +54,9 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     The stored config holds the task's whole declaration (``task_spec``), so the run can be resumed
     and evaluated in any process; a task's env and info keys are checked before anything is written.
     """
+    from .client.hardening import generate_secrets
+    from .evaluation import check_parallel
+
     config.validate()
     task = config.make_task()
     if config.task_spec is None and task.spec is not None:
@@ -144,6 +146,8 @@ class StoredRun:
         Raises:
             ConfigError: the stored configuration holds a key or value this version refuses.
         """
+        from .config import RunConfig
+
         return RunConfig.from_json(self.stored)
 
     @cached_property
