@@ -20,9 +20,12 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .values import Trial
 
 EXIT_DONE = 3  # `ppprops ask` on a study with nothing more to ask
 
@@ -120,6 +123,10 @@ def cmd_ask(a: argparse.Namespace) -> int:
     needs it starts it, the next ones reuse it. Returns 0, or ``EXIT_DONE`` (3) with one line on
     stderr when the study has nothing more to ask (its warm server, if any, then stops).
     """
+    trial = _stored_trial(a.dir)
+    if trial is not None:  # asked before and not yet told: the same trial again, from the store alone
+        print(json.dumps(trial.to_json()))
+        return 0
     from .llm.embedded import stop_warm_server
     from .study import Study, StudyComplete
 
@@ -132,6 +139,37 @@ def cmd_ask(a: argparse.Namespace) -> int:
             return EXIT_DONE
         print(json.dumps(trial.to_json()))
     return 0
+
+
+def _stored_trial(run_dir: Path) -> Trial | None:
+    """The study's pending trial (asked for, not yet told), as ``Study.ask`` returns it first, read
+    from the store under the study's lock, after the key file is checked against the store as
+    ``Study.load`` checks it; None when there is none, or when anything fails (``cmd_ask`` then
+    loads the study, which says what in its own words).
+
+    Nothing else is built (no task, codec, proposer or LLM client: numpy and SQLite only), so a
+    robot asking again (after a restart, or twice per trial) pays for no more. What ``Study.load``
+    also checks and this does not, the stored configuration, task and method, was checked when the
+    trial was asked, and ``tell`` checks it again.
+    """
+    from .client.secrets import Secrets
+    from .errors import PPPropsError
+    from .locks import STUDY_LOCK, file_lock
+    from .policy import param_count
+    from .rundir import KEY_NAME
+    from .store import DB_NAME, open_store
+
+    if not (Path(run_dir) / DB_NAME).exists():
+        return None
+    try:
+        with open_store(run_dir) as store, file_lock(run_dir, STUDY_LOCK):
+            trial = store.pending_trial()
+            if trial is not None:
+                Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=param_count(trial.n_s, trial.n_a),
+                             fingerprint=store.key_fingerprint())  # fmt: skip
+            return trial
+    except PPPropsError:
+        return None
 
 
 def cmd_tell(a: argparse.Namespace) -> int:
