@@ -30,7 +30,7 @@ from .client.mechanisms import HARDENING, PRESETS, PRIVACY_SWITCHES, SWITCH_HELP
 from .errors import ConfigError
 from .plugins import load_plugins
 from .schema import describe_error
-from .wire.forms import CHAT, CHOOSABLE
+from .wire.names import CHAT_FORM, CHOOSABLE  # names only: the forms (wire.forms) load with the prompts
 
 if TYPE_CHECKING:
     from .baselines.algorithms import Algorithm
@@ -221,7 +221,7 @@ METHODS: dict[str, Method] = {
         _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
         Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
                default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
-               raw_evidence=True, forms=("auto", CHAT.name)),
+               raw_evidence=True, forms=("auto", CHAT_FORM)),
         _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
         _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
         _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),

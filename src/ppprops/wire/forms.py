@@ -32,6 +32,7 @@ from .document import (
     document_temperature,
 )
 from .encoded import EncodedEntry, PromptContext
+from .names import CHAT_FORM, CRITIC_FORM, DOCUMENT_FORM
 from .parse import ParseResult, read_answer, read_continuation
 from .prompt import build_prompt, history_entry, template
 from .transcript import ShownEntry, history_entries, open_target
@@ -158,7 +159,7 @@ class PromptForm:
         describes_encoding: its prompt says in words how parameters and rewards are encoded.
     """
 
-    name = "chat"
+    name = CHAT_FORM
     endpoint = ENDPOINT_CHAT
     entry_templates: tuple[str, ...] = ("history_entry", "history_entry_indexed")
     default_digits = 3
@@ -222,7 +223,7 @@ class DocumentForm(PromptForm):
     temperature); there is no conversation. Its entries show returns only, and its prompt does
     not describe the encoding."""
 
-    name = "document"
+    name = DOCUMENT_FORM
     endpoint = ENDPOINT_COMPLETIONS
     entry_templates = ("document_entry",)
     default_digits = 2
@@ -292,7 +293,7 @@ class CriticForm(PromptForm):
     evidence rather than from a history (the proposer builds it with
     ``wire.r2po.build_critic_prompt``); sent and corrected as the chat form is."""
 
-    name = "r2po-critic"
+    name = CRITIC_FORM
 
 
 def recorded_form(body: str) -> str:
@@ -318,5 +319,3 @@ def recorded_form(body: str) -> str:
 
 CHAT, DOCUMENT, CRITIC = PromptForm(), DocumentForm(), CriticForm()
 FORMS: dict[str, PromptForm] = {f.name: f for f in (CHAT, DOCUMENT, CRITIC)}
-# The forms a user may choose with --prompt-form (``auto`` resolves to one of them).
-CHOOSABLE: tuple[str, ...] = (CHAT.name, DOCUMENT.name)
