@@ -6,13 +6,10 @@ by ``ppprops.wire``.
 
 from __future__ import annotations
 
-import multiprocessing
 from collections import Counter
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +18,9 @@ from .errors import ConfigError
 from .policy import LinearPolicy
 from .tasks.base import Task
 from .values import Diagnostic, Feedback
+
+if TYPE_CHECKING:  # the worker pool's modules load with the first pool (workers > 1), not with every study
+    from concurrent.futures import ProcessPoolExecutor
 
 # An env with no time limit whose episode runs this long is stopped with an error naming the fix
 # (--max-episode-steps): a search must never hang on an episode that does not end.
@@ -220,6 +220,8 @@ def _worker_episode(theta: NDArray[np.floating], seed: int) -> Episode:
 def _start_method() -> str:
     # Never fork: the parent may run threads (the embedded LLM server), and a forked child can
     # inherit their locks held. forkserver forks from a clean single-threaded server instead.
+    import multiprocessing
+
     return "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
@@ -266,6 +268,9 @@ class Evaluator:
 
     def _pool_for(self) -> ProcessPoolExecutor:
         if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
             from .tasks import task_ref
 
             if self.task.setup is not None:
@@ -280,6 +285,8 @@ class Evaluator:
     def _episodes_parallel(
         self, thetas: Sequence[NDArray[np.floating]], seeds_list: Sequence[Sequence[int]]
     ) -> list[list[Episode]]:
+        from concurrent.futures.process import BrokenProcessPool
+
         pool = self._pool_for()
         jobs = [
             (np.asarray(theta, dtype=np.float64), int(s)) for theta, seeds in zip(thetas, seeds_list, strict=True) for s in seeds

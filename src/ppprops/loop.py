@@ -9,13 +9,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .proposers.base import Phase
 from .values import Candidate
 
+if TYPE_CHECKING:  # the phases' module loads with the proposers: picking the best needs neither
+    from .proposers.base import Phase
+
 __all__ = ["Phase", "best_candidate", "locate", "pooled_returns", "select_best", "search_candidates"]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "Phase":  # re-exported (``from ppprops.loop import Phase``)
+        from .proposers.base import Phase
+
+        return Phase
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def locate(phases: Sequence[Phase], index: int) -> tuple[Phase, int]:

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,21 +45,24 @@ from .errors import ConfigError, LLMError, StoreError
 from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, PoolError, WorkerError, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
-from .llm.protocol import LLM
-from .llm.recording import RecordingLLM
 from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
 from .loop import locate, pooled_returns, search_candidates, select_best
 from .methods import Method, get_method
-from .policy_file import Policy, policy_document
-from .proposers.base import Phase, SearchSetup, StopSearch
-from .proposers.uniform import warmup_sampler
 from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
 from .status import RunStatus
 from .store import RunStore
-from .strategies import search_phase
 from .tasks import FeedbackKeyError, Task
 from .values import Candidate, Feedback, FinalEval, Trial
-from .wire.forms import CHAT, ENDPOINT_COMPLETIONS, FORMS, PromptForm
+
+# What only asking a new trial, the env-driven loop or the policy needs (the proposers, the prompt
+# forms, the LLM client, the policy file) is imported where it is used: `ppprops tell` and
+# `ppprops ask`, one process per trial, load a study without them (tests/test_startup.py).
+if TYPE_CHECKING:
+    from .llm.protocol import LLM
+    from .llm.recording import RecordingLLM
+    from .policy_file import Policy
+    from .proposers.base import Phase
+    from .wire.forms import PromptForm
 
 # Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
 BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
@@ -234,6 +237,8 @@ class Study:
             if status is RunStatus.STOPPED or n >= self.total:
                 why = f"it stopped: {reason}" if status is RunStatus.STOPPED and reason else f"all {n} of {self.total} trials are told"
                 raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it")
+            from .proposers.base import StopSearch
+
             self._sync()
             phase, iteration = locate(self._get_phases(), n)
             t0 = time.perf_counter()
@@ -367,6 +372,8 @@ class Study:
             raise ConfigError(f"another process is running {self.run_dir}; wait for it, or stop it first") from None
 
     def _optimize(self, callbacks: Sequence[Callback], events: RunEvents) -> FinalEval | None:
+        from .proposers.base import StopSearch
+
         store = self.store
         evaluator = self.evaluator
         status, _ = store.run_status()
@@ -468,6 +475,8 @@ class Study:
 
     def policy_document(self, best: Candidate | None = None, fe: FinalEval | None = None) -> dict[str, Any]:
         """The policy file's content for ``best`` (default: the candidate to hand over, ``best``)."""
+        from .policy_file import policy_document
+
         best = best if best is not None else self.best
         if best is None:
             raise ConfigError("no trial has been told: there is no policy yet")
@@ -482,6 +491,8 @@ class Study:
 
     def policy(self) -> Policy:
         """The deployable policy of the best told trial (raw observation -> action), as the policy file holds it."""
+        from .policy_file import Policy
+
         return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
 
     def _write_policy(self, best: Candidate, fe: FinalEval | None) -> None:
@@ -507,6 +518,11 @@ class Study:
 
     def _get_phases(self) -> list[Phase]:
         if self._phases is None:
+            from .proposers.base import Phase, SearchSetup
+            from .proposers.uniform import warmup_sampler
+            from .strategies import search_phase
+            from .wire.forms import FORMS
+
             config = self.config
             warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec)
             phases = [Phase("warmup", warmup, config.warmup)]
@@ -535,6 +551,8 @@ class Study:
         """The run's recording LLM client, over the model given or the configured one (``llm.client.connect``:
         nothing is started before the first request)."""
         if self._recording is None:
+            from .llm.recording import RecordingLLM
+
             model = self._llm_given
             if model is None:
                 from .llm.client import connect
@@ -561,6 +579,8 @@ class Study:
     def _form(self) -> PromptForm:
         """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
         for a model that cannot continue documents (a form it cannot serve, chosen explicitly: ConfigError)."""
+        from .wire.forms import CHAT, ENDPOINT_COMPLETIONS, FORMS
+
         form = FORMS[self.config.form]
         if form.endpoint == ENDPOINT_COMPLETIONS and ENDPOINT_COMPLETIONS not in self._llm().endpoints:
             if self.config.prompt_form == form.name:

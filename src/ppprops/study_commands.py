@@ -176,7 +176,6 @@ def cmd_tell(a: argparse.Namespace) -> int:
     """``ppprops tell DIR TRIAL ...``: record a trial's raw feedback; prints one line (the
     candidate's return and the best so far). Errors store nothing. After the last trial the
     study's warm server (``cmd_ask``), if any, stops."""
-    from .llm.embedded import stop_warm_server
     from .study import Study
 
     if a.stdin:
@@ -197,6 +196,8 @@ def cmd_tell(a: argparse.Namespace) -> int:
         best = study.best
         told, total = study.store.candidate_count(), study.total
         if study.done:
+            from .llm.embedded import stop_warm_server  # the embedded model's client: only after the last trial
+
             stop_warm_server(a.dir)
     best_text = f"; best {best.ret:.4g} (trial {best.index})" if best is not None else ""
     print(f"trial {cand.index}: return {cand.ret:.4g}{best_text}; {told} of {total} told")
