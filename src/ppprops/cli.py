@@ -21,9 +21,8 @@ import os
 import re
 import sys
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn
 
 from .errors import ConfigError, PPPropsError
 from .version import __version__
@@ -57,8 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     return _build_parsers()[0]
 
 
-@dataclass(frozen=True)
-class Command:
+class Command(NamedTuple):
     """One subcommand of ``ppprops``: its one-line help (all that ``ppprops --help`` shows of it),
     what adds its arguments to its parser, and its handler (the exit code)."""
 
