@@ -8,6 +8,11 @@ them fast, and check that the command line built for one subcommand is the one b
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -86,3 +91,78 @@ def test_a_command_line_parses_as_with_the_whole_parser(argv: list[str], capsys:
     """``cli.parser_for(argv)`` gives what ``cli.build_parser()`` gives for ``argv``: the same
     namespace, or the same help, version or one-line error and exit code."""
     assert _parse(cli.parser_for(argv), argv, capsys) == _parse(cli.build_parser(), argv, capsys)
+
+
+# -- what each command loads ------------------------------------------------------------------------
+_LOADED = """
+import json, sys
+from ppprops.cli import main
+try:
+    main(sys.argv[2:])
+except SystemExit:
+    pass
+with open(sys.argv[1], "w") as f:
+    json.dump(sorted(sys.modules), f)
+"""
+
+# Never for ask (a stored trial) or tell: the attacks and the audit, the experiment grids, the settings
+# table, the LLM clients and the embedded model, the prompt forms and proposers, the worker pool, the
+# optional extras; tell loads the run's schema (pydantic), its task and codec, nothing more.
+NEVER = ("ppprops.privacy.simfit", "ppprops.privacy.attacks", "ppprops.privacy.audit", "ppprops.privacy.commands",
+         "ppprops.experiments", "ppprops.settings", "ppprops.api", "ppprops.runner", "ppprops.llm.client", "ppprops.llm.embedded",
+         "ppprops.llm.recording", "ppprops.proposers.llm", "ppprops.strategies", "ppprops.wire.forms", "ppprops.wire.parse",
+         "ppprops.wire.document", "ppprops.policy_file", "ppprops.baselines.rl", "ppprops.tasks.commands", "multiprocessing",
+         "concurrent.futures", "urllib.request", "http.client", "openai", "httpx", "torch", "gymnasium", "scipy", "yaml", "ray",
+         "xllamacpp")  # fmt: skip
+# ask re-prints a stored trial from the store: not even the schema, the task, the codec or the study.
+NEVER_ASK = (*NEVER, "pydantic", "ppprops.config", "ppprops.methods", "ppprops.tasks", "ppprops.study", "ppprops.client.codec",
+             "ppprops.wire", "ppprops.evaluation")  # fmt: skip
+
+
+def _loaded(tmp_path: Path, argv: list[str]) -> set[str]:
+    out = tmp_path / "modules.json"
+    proc = subprocess.run([sys.executable, "-c", _LOADED, str(out), *argv], capture_output=True, text=True, timeout=300)
+    assert out.exists(), proc.stderr
+    return set(json.loads(out.read_text()))
+
+
+def _found(loaded: set[str], never: tuple[str, ...]) -> list[str]:
+    return sorted(m for m in loaded if any(m == n or m.startswith(n + ".") for n in never))
+
+
+@pytest.fixture(scope="module")
+def asked(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A study whose first trial is asked for and stored (pending)."""
+    study = tmp_path_factory.mktemp("startup") / "study"
+    assert cli.main(["study", "create", "--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "2",
+                     "--out", str(study)]) == 0  # fmt: skip
+    assert cli.main(["ask", str(study)]) == 0
+    return study
+
+
+def test_help_loads_the_command_line_alone(tmp_path: Path) -> None:
+    loaded = _loaded(tmp_path, ["--help"])
+    assert {m for m in loaded if m.startswith("ppprops")} == {"ppprops", "ppprops.cli", "ppprops.errors", "ppprops.version"}
+    assert "numpy" not in loaded and "pydantic" not in loaded and "dataclasses" not in loaded
+
+
+def test_asking_for_a_stored_trial_loads_the_store_alone(tmp_path: Path, asked: Path) -> None:
+    loaded = _loaded(tmp_path, ["ask", str(asked)])
+    assert "ppprops.store" in loaded and "ppprops.study_commands" in loaded  # it did ask
+    assert _found(loaded, NEVER_ASK) == []
+
+
+def test_tell_loads_no_search_attack_or_llm_module(tmp_path: Path, asked: Path) -> None:
+    study = tmp_path / "study"
+    shutil.copytree(asked, study)
+    loaded = _loaded(tmp_path, ["tell", str(study), "0", "--return", "1"])
+    assert "ppprops.study" in loaded and "ppprops.client.codec" in loaded  # it did tell
+    assert _found(loaded, NEVER) == []
+
+
+def test_the_check_sees_a_module_loaded(tmp_path: Path, asked: Path) -> None:
+    """The check above is live: the full path of ask (no stored trial) loads what NEVER_ASK names."""
+    study = tmp_path / "study"
+    shutil.copytree(asked, study)
+    assert cli.main(["tell", str(study), "0", "--return", "1"]) == 0
+    assert {"pydantic", "ppprops.study", "ppprops.tasks"} <= set(_found(_loaded(tmp_path, ["ask", str(study)]), NEVER_ASK))
