@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -95,14 +96,14 @@ def test_a_command_line_parses_as_with_the_whole_parser(argv: list[str], capsys:
 
 # -- what each command loads ------------------------------------------------------------------------
 _LOADED = """
-import json, sys
+import json, os, sys
 from ppprops.cli import main
 try:
     main(sys.argv[2:])
 except SystemExit:
     pass
 with open(sys.argv[1], "w") as f:
-    json.dump(sorted(sys.modules), f)
+    json.dump({"modules": sorted(sys.modules), "blas": os.environ.get("OPENBLAS_THREAD_TIMEOUT")}, f)
 """
 
 # Never for ask (a stored trial) or tell: the attacks and the audit, the experiment grids, the settings
@@ -119,11 +120,18 @@ NEVER_ASK = (*NEVER, "pydantic", "ppprops.config", "ppprops.methods", "ppprops.t
              "ppprops.wire", "ppprops.evaluation")  # fmt: skip
 
 
-def _loaded(tmp_path: Path, argv: list[str]) -> set[str]:
-    out = tmp_path / "modules.json"
-    proc = subprocess.run([sys.executable, "-c", _LOADED, str(out), *argv], capture_output=True, text=True, timeout=300)
+def _run(tmp_path: Path, argv: list[str], env: dict[str, str] | None = None) -> dict[str, Any]:
+    """What ``ppprops *argv`` leaves in a fresh process: its modules, and OPENBLAS_THREAD_TIMEOUT."""
+    out = tmp_path / "loaded.json"
+    proc = subprocess.run([sys.executable, "-c", _LOADED, str(out), *argv], capture_output=True, text=True, timeout=300,
+                          env=env)  # fmt: skip
     assert out.exists(), proc.stderr
-    return set(json.loads(out.read_text()))
+    doc: dict[str, Any] = json.loads(out.read_text())
+    return doc
+
+
+def _loaded(tmp_path: Path, argv: list[str]) -> set[str]:
+    return set(_run(tmp_path, argv)["modules"])
 
 
 def _found(loaded: set[str], never: tuple[str, ...]) -> list[str]:
@@ -166,3 +174,17 @@ def test_the_check_sees_a_module_loaded(tmp_path: Path, asked: Path) -> None:
     shutil.copytree(asked, study)
     assert cli.main(["tell", str(study), "0", "--return", "1"]) == 0
     assert {"pydantic", "ppprops.study", "ppprops.tasks"} <= set(_found(_loaded(tmp_path, ["ask", str(study)]), NEVER_ASK))
+
+
+def test_ask_and_tell_leave_the_environment_as_they_found_it(tmp_path: Path, asked: Path) -> None:
+    """numpy loads with OpenBLAS's idle threads sleeping at once (``OPENBLAS_THREAD_TIMEOUT``, read
+    when it loads); the variable is gone afterwards (nothing started later inherits it), and one
+    the user set is left alone."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_THREAD_TIMEOUT"}
+    for argv in (["ask", str(asked)], ["tell", str(tmp_path / "study"), "0", "--return", "1"]):
+        shutil.rmtree(tmp_path / "study", ignore_errors=True)
+        shutil.copytree(asked, tmp_path / "study")
+        assert _run(tmp_path, argv, env)["blas"] is None
+        shutil.rmtree(tmp_path / "study")
+        shutil.copytree(asked, tmp_path / "study")
+        assert _run(tmp_path, argv, {**env, "OPENBLAS_THREAD_TIMEOUT": "12"})["blas"] == "12"

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -123,6 +124,7 @@ def cmd_ask(a: argparse.Namespace) -> int:
     needs it starts it, the next ones reuse it. Returns 0, or ``EXIT_DONE`` (3) with one line on
     stderr when the study has nothing more to ask (its warm server, if any, then stops).
     """
+    _import_numpy()
     trial = _stored_trial(a.dir)
     if trial is not None:  # asked before and not yet told: the same trial again, from the store alone
         print(json.dumps(trial.to_json()))
@@ -139,6 +141,31 @@ def cmd_ask(a: argparse.Namespace) -> int:
             return EXIT_DONE
         print(json.dumps(trial.to_json()))
     return 0
+
+
+BLAS_THREAD_TIMEOUT = "OPENBLAS_THREAD_TIMEOUT"
+
+
+def _import_numpy() -> None:
+    """Import numpy with OpenBLAS's worker threads told to sleep as soon as they are idle
+    (``OPENBLAS_THREAD_TIMEOUT=4``: 2^4 cycles; unless the environment sets it).
+
+    By default each worker thread spins for 2^28 cycles after OpenBLAS starts, about 0.1 s of
+    another core's time in every process that imports numpy (more than numpy's own import), which
+    ``ppprops ask`` and ``ppprops tell``, one process each per trial and no BLAS work, would pay in
+    full. A BLAS call still runs on every thread (it wakes them), and results do not change. The
+    variable is set only while numpy loads, when OpenBLAS reads it, so no process started later
+    (an env worker, the embedded model) inherits it.
+    """
+    if "numpy" in sys.modules or BLAS_THREAD_TIMEOUT in os.environ:
+        import numpy  # noqa: F401
+
+        return
+    os.environ[BLAS_THREAD_TIMEOUT] = "4"
+    try:
+        import numpy  # noqa: F401
+    finally:
+        del os.environ[BLAS_THREAD_TIMEOUT]
 
 
 def _stored_trial(run_dir: Path) -> Trial | None:
@@ -176,6 +203,7 @@ def cmd_tell(a: argparse.Namespace) -> int:
     """``ppprops tell DIR TRIAL ...``: record a trial's raw feedback; prints one line (the
     candidate's return and the best so far). Errors store nothing. After the last trial the
     study's warm server (``cmd_ask``), if any, stops."""
+    _import_numpy()
     from .study import Study
 
     if a.stdin:
