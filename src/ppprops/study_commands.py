@@ -180,7 +180,6 @@ def _stored_trial(run_dir: Path) -> Trial | None:
     trial was asked, and ``tell`` checks it again.
     """
     from .client.secrets import Secrets
-    from .errors import PPPropsError
     from .locks import STUDY_LOCK, file_lock
     from .policy import param_count
     from .rundir import KEY_NAME
@@ -195,7 +194,7 @@ def _stored_trial(run_dir: Path) -> Trial | None:
                 Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=param_count(trial.n_s, trial.n_a),
                              fingerprint=store.key_fingerprint())  # fmt: skip
             return trial
-    except PPPropsError:
+    except Exception:  # whatever it is, the full path meets it too and says it as it always has
         return None
 
 
