@@ -199,9 +199,12 @@ def _group_values(group: str, given: Any, *, fields: bool = False) -> dict[str, 
     return out
 
 
-def _build(task: TaskLike, options: StudyOptions) -> tuple[RunConfig, LLM | None]:
+def _build(task: TaskLike, options: StudyOptions, own: tuple[str, ...] = ()) -> tuple[RunConfig, LLM | None]:
     """The RunConfig of ``search``'s / ``create_study``'s arguments, and the model ``llm`` names when
-    it is one (an ``LLM``) rather than settings. Raises ConfigError for an unknown option."""
+    it is one (an ``LLM``) rather than settings. ``own``: the caller's own keywords (``out``, ...),
+    named in the error for an unknown option. Raises ConfigError for an unknown option."""
+    import difflib
+
     from .methods import get_method
     from .seeding import draw_seed
     from .settings import build_config
@@ -209,7 +212,10 @@ def _build(task: TaskLike, options: StudyOptions) -> tuple[RunConfig, LLM | None
 
     unknown = sorted(set(options) - set(StudyOptions.__annotations__))
     if unknown:
-        raise ConfigError(f"unknown option {unknown[0]!r} (known: {', '.join(StudyOptions.__annotations__)})")
+        known = [*StudyOptions.__annotations__, *own]
+        close = difflib.get_close_matches(unknown[0], known, n=1)
+        hint = f"did you mean {close[0]}?" if close else f"known: {', '.join(known)}"
+        raise ConfigError(f"unknown option {unknown[0]!r} ({hint})")
     method = options.get("method", "pp")
     llm = options.get("llm")
     model: LLM | None = None
@@ -267,7 +273,7 @@ def search(task: TaskLike, *, out: Pathish | None = None, callbacks: Sequence[Ca
     from .evaluation import exit_if_importing_main_in_a_worker
 
     exit_if_importing_main_in_a_worker()  # an unguarded script re-imported by a worker must not start a second run
-    config, model = _build(task, options)
+    config, model = _build(task, options, ("out", "callbacks", "progress"))
     from .naming import default_run_dir
     from .runner import start
 
@@ -291,7 +297,7 @@ def create_study(task: TaskLike, *, storage: Pathish | None = None, **options: U
     """
     from .naming import default_run_dir
 
-    config, model = _build(task, options)
+    config, model = _build(task, options, ("storage",))
     run_dir = Path(storage) if storage is not None else default_run_dir(config)
     return Study.create(config, run_dir, llm=model)
 

@@ -59,6 +59,10 @@ def test_an_unknown_group_key_names_the_closest_one() -> None:
         _group_values("prompt", {"fomr": "chat"})
 
 
-def test_an_unknown_option_is_one_line() -> None:
-    with pytest.raises(ConfigError, match=r"^unknown option 'iteratoins' \(known: method, warmup, iterations"):
+def test_an_unknown_option_is_one_line_naming_the_closest_one() -> None:
+    with pytest.raises(ConfigError, match=r"^unknown option 'iteratoins' \(did you mean iterations\?\)$"):
         _build("CartPole", {"iteratoins": 3})  # type: ignore[typeddict-unknown-key]
+    with pytest.raises(ConfigError, match=r"^unknown option 'outt' \(did you mean out\?\)$"):
+        ppprops.search("CartPole", outt="x")  # type: ignore[call-arg]
+    with pytest.raises(ConfigError, match=r"^unknown option 'zzz' \(known: method, warmup, .*, task_options, storage\)$"):
+        ppprops.create_study("CartPole", zzz=1)  # type: ignore[call-arg]
