@@ -357,8 +357,9 @@ class Study:
 
         Raises:
             LLMError: the endpoint stayed down past the retries (status ``failed``, resumable).
-            EpisodeError, PoolError: the user's env raised in reset or step, or the worker processes
-                stopped (status ``failed``, resumable once fixed).
+            EpisodeError, PoolError: the user's env raised in reset or step or returned a malformed
+                value (``MalformedEnvError``), or the worker processes stopped (status ``failed``,
+                resumable once fixed). Any other error is raised as it is, with status ``failed: <it>``.
             KeyboardInterrupt: Ctrl-C (status ``interrupted``, resumable).
             FeedbackKeyError, EpisodeLimitError, WorkerError: the env broke its task's
                 declaration (status ``stopped: ...``).
@@ -408,9 +409,12 @@ class Study:
         except BROKEN_TASK as e:  # the env broke its declaration
             store.set_status(RunStatus.STOPPED, str(e))
             raise
-        except (EpisodeError, PoolError) as e:  # the user's env raised, or the workers died: fix it, then resume
+        except (EpisodeError, PoolError) as e:  # the user's env raised or returned nonsense, or the workers died: fix it, then resume
             self._mark(RunStatus.FAILED, str(e))
             raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from None
+        except Exception as e:  # nothing above foresaw it: the status says so (not "interrupted"), and the error goes on
+            self._mark(RunStatus.FAILED, f"{type(e).__name__}: {e}".splitlines()[0])
+            raise
         if fe is not None:
             events.on_final(fe)
         return fe
