@@ -316,12 +316,12 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
     config = run_config(a)
     out = a.out or default_run_dir(config)
-    check_startable(config, out)  # every check that needs no episode, before anything is written or printed
+    env = check_startable(config, out)  # every check that needs no episode, before anything is written or printed
     a.run_dir = out  # named by the Ctrl-C line
     if not a.quiet:
         _say(f"run directory: {out} (seed {config.seed})")
     with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
-        start(config, out, events.hooks())
+        start(config, out, events.hooks(), env=env)  # the run's episodes use the env the checks made
     return _finished(out, a.json, a.audit)
 
 

@@ -98,11 +98,13 @@ class Study:
             (``llm.embedded.WarmServer``: started by the first process that needs it, left
             running for the next, stopped when idle or by ``finalize``) instead of one started
             and stopped with this study object (``ppprops ask``, one process per trial).
+        env: an env of the task made already (``runner.check_startable`` makes it before the run
+            directory exists): the episodes run on it, and the study closes it.
     """
 
     def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, llm: LLM | None = None,
                  llm_gate: AbstractContextManager[object] | None = None, events: RunEvents = NO_EVENTS,
-                 warm_llm: bool = False) -> None:  # fmt: skip
+                 warm_llm: bool = False, env: Any = None) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.store = store
         self.config = config
@@ -120,6 +122,7 @@ class Study:
         self._phases: list[Phase] | None = None
         self._told = 0  # candidates the proposers have been told
         self._evaluator: Evaluator | None = None
+        self._env = env
 
     # -- making and opening -------------------------------------------------------------------
     @classmethod
@@ -160,6 +163,9 @@ class Study:
             if self._evaluator is not None:
                 self._evaluator.close()
                 self._evaluator = None
+            if self._env is not None:  # given and never used
+                self._env.close()
+                self._env = None
         finally:
             self.store.close()
 
@@ -344,7 +350,8 @@ class Study:
         if self._evaluator is None:
             if not self.has_env:
                 raise ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
-            self._evaluator = Evaluator(self.task, workers=self.config.workers)
+            self._evaluator = Evaluator(self.task, workers=self.config.workers, env=self._env)
+            self._env = None  # the evaluator's now
         return self._evaluator
 
     def optimize(self, callbacks: Sequence[Callback] = (), events: RunEvents | None = None) -> FinalEval | None:
