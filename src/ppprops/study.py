@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
 from functools import partial
 from pathlib import Path
@@ -285,12 +285,20 @@ class Study:
                     raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
                 if number < recorded:
                     raise ConfigError(f"trial {number} was already told; each trial is told once")
+                if pending is None:
+                    status, _ = self.store.run_status()
+                    if status is RunStatus.FINISHED:
+                        raise ConfigError(f"study {self.run_dir} is finalized ({recorded} of {self.total} trials told): "
+                                          "nothing more can be told")
+                    if status is RunStatus.STOPPED or recorded >= self.total:
+                        raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
+                                          f"{self.total} trials told): finalize it")
                 waiting = "no trial is pending: ask first" if pending is None else f"the study waits for trial {pending.number}"
                 raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
             if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
                 raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
             if feedback is None and returns is not None and pending.seeds:
-                given_n = 1 if isinstance(returns, (int, float, np.floating, np.integer)) else len(returns)
+                given_n = len(_returns(returns))
                 if 0 < given_n < len(pending.seeds):  # more is welcome (their mean is used), fewer is less evidence than asked
                     raise ConfigError(f"trial {number} asked for {len(pending.seeds)} episodes (its seeds) and {given_n} "
                                       f"return(s) were told: tell one return per episode (ppprops tell --stdin: "
@@ -309,7 +317,7 @@ class Study:
         """Told values as one Feedback (the mean over the episodes given), checked against the task."""
         if returns is None:
             raise ConfigError("tell needs the episode return(s) (or a Feedback)")
-        rets = [returns] if isinstance(returns, (int, float, np.floating, np.integer)) else list(returns)
+        rets = _returns(returns)
         if not rets:
             raise ConfigError("tell needs at least one episode return")
         n = len(rets)
@@ -599,6 +607,16 @@ class Study:
                                   "endpoint); this one serves chat only: use --prompt-form chat or auto")
             return CHAT
         return form
+
+
+def _returns(returns: Any) -> list[Any]:
+    """``returns`` as a list: one value (a number, or anything that is not a sequence of them: a text
+    is one value, not its characters), or the values of a sequence."""
+    if isinstance(returns, (str, bytes, Mapping)) or not isinstance(returns, Iterable):
+        return [returns]
+    if isinstance(returns, np.ndarray) and returns.ndim == 0:
+        return [returns.item()]
+    return list(returns)
 
 
 def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
