@@ -589,11 +589,11 @@ class Study:
     def feedback_notice(self, form: PromptForm) -> str | None:
         """The line a run says once when the prompt form will not show the detailed feedback the
         settings ask for (a form whose entries show returns only)."""
-        declared = [*self.task.components, *(d for d in self.task.diagnostics if d != "episode_length")]
+        declared = self.task.detailed_feedback()
         if form.shows_feedback or not self.config.mechanisms.detailed_feedback or not declared:
             return None
-        return (f"the {form.name} form (the embedded model's default) shows the LLM returns only: the reward components and "
-                f"diagnostics of this task ({', '.join(declared)}) are not in its prompts; --prompt-form chat shows them")
+        return (f"the {form.name} form (the embedded model's default) shows the LLM the returns only, not the detailed feedback "
+                f"of this task ({declared}); --prompt-form chat shows it")
 
     def _form(self) -> PromptForm:
         """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
