@@ -126,6 +126,8 @@ def summarize(run: StoredRun) -> dict[str, Any]:
                 "source": c.source,
                 "params": [float(v) for v in c.params],
                 "return": c.ret,
+                "seeds": [int(x) for x in c.seeds],  # one per episode, in order: reset an env with them to replay the trial
+                "episode_returns": [float(r) for r in c.feedback.episode_returns],
                 "components": c.feedback.components,
                 "diagnostics": c.feedback.diagnostics,
                 "clipped": c.clipped,
