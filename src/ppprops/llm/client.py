@@ -331,7 +331,6 @@ class RequestShape:
                              f"{self.rate:.1f} tokens/s and up to {budget} tokens are asked for")
         return notes
 
-
     def schema_evidence(self, req: FormRequest, content: str | None, reasoning: str | None, finish_reason: str | None) -> list[str]:
         """Weigh one answer (not cut off) to a request of a form with a JSON schema, under
         ``--structured auto``; returns the change made, in words, if any.
