@@ -106,3 +106,53 @@ def test_a_script_without_its_main_guard_gets_one_clear_error_and_one_run(tmp_pa
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["x"]
     with open_store(tmp_path / "runs" / "x") as store:
         assert store.status().startswith("failed: the worker processes of workers > 1 stopped") and store.candidate_count() == 0
+
+
+STRING_OBSERVATION = textwrap.dedent('''
+    import gymnasium as gym
+    import numpy as np
+
+
+    class Text(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
+        action_space = gym.spaces.Discrete(2)
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            return np.zeros(3, np.float32), {}
+
+        def step(self, action):
+            return "abc", 0.0, False, False, {}
+''')
+
+
+def test_the_console_script_says_a_malformed_value_in_one_line(tmp_path: Path) -> None:
+    """The console script, as a user runs it: one line on stderr (no traceback, no warning), exit 2,
+    the run stored as failed; ``task check`` reports the same line on stdout and exits 1."""
+    (tmp_path / "text_env.py").write_text(STRING_OBSERVATION)
+    proc = _ppprops(["run", "--env", "text_env:Text", "--method", "random", "--warmup", "2", "--iterations", "1", "--out", "r",
+                     "--quiet"], tmp_path)
+    with open_store(tmp_path / "r") as store:
+        seed = store.pending_trial().seeds[0]  # type: ignore[union-attr]
+        status = store.status()
+    line = (f"the env of task text_env:Text returned a malformed value in step 1 (episode seed {seed}): observation 'abc' is a "
+            "str, not an array of numbers (its observation space is Box(-1.0, 1.0, (3,), float32))")
+    assert (proc.returncode, proc.stdout) == (2, "")
+    assert proc.stderr == f"ppprops: error: {line}; the run is saved: continue with 'ppprops resume r'\n"
+    assert status == f"failed: {line}"
+    check = _ppprops(["task", "check", "--env", "text_env:Text"], tmp_path)
+    assert (check.returncode, check.stderr) == (1, "")
+    assert check.stdout.splitlines()[1] == "  " + line.replace(f"episode seed {seed}", "episode seed 0")
+
+
+def test_a_missing_extra_leaves_no_run_directory(tmp_path: Path) -> None:
+    """``--env Ant-Ultra`` on an install without MuJoCo (here its import fails): the extra's line,
+    exit 2, and nothing at --out, so the same command runs once the extra is installed."""
+    (tmp_path / "shim" / "mujoco").mkdir(parents=True)
+    (tmp_path / "shim" / "mujoco" / "__init__.py").write_text("raise ImportError('No module named mujoco')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "shim"), SRC, os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.run([sys.executable, "-m", "ppprops", "run", "--env", "Ant-Ultra", "--method", "random", "--out", "runs/ant"],
+                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert (proc.returncode, proc.stdout) == (2, "")
+    assert proc.stderr == "ppprops: error: each MuJoCo task (Ant-v5, Humanoid-v5) needs the 'mujoco' extra: pip install 'ppprops[mujoco]'\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shim"]

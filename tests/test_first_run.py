@@ -62,10 +62,11 @@ def test_the_document_form_says_once_that_it_does_not_show_the_feedback(tmp_path
         code, _, err = _run(capsys, ["run", "--env", "Acrobot", "--method", "pp", "--warmup", "3", "--iterations", "3", "--final-episodes",
                                      "0", "--select-top", "0", "--out", str(tmp_path / "doc"), "--quiet"])  # fmt: skip
     assert code == 0
-    note = ("note: the document form (the embedded model's default) shows the LLM returns only: the reward components and "
-            "diagnostics of this task (success, mean_tip_height) are not in its prompts; --prompt-form chat shows them")
+    note = ("note: the document form (the embedded model's default) shows the LLM the returns only, not the detailed "
+            "feedback of this task (2 diagnostics); --prompt-form chat shows it\n")
     assert err.count("note: ") == 1 and note in err
-    assert "note     the document form showed the LLM returns only: success, mean_tip_height" in format_summary(run_summary(tmp_path / "doc"))
+    assert ("\nnote     the document form showed the LLM the returns only, not the detailed feedback of this task (2 diagnostics); "
+            "--prompt-form chat shows it\n") in format_summary(run_summary(tmp_path / "doc"))
     with offline_llm():  # the chat form shows them: nothing to say
         code, _, err = _run(capsys, ["run", "--env", "Acrobot", "--method", "pp", "--prompt-form", "chat", "--warmup", "3", "--iterations",
                                      "1", "--final-episodes", "0", "--select-top", "0", "--out", str(tmp_path / "chat"), "--quiet"])  # fmt: skip

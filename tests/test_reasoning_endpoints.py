@@ -273,8 +273,9 @@ def test_row8_max_completion_tokens_and_no_temperature_and_no_http_error_as_a_co
 def test_row9_auto_drops_the_schema_after_repeated_unusable_answers_under_it(tmp_path: Path) -> None:
     r = run(tmp_path, "ollama_gpt_oss", llm=dict(reasoning_effort="low"))
     assert [c["parse_error"] for c in r.calls[:2]] == ["no_numbers", "no_numbers"]
-    assert [a["change"] for a in r.adaptations] == [
-        "dropped the JSON schema (plain answers): 2 answers in a row under it were unusable"]
+    assert [a["change"] for a in r.adaptations] == [  # the answers without it are better: it is not restored
+        "dropped the JSON schema (plain answers): 2 answers in a row under it were unusable and not JSON, as from a server "
+        "that ignores it; it comes back if the answers without it are no better"]
     assert all("response_format" in q for q in r.requests()[:2]) and not any("response_format" in q for q in r.requests()[2:])
     assert_evaluated_the_answers(r)
 

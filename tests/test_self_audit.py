@@ -19,8 +19,7 @@ from ppprops.store import open_store
 from support import find_call, offline_llm, tamper_call
 
 RUN = ["--env", "CartPole", "--warmup", "4", "--iterations", "3", "--final-episodes", "0", "--select-top", "0", "--quiet"]
-PAPER = ("pp keeps the side channels of the paper's scheme, so the full audit usually finds such a run EXPOSED by design "
-         "(pp-hardened closes them).")
+PAPER = "they usually find pp EXPOSED by design (pp-hardened closes its channels)."
 
 
 @pytest.fixture(autouse=True)
@@ -46,14 +45,17 @@ def test_the_quick_line_says_what_it_checked_and_names_the_full_audit(tmp_path: 
     line = _run(out, capsys, "--method", "pp")
     report = audit_run(out, attacks=False)
     assert not report.attacked and report.requests == 3 and report.clean and not report.exposed
-    assert line == (f"privacy audit: nothing raw was sent (quick check of 3 requests).{_channels(report)} {PAPER} "
-                    f"The attacks on the transcript did not run: 'ppprops audit {out}' runs them.")
+    kinds = sorted({f.kind for f in report.channels})
+    known = f"; known channels: {', '.join(kinds)}" if kinds else ""
+    assert line == f"privacy audit: nothing raw was sent (quick check of 3 requests{known}). Attacks not run: 'ppprops audit {out}'; {PAPER}"
+    assert len(line) <= 240 + len(str(out))  # short enough to read: no attack names, no percentages
     assert "CLEAN" not in line and f"'ppprops audit {out}'" in line
     # a preset that closes the paper's channels is not told it keeps them
     hard = tmp_path / "hard"
     line = _run(hard, capsys, "--method", "pp-hardened", "--seed", "987654")
-    assert line == (f"privacy audit: nothing raw was sent (quick check of 3 requests). "
-                    f"The attacks on the transcript did not run: 'ppprops audit {hard}' runs them.")
+    kinds = sorted({f.kind for f in audit_run(hard, attacks=False).channels})
+    known = f"; known channels: {', '.join(kinds)}" if kinds else ""
+    assert line == f"privacy audit: nothing raw was sent (quick check of 3 requests{known}). Attacks not run: 'ppprops audit {hard}'."
 
 
 def test_the_quick_report_never_says_clean(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -71,14 +71,14 @@ def commands() -> dict[str, Command]:
     return {
         "run": Command("start a search", _add_run, _cmd_run),
         "resume": Command("continue an interrupted run with its own secrets", _add_resume, _cmd_resume),
-        "show": Command("summarise a run", _add_show, _cmd_show),
+        "show": Command("summarise a run or study", _add_show, _cmd_show),
         "policy": Command("work with a policy file", _add_policy, _cmd_policy),
         "baseline": Command("train a standard baseline and store it as a run", _add_baseline, _cmd_baseline),
         "study": Command("a search driven from outside: create a study, finalize it (see ask, tell)", _add_study, _cmd_study),
         "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask)", _add_ask, _cmd_ask),
         "tell": Command("tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)", _add_tell,
                          _cmd_tell),  # fmt: skip
-        "audit": Command("check every recorded request of a run for raw values (exit 0 clean; 1 leak, unverified or exposed)",
+        "audit": Command("check every recorded request of a run or study for raw values (exit 0 clean; 1 leak, unverified or exposed)",
                           _one_of(_privacy_commands, "audit"), _cmd_audit),  # fmt: skip
         "privacy-report": Command("attacks x scheme (pp, pp-hardened) and their search results",
                                    _one_of(_privacy_commands, "privacy-report"), _cmd_privacy_report),  # fmt: skip
@@ -177,7 +177,7 @@ def _add_resume(rs: argparse.ArgumentParser) -> None:
 
 
 def _add_show(sh: argparse.ArgumentParser) -> None:
-    sh.add_argument("dir", type=Path, help="a run directory")
+    sh.add_argument("dir", type=Path, help="a run or study directory")
     sh.add_argument("--json", action="store_true", help="one JSON object with every candidate and LLM call")
 
 
@@ -316,12 +316,12 @@ def _cmd_run(a: argparse.Namespace) -> int:
 
     config = run_config(a)
     out = a.out or default_run_dir(config)
-    check_startable(config, out)  # every check that needs no episode, before anything is written or printed
+    env = check_startable(config, out)  # every check that needs no episode, before anything is written or printed
     a.run_dir = out  # named by the Ctrl-C line
     if not a.quiet:
         _say(f"run directory: {out} (seed {config.seed})")
     with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
-        start(config, out, events.hooks())
+        start(config, out, events.hooks(), env=env)  # the run's episodes use the env the checks made
     return _finished(out, a.json, a.audit)
 
 

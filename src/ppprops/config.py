@@ -223,7 +223,9 @@ def read_text(path: Path, what: str = "config file") -> str:
     except FileNotFoundError:
         raise ConfigError(f"{what} {path} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{what} {path} cannot be read ({e.__class__.__name__})") from None
+        from .fileio import read_error
+
+        raise ConfigError(f"{what} {path} cannot be read: {read_error(e)}") from None
 
 
 def read_toml(path: Path, what: str = "config file") -> dict[str, Any]:

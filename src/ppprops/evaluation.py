@@ -41,6 +41,12 @@ class EpisodeError(ConfigError):
     once the env is fixed."""
 
 
+class MalformedEnvError(EpisodeError):
+    """The env returned a malformed value from ``reset`` or ``step`` (a wrong shape or type, a reward
+    that is not a number: ``tasks.outputs``): one line naming the call, the episode seed and the
+    value; the run can be resumed once the env is fixed."""
+
+
 class PoolError(ConfigError):
     """The worker processes stopped (``BrokenProcessPool``); the line says the likely cause."""
 
@@ -89,21 +95,32 @@ def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: in
                 on_step: Callable[[NDArray[np.float64], Any], None] | None = None) -> Episode:  # fmt: skip
     """One episode of ``policy`` on ``env``, reset with ``seed``: the one episode loop of ppprops.
 
-    A non-finite observation or reward ends the episode and is marked (diagnostic
-    ``numerical_fault``), never propagated. ``max_steps`` (see ``step_cap``) bounds an episode of
-    an env with no time limit: past it the episode is an ``EpisodeLimitError``, never an endless
-    loop. ``on_step(state, action)`` sees each policy input (the task's observation vector, shape
-    (n_s,)) and the action taken, before the step (R2PO's rollout evidence).
+    What ``reset`` and every ``step`` return is checked against the env's declared spaces
+    (``tasks.outputs.OutputCheck``: Gymnasium's passive checks) before it is used. A non-finite
+    observation or reward ends the episode and is marked (diagnostic ``numerical_fault``), never
+    propagated. ``max_steps`` (see ``step_cap``) bounds an episode of an env with no time limit:
+    past it the episode is an ``EpisodeLimitError``, never an endless loop. ``on_step(state,
+    action)`` sees each policy input (the task's observation vector, shape (n_s,)) and the action
+    taken, before the step (R2PO's rollout evidence).
 
     Raises:
+        EpisodeError: the env raised in ``reset`` or ``step``.
+        MalformedEnvError: the env returned a malformed value (the call, the seed and the value, in one line).
         EpisodeLimitError: the episode ran past ``max_steps``.
         FeedbackKeyError: the env's info lacks a declared component or diagnostic.
     """
+    from .tasks.outputs import OutputCheck, call_line
+
     recorder = task.feedback()
+    check = OutputCheck(env, getattr(task.observation, "keys", None))
     try:
-        obs, info = env.reset(seed=seed)
+        result = env.reset(seed=seed)
     except Exception as e:  # the user's env: one line, never a traceback
         raise EpisodeError(f"the env of task {task.name} raised in reset (episode seed {seed}): {_user_error(e)}") from None
+    problem = check.reset(result)
+    if problem is not None:
+        raise MalformedEnvError(call_line(task.name, "reset", seed, problem))
+    obs, info = result
     total = 0.0
     steps = 0
     terminated = truncated = False
@@ -117,10 +134,14 @@ def run_episode(task: Task, env: Any, policy: Actor, seed: int, *, max_steps: in
         if on_step is not None:
             on_step(s, action)
         try:
-            obs, reward, terminated, truncated, info = env.step(action)
+            result = env.step(action)
         except Exception as e:
             raise EpisodeError(f"the env of task {task.name} raised in step {steps + 1} (episode seed {seed}): "
                                f"{_user_error(e)}") from None
+        problem = check.step(result)
+        if problem is not None:
+            raise MalformedEnvError(call_line(task.name, f"step {steps + 1}", seed, problem))
+        obs, reward, terminated, truncated, info = result
         reward = float(reward)
         if not np.isfinite(reward) or not np.isfinite(total + reward):
             numerical_fault = True  # a bad reward, or a sum that overflowed
@@ -235,18 +256,19 @@ def check_parallel(task: Task) -> None:
 class Evaluator:
     """Runs candidates' episodes, serially in one kept-alive env or in a pool of worker processes.
 
-    With ``workers=N > 1`` every episode is a separate job for a pool of N processes, each holding
-    its own env. An episode depends only on (task, theta, seed), since ``env.reset(seed=...)``
+    ``env``: an env of ``task`` made already, which the evaluator uses as its own (and closes)
+    instead of making one. With ``workers=N > 1`` every episode is a separate job for a pool of N
+    processes, each holding its own env. An episode depends only on (task, theta, seed), since ``env.reset(seed=...)``
     reseeds the env, so the results are bit-identical to a serial run, in the same order.
     """
 
-    def __init__(self, task: Task, workers: int = 1) -> None:
+    def __init__(self, task: Task, workers: int = 1, *, env: Any = None) -> None:
         if workers < 1:
             raise ConfigError(f"workers must be at least 1, got {workers}")
         self.task = task
         self.workers = workers
-        self._env: Any = None
-        self._cap: int | None = None
+        self._env: Any = env  # an env of the task made already (``runner.check_startable``): adopted, closed by ``close``
+        self._cap: int | None = None if env is None else step_cap(env)
         self._pool: ProcessPoolExecutor | None = None
 
     @property

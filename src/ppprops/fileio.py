@@ -32,3 +32,14 @@ def write_json_atomic(path: Path, doc: Any, *, indent: int = 2, sort_keys: bool 
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def read_error(e: OSError | UnicodeDecodeError) -> str:
+    """Why a file could not be read as text, in words for a one-line error: ``it is not text (byte
+    0x89 at offset 0 is not UTF-8)`` for a binary file, else the system's reason (``Permission
+    denied``, ``Is a directory``)."""
+    if isinstance(e, UnicodeDecodeError):
+        byte = e.object[e.start] if e.start < len(e.object) else None
+        at = f"byte 0x{byte:02x} at offset {e.start}" if isinstance(byte, int) else f"offset {e.start}"
+        return f"it is not text ({at} is not UTF-8)"
+    return e.strerror or e.__class__.__name__

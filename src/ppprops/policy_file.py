@@ -178,8 +178,12 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise PPPropsError(f"policy file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise PPPropsError(f"policy file {path} cannot be read as JSON ({e.__class__.__name__})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        from .fileio import read_error
+
+        raise PPPropsError(f"policy file {path} cannot be read: {read_error(e)}") from None
+    except json.JSONDecodeError as e:
+        raise PPPropsError(f"policy file {path} is not JSON ({e.msg} at line {e.lineno})") from None
     if not isinstance(doc, dict) or doc.get("format") not in (FORMAT, FORMAT_V1):
         raise PPPropsError(f"policy file {path} is not a {FORMAT} document")
     missing = [k for k in ("n_s", "n_a", "W", "b") if k not in doc]

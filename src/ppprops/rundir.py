@@ -52,13 +52,17 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     ``secrets`` is for tests and controlled experiments; normally they are drawn fresh here.
     Everything is written under a temporary sibling name first, then renamed to ``run_dir``.
     The stored config holds the task's whole declaration (``task_spec``), so the run can be resumed
-    and evaluated in any process; a task's env and info keys are checked before anything is written.
+    and evaluated in any process; a task's env and info keys are checked before anything is written,
+    and so is what making its env needs first (a simulator extra, the modules it imports:
+    ``Task.setup``).
     """
     from .client.hardening import generate_secrets
     from .evaluation import check_parallel
 
     config.validate()
     task = config.make_task()
+    if task.has_env and task.setup is not None:
+        task.setup()  # a missing extra says so now, not at the first episode of a directory already made
     if config.task_spec is None and task.spec is not None:
         config = replace(config, task_spec=task.spec.model_dump(mode="json"))
     if config.workers > 1:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from .client.secrets import Secrets
 from .config import RunConfig
@@ -29,19 +30,25 @@ __all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "create_ru
            "start"]
 
 
-def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) -> None:
-    """Every check of a new run that needs no episode, before anything is written: the task has an
-    env (a task without one is driven with ask/tell), the output directory is free, worker processes
-    can make the env, and the API key variable is set when the method will call the configured
-    endpoint (``endpoint``: False when a model object stands in for it).
+def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) -> Any:
+    """Every check of a new run that needs no episode, before anything is written: the settings
+    are valid, the task has an env (a task without one is driven with ask/tell), the output
+    directory is free, worker processes can make the env, the API key variable is set when the
+    method will call the configured endpoint (``endpoint``: False when a model object stands in
+    for it), and the env can be made (a simulator extra that is missing, a module that fails to
+    import, a constructor that raises).
+
+    Returns the env made by the last check, for the run's episodes: hand it to ``start(env=...)``,
+    which closes it (or close it yourself).
 
     Raises:
-        ConfigError: one line saying what to change.
+        ConfigError: one line saying what to change (a ``MissingExtraError`` names the extra).
     """
     from .llm.client import read_api_key
     from .methods import get_method
     from .rundir import check_out
 
+    config.validate()
     task = config.make_task()
     if not getattr(task, "has_env", True):
         raise ConfigError(f"task {task.name} has no env, so 'ppprops run' cannot evaluate its policies: drive it with "
@@ -51,6 +58,7 @@ def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) 
         check_parallel(task)
     if endpoint and get_method(config.method).uses_llm and config.iterations > 0 and not config.llm.embedded:
         read_api_key(config.llm)
+    return task.make_env()
 
 
 def start(
@@ -62,14 +70,17 @@ def start(
     llm_gate: AbstractContextManager[object] | None = None,
     llm: LLM | None = None,
     callbacks: Sequence[Callback] = (),
+    env: Any = None,
 ) -> FinalEval | None:
-    """Create the run directory (``create_run``) and run it: warm-up, search, final evaluation,
-    policy file (Algorithm 1 of the paper for the prompted methods).
+    """Check that the run can start (``check_startable``), create the run directory
+    (``create_run``) and run it: warm-up, search, final evaluation, policy file (Algorithm 1 of the
+    paper for the prompted methods).
 
     A loop over the study (``Study.create(...).optimize()``). ``llm_gate`` (e.g. a shared
     semaphore) is held around every LLM request of the run; ``llm`` replaces the configured LLM;
     ``secrets`` replaces freshly drawn ones (tests, controlled grids); ``callbacks`` are called
-    after each candidate (``Study.optimize``).
+    after each candidate (``Study.optimize``); ``env`` is the env ``check_startable`` returned,
+    when the caller ran the checks itself (they are not run again; the run closes it).
 
     Returns:
         The final evaluation (the best search policy on ``final_episodes`` fresh episodes, raw
@@ -83,8 +94,14 @@ def start(
         FeedbackKeyError, EpisodeLimitError: the env broke its declaration mid-run (status
             ``stopped: ...``).
     """
-    check_startable(config, run_dir, endpoint=llm is None)
-    with Study.create(config, run_dir, secrets=secrets, llm=llm, llm_gate=llm_gate, events=events) as study:
+    if env is None:
+        env = check_startable(config, run_dir, endpoint=llm is None)
+    try:
+        study = Study.create(config, run_dir, secrets=secrets, llm=llm, llm_gate=llm_gate, events=events, env=env)
+    except BaseException:
+        env.close()
+        raise
+    with study:
         return study.optimize(callbacks, events)
 
 

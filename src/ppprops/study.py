@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
 from functools import partial
 from pathlib import Path
@@ -98,11 +98,13 @@ class Study:
             (``llm.embedded.WarmServer``: started by the first process that needs it, left
             running for the next, stopped when idle or by ``finalize``) instead of one started
             and stopped with this study object (``ppprops ask``, one process per trial).
+        env: an env of the task made already (``runner.check_startable`` makes it before the run
+            directory exists): the episodes run on it, and the study closes it.
     """
 
     def __init__(self, run_dir: Path, store: RunStore, config: RunConfig, secrets: Secrets, *, llm: LLM | None = None,
                  llm_gate: AbstractContextManager[object] | None = None, events: RunEvents = NO_EVENTS,
-                 warm_llm: bool = False) -> None:  # fmt: skip
+                 warm_llm: bool = False, env: Any = None) -> None:  # fmt: skip
         self.run_dir = Path(run_dir)
         self.store = store
         self.config = config
@@ -120,6 +122,7 @@ class Study:
         self._phases: list[Phase] | None = None
         self._told = 0  # candidates the proposers have been told
         self._evaluator: Evaluator | None = None
+        self._env = env
 
     # -- making and opening -------------------------------------------------------------------
     @classmethod
@@ -160,6 +163,9 @@ class Study:
             if self._evaluator is not None:
                 self._evaluator.close()
                 self._evaluator = None
+            if self._env is not None:  # given and never used
+                self._env.close()
+                self._env = None
         finally:
             self.store.close()
 
@@ -279,12 +285,20 @@ class Study:
                     raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
                 if number < recorded:
                     raise ConfigError(f"trial {number} was already told; each trial is told once")
+                if pending is None:
+                    status, _ = self.store.run_status()
+                    if status is RunStatus.FINISHED:
+                        raise ConfigError(f"study {self.run_dir} is finalized ({recorded} of {self.total} trials told): "
+                                          "nothing more can be told")
+                    if status is RunStatus.STOPPED or recorded >= self.total:
+                        raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
+                                          f"{self.total} trials told): finalize it")
                 waiting = "no trial is pending: ask first" if pending is None else f"the study waits for trial {pending.number}"
                 raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
             if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
                 raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
             if feedback is None and returns is not None and pending.seeds:
-                given_n = 1 if isinstance(returns, (int, float, np.floating, np.integer)) else len(returns)
+                given_n = len(_returns(returns))
                 if 0 < given_n < len(pending.seeds):  # more is welcome (their mean is used), fewer is less evidence than asked
                     raise ConfigError(f"trial {number} asked for {len(pending.seeds)} episodes (its seeds) and {given_n} "
                                       f"return(s) were told: tell one return per episode (ppprops tell --stdin: "
@@ -303,7 +317,7 @@ class Study:
         """Told values as one Feedback (the mean over the episodes given), checked against the task."""
         if returns is None:
             raise ConfigError("tell needs the episode return(s) (or a Feedback)")
-        rets = [returns] if isinstance(returns, (int, float, np.floating, np.integer)) else list(returns)
+        rets = _returns(returns)
         if not rets:
             raise ConfigError("tell needs at least one episode return")
         n = len(rets)
@@ -344,7 +358,8 @@ class Study:
         if self._evaluator is None:
             if not self.has_env:
                 raise ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
-            self._evaluator = Evaluator(self.task, workers=self.config.workers)
+            self._evaluator = Evaluator(self.task, workers=self.config.workers, env=self._env)
+            self._env = None  # the evaluator's now
         return self._evaluator
 
     def optimize(self, callbacks: Sequence[Callback] = (), events: RunEvents | None = None) -> FinalEval | None:
@@ -357,8 +372,9 @@ class Study:
 
         Raises:
             LLMError: the endpoint stayed down past the retries (status ``failed``, resumable).
-            EpisodeError, PoolError: the user's env raised in reset or step, or the worker processes
-                stopped (status ``failed``, resumable once fixed).
+            EpisodeError, PoolError: the user's env raised in reset or step or returned a malformed
+                value (``MalformedEnvError``), or the worker processes stopped (status ``failed``,
+                resumable once fixed). Any other error is raised as it is, with status ``failed: <it>``.
             KeyboardInterrupt: Ctrl-C (status ``interrupted``, resumable).
             FeedbackKeyError, EpisodeLimitError, WorkerError: the env broke its task's
                 declaration (status ``stopped: ...``).
@@ -408,9 +424,12 @@ class Study:
         except BROKEN_TASK as e:  # the env broke its declaration
             store.set_status(RunStatus.STOPPED, str(e))
             raise
-        except (EpisodeError, PoolError) as e:  # the user's env raised, or the workers died: fix it, then resume
+        except (EpisodeError, PoolError) as e:  # the user's env raised or returned nonsense, or the workers died: fix it, then resume
             self._mark(RunStatus.FAILED, str(e))
             raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from None
+        except Exception as e:  # nothing above foresaw it: the status says so (not "interrupted"), and the error goes on
+            self._mark(RunStatus.FAILED, f"{type(e).__name__}: {e}".splitlines()[0])
+            raise
         if fe is not None:
             events.on_final(fe)
         return fe
@@ -570,11 +589,11 @@ class Study:
     def feedback_notice(self, form: PromptForm) -> str | None:
         """The line a run says once when the prompt form will not show the detailed feedback the
         settings ask for (a form whose entries show returns only)."""
-        declared = [*self.task.components, *(d for d in self.task.diagnostics if d != "episode_length")]
+        declared = self.task.detailed_feedback()
         if form.shows_feedback or not self.config.mechanisms.detailed_feedback or not declared:
             return None
-        return (f"the {form.name} form (the embedded model's default) shows the LLM returns only: the reward components and "
-                f"diagnostics of this task ({', '.join(declared)}) are not in its prompts; --prompt-form chat shows them")
+        return (f"the {form.name} form (the embedded model's default) shows the LLM the returns only, not the detailed feedback "
+                f"of this task ({declared}); --prompt-form chat shows it")
 
     def _form(self) -> PromptForm:
         """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
@@ -588,6 +607,16 @@ class Study:
                                   "endpoint); this one serves chat only: use --prompt-form chat or auto")
             return CHAT
         return form
+
+
+def _returns(returns: Any) -> list[Any]:
+    """``returns`` as a list: one value (a number, or anything that is not a sequence of them: a text
+    is one value, not its characters), or the values of a sequence."""
+    if isinstance(returns, (str, bytes, Mapping)) or not isinstance(returns, Iterable):
+        return [returns]
+    if isinstance(returns, np.ndarray) and returns.ndim == 0:
+        return [returns.item()]
+    return list(returns)
 
 
 def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:

@@ -113,6 +113,10 @@ def _stdin_feedback() -> tuple[Any, Any, Any]:
         raise ConfigError(f"stdin: unknown key {unknown[0]!r} (known: return, returns, components, diagnostics)")
     if ("return" in doc) == ("returns" in doc):
         raise ConfigError('stdin: give "return" (one episode) or "returns" (a list, one per episode)')
+    if isinstance(doc.get("return"), list):
+        raise ConfigError('stdin: "return" is one episode\'s return; give several as "returns": [...]')
+    if "returns" in doc and not isinstance(doc["returns"], list):
+        raise ConfigError(f'stdin: "returns" must be a list, one return per episode, got {json.dumps(doc["returns"])}')
     returns = doc.get("return", doc.get("returns"))
     return returns, doc.get("components"), doc.get("diagnostics")
 

@@ -80,13 +80,12 @@ def summarize(run: StoredRun) -> dict[str, Any]:
     quiet = [str(c["form"]) for c in calls if c.get("form") in FORMS and not FORMS[str(c["form"])].shows_feedback]
     if config.mechanisms.detailed_feedback and quiet:
         try:
-            task = run.task
-            declared = [*task.components, *(d for d in task.diagnostics if d != "episode_length")]
+            declared = run.task.detailed_feedback()
         except PPPropsError:
-            declared = []
+            declared = ""
         if declared:
-            notes.append(f"the {quiet[0]} form showed the LLM returns only: {', '.join(declared)} were not in its prompts "
-                         "(--prompt-form chat shows them)")
+            notes.append(f"the {quiet[0]} form showed the LLM the returns only, not the detailed feedback of this task ({declared}); "
+                         "--prompt-form chat shows it")
     return _finite({
         "run_id": store.run_id(),
         "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
@@ -127,6 +126,8 @@ def summarize(run: StoredRun) -> dict[str, Any]:
                 "source": c.source,
                 "params": [float(v) for v in c.params],
                 "return": c.ret,
+                "seeds": [int(x) for x in c.seeds],  # one per episode, in order: reset an env with them to replay the trial
+                "episode_returns": [float(r) for r in c.feedback.episode_returns],
                 "components": c.feedback.components,
                 "diagnostics": c.feedback.diagnostics,
                 "clipped": c.clipped,

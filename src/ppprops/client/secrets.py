@@ -156,8 +156,12 @@ class Secrets:
             raw = json.loads(Path(path).read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise KeyFileError(f"key file {path} is missing; the run cannot be resumed without it") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise KeyFileError(f"key file {path} cannot be read: {e.__class__.__name__}") from None
+        except UnicodeDecodeError as e:
+            from ..fileio import read_error
+
+            raise KeyFileError(f"key file {path} is corrupt: {read_error(e)}") from None
+        except OSError as e:
+            raise KeyFileError(f"key file {path} cannot be read: {e.strerror or e.__class__.__name__}") from None
         except json.JSONDecodeError:
             raise KeyFileError(f"key file {path} is corrupt (not JSON)") from None
         try:

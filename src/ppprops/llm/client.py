@@ -24,7 +24,11 @@ usable exchange or raises, so an HTTP error never reaches the model as if it wer
   and ``reasoning_effort`` are dropped, ``max_tokens`` becomes ``max_completion_tokens`` when the
   server asks for it, the JSON schema (``response_format``) or grammar is dropped under
   ``--structured auto``. Under ``auto`` the schema is also dropped after ``SCHEMA_MISSES``
-  unusable answers in a row under it. When the endpoint turns out to reason (a reasoning field,
+  answers in a row under it that were unusable and not JSON (evidence that the server ignores
+  it), and restored for good when the answers without it turn out no better (``SCHEMA_TRIAL``).
+  Every adaptation is a hypothesis about the server, made on what the server itself did: a
+  refusal naming the parameter, answers that ignore the schema, reasoning it returns, the speed
+  it answers at. When the endpoint turns out to reason (a reasoning field,
   reasoning markup, reasoning tokens) the default token budget grows to leave room for it. Each
   change is carried on the exchange that caused it (``Exchange.adaptation``), which the store
   records in the run.
@@ -32,9 +36,13 @@ usable exchange or raises, so an HTTP error never reaches the model as if it wer
   token budget at the slowest generation speed seen so far needs longer, that time twice over
   (an adaptation like the others); before any answer the embedded model gets a prior from slow
   CPU speeds. A request that times out waits twice as long on its next try.
-- **A full context**: an answer cut off (``finish_reason`` ``length``) with fewer completion
-  tokens than the budget sent, or whose prompt and answer fill the known context, is marked
-  ``Exchange.context_full``: the server's context, not ``max_tokens``, stopped it.
+- **A full context**: an answer cut off (``finish_reason`` ``length``) whose usage says the
+  server's context is full (``RequestShape.context_full``: prompt and answer fill the known
+  context, or, with fewer completion tokens than the budget sent, add up to a usual context size or
+  to the same ceiling as an earlier such answer) is marked ``Exchange.context_full``: the server's
+  context, not ``max_tokens``, stopped it. An answer cut off below the budget with no such sign is
+  ``Exchange.cut_short``: something cut it short (a proxy, the server), and neither a larger
+  context nor a larger budget is the advice.
 """
 
 from __future__ import annotations
@@ -63,7 +71,13 @@ if TYPE_CHECKING:
 
 REASONING_ROOM = {"minimal": 1024, "low": 4096, "medium": 8192, "high": 16384}
 REASONING_ROOM_UNSET = 8192
-SCHEMA_MISSES = 2  # --structured auto drops the JSON schema after this many unusable answers in a row under it
+# --structured auto drops the JSON schema after this many answers in a row under it that were unusable
+# and not JSON (a server that holds to a schema answers a JSON object, whatever else goes wrong:
+# an answer cut short or of the wrong length is no evidence that it ignores the schema), then keeps
+# checking: once SCHEMA_TRIAL answers without it are no better than the answers with it were (the
+# share of usable ones), it restores the schema for good.
+SCHEMA_MISSES = 2
+SCHEMA_TRIAL = 3
 # Per-request timeout fitted to the budget: TIMEOUT_MARGIN times the time the whole budget takes
 # at the slowest speed seen (completion tokens per second of latency), rounded up to TIMEOUT_STEP_S;
 # never below --timeout. Before any answer, the embedded model is assumed to read the prompt at
@@ -163,7 +177,11 @@ class RequestShape:
         self.rate: float | None = None  # the slowest answer so far, completion tokens per second of latency
         self.fitted_timeout_s: float | None = None  # the timeout fitted to ``rate`` and the budget
         self._adapted: set[str] = set()
-        self._schema_misses = 0
+        self._schema_misses = 0  # answers in a row under the schema that were unusable and not JSON
+        self._with_schema = [0, 0]  # (usable, all) answers under the schema, cut-off ones aside
+        self._without_schema: list[int] | None = None  # the same since the schema was dropped on evidence (on trial)
+        self._schema_kept = False  # restored after a trial: never dropped again on evidence
+        self._ceilings: dict[int, int] = {}  # prompt + completion tokens of answers cut short -> their prompt tokens
         self._sent: tuple[str, ...] = ()  # the parameters of the last request built, in the order sent
 
     @classmethod
@@ -287,12 +305,12 @@ class RequestShape:
 
     def learn(self, req: FormRequest, content: str | None, reasoning: str | None, *, finish_reason: str | None = None,
               reasoning_tokens: int | None = None, latency_s: float | None = None, completion_tokens: int | None = None) -> list[str]:
-        """After a usable answer to ``req``: room for reasoning once the endpoint is seen to reason;
-        (``--structured auto``) no schema after ``SCHEMA_MISSES`` unusable answers in a row under it
-        (only requests that carried the schema count); and a longer timeout when ``TIMEOUT_MARGIN``
-        times the budget at the slowest speed seen so far (``completion_tokens`` in ``latency_s``
-        seconds, prompt time included; only answers that took ``TIMED_SHARE`` of the timeout or
-        more) is past the current one. Returns the changes made, in words."""
+        """After an answer to ``req`` (HTTP-wise usable): room for reasoning once the endpoint is
+        seen to reason; (``--structured auto``) the JSON schema's trial (``schema_evidence``); and a
+        longer timeout when ``TIMEOUT_MARGIN`` times the budget at the slowest speed seen so far
+        (``completion_tokens`` in ``latency_s`` seconds, prompt time included; only answers that
+        took ``TIMED_SHARE`` of the timeout or more) is past the current one. Returns the changes
+        made, in words."""
         notes = []
         saw = bool((reasoning or "").strip()) or bool(reasoning_tokens) or bool(split_reasoning(content).reasoning)
         if saw and not self.reasoning_seen:
@@ -300,13 +318,8 @@ class RequestShape:
             self.reasoning_seen = True
             if self.max_tokens(req) != before:
                 notes.append(f"{self.token_param} raised from {before} to {self.max_tokens(req)}: the endpoint returns reasoning")
-        if (req.json_schema is not None and self.structured == "json_schema" and self.config.structured == "auto"
-                and finish_reason != "length"):
-            usable = read_answer(content, reasoning, req.D, finish_reason=finish_reason).ok
-            self._schema_misses = 0 if usable else self._schema_misses + 1
-            if self._schema_misses >= SCHEMA_MISSES:
-                self.structured = "none"
-                notes.append(f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable")
+        if req.json_schema is not None and self.config.structured == "auto" and finish_reason != "length":
+            notes += self.schema_evidence(req, content, reasoning, finish_reason)
         now = max(self.config.timeout_s, self.fitted_timeout_s or 0.0)
         if completion_tokens and latency_s and latency_s >= TIMED_SHARE * now:
             rate = completion_tokens / latency_s
@@ -317,6 +330,61 @@ class RequestShape:
                 notes.append(f"timeout set to {need:g} s (--timeout {self.config.timeout_s:g}): answers came at "
                              f"{self.rate:.1f} tokens/s and up to {budget} tokens are asked for")
         return notes
+
+    def schema_evidence(self, req: FormRequest, content: str | None, reasoning: str | None, finish_reason: str | None) -> list[str]:
+        """Weigh one answer (not cut off) to a request of a form with a JSON schema, under
+        ``--structured auto``; returns the change made, in words, if any.
+
+        Under the schema: an unusable answer that is not even a JSON object is evidence that the
+        server ignores the schema (one that holds to it answers an object, however wrong its
+        numbers: an answer cut short or garbled on the way is not); ``SCHEMA_MISSES`` in a row drop
+        it. Without it, after such a drop: once ``SCHEMA_TRIAL`` answers have come, and at every
+        answer after, the share of usable ones is compared with the share under the schema; no
+        better, and the schema is restored, for good (a refusal of it, 400/422, still drops it).
+        """
+        usable = read_answer(content, reasoning, req.D, finish_reason=finish_reason).ok
+        if self.structured == "json_schema":
+            self._with_schema[0] += usable
+            self._with_schema[1] += 1
+            ignored = not usable and not (content or "").lstrip().startswith("{")
+            self._schema_misses = self._schema_misses + 1 if ignored else 0
+            if self._schema_misses >= SCHEMA_MISSES and not self._schema_kept:
+                self.structured = "none"
+                self._without_schema = [0, 0]
+                return [f"dropped the JSON schema (plain answers): {SCHEMA_MISSES} answers in a row under it were unusable and "
+                        "not JSON, as from a server that ignores it; it comes back if the answers without it are no better"]
+        elif self._without_schema is not None and "response_format" not in self._adapted:
+            self._without_schema[0] += usable
+            self._without_schema[1] += 1
+            (u, n), (uw, nw) = self._without_schema, self._with_schema
+            if n >= SCHEMA_TRIAL and u * nw <= uw * n:  # u/n <= uw/nw: no better without it
+                self.structured = "json_schema"
+                self._without_schema = None
+                self._schema_kept = True
+                self._schema_misses = 0
+                return [f"restored the JSON schema: {u} of {n} answers without it were usable, against {uw} of {nw} with it; "
+                        "it stays"]
+        return []
+
+    def context_full(self, max_tokens: Any, prompt_tokens: int | None, completion_tokens: int | None) -> bool:
+        """Whether an answer that ended with ``finish_reason`` ``length`` was stopped by the server's
+        context, on the evidence of its usage: the module's ``context_full`` (the known context
+        filled, or a usual context size reached below the budget), or a total (prompt plus
+        completion tokens) below the budget equal to that of an earlier answer cut short with
+        another prompt length: the same ceiling twice. Remembers the answers cut short."""
+        if context_full(max_tokens, prompt_tokens, completion_tokens, self.context_size):
+            return True
+        if not (isinstance(prompt_tokens, int) and below_budget(max_tokens, completion_tokens)):
+            return False
+        total = prompt_tokens + completion_tokens  # type: ignore[operator]
+        seen = self._ceilings.setdefault(total, prompt_tokens)
+        return seen != prompt_tokens
+
+
+def below_budget(max_tokens: Any, completion_tokens: int | None) -> bool:
+    """True when an answer holds fewer completion tokens than the budget sent (``max_tokens``, an int)."""
+    return (isinstance(completion_tokens, int) and isinstance(max_tokens, int) and not isinstance(max_tokens, bool)
+            and completion_tokens < max_tokens)
 
 
 def _round_up(seconds: float) -> float:
@@ -559,12 +627,13 @@ class EndpointClient:
         details = getattr(usage, "completion_tokens_details", None) if usage else None
         prompt_tokens = usage.prompt_tokens if usage else None
         completion_tokens = usage.completion_tokens if usage else None
-        full = finish == "length" and context_full(body.get(self.shape.token_param), prompt_tokens, completion_tokens,
-                                                   self.shape.context_size)
+        budget = body.get(self.shape.token_param)
+        full = finish == "length" and self.shape.context_full(budget, prompt_tokens, completion_tokens)
+        short = finish == "length" and not full and below_budget(budget, completion_tokens)
         return Exchange(request=request, response=text, content=content, reasoning=reasoning, prompt_chars=prompt_chars,
                         prompt_tokens=prompt_tokens, completion_tokens=completion_tokens, latency_s=latency, ok=True, retry=retry,
                         finish_reason=finish, reasoning_tokens=getattr(details, "reasoning_tokens", None),
-                        context_full=full), None, None
+                        context_full=full, cut_short=short), None, None
 
     def close(self) -> None:
         """Close the HTTP connection pool, and stop the embedded server if this client started it."""
@@ -586,17 +655,26 @@ _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_co
 _SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed", "top_p"})
 
 
+# The smallest context a server is run with; the usual sizes are powers of two from here on
+# (llama.cpp's -c, per slot; Ollama's num_ctx; a model's trained context).
+SMALLEST_CONTEXT = 512
+
+
 def context_full(max_tokens: Any, prompt_tokens: int | None, completion_tokens: int | None,
                  context_size: int | None = None) -> bool:
-    """Whether an answer that ended with ``finish_reason`` ``length`` was stopped by the
-    server's context rather than by the answer budget: it holds fewer completion tokens than
-    ``max_tokens`` (the budget sent, or None when none was), or prompt and answer together reach
-    ``context_size`` (when the client knows the server's context). Unknown token counts: False."""
-    if not isinstance(completion_tokens, int):
+    """Whether an answer that ended with ``finish_reason`` ``length`` was stopped by the server's
+    context rather than by the answer budget, on the evidence of its usage alone: prompt and answer
+    together reach ``context_size`` (when the client knows the server's context); or, with fewer
+    completion tokens than ``max_tokens`` (the budget sent), they add up to a usual context size (a
+    power of two of at least ``SMALLEST_CONTEXT`` tokens). An answer cut short below the budget
+    with any other total is no evidence of a full context (a proxy may cut an answer; see
+    ``RequestShape.context_full`` for a ceiling seen twice). Unknown token counts: False."""
+    if not isinstance(completion_tokens, int) or not isinstance(prompt_tokens, int):
         return False
-    if isinstance(max_tokens, int) and not isinstance(max_tokens, bool) and completion_tokens < max_tokens:
-        return True
-    return context_size is not None and isinstance(prompt_tokens, int) and prompt_tokens + completion_tokens >= context_size
+    total = prompt_tokens + completion_tokens
+    if context_size is not None:
+        return total >= context_size
+    return below_budget(max_tokens, completion_tokens) and total >= SMALLEST_CONTEXT and total & (total - 1) == 0
 
 
 def server_error(status: int | None, text: str | None) -> ServerError:

@@ -44,7 +44,9 @@ class Exchange:
     bad_request | invalid_request | endpoint_error | http_NNN). ``retry`` is 0 for a request's first
     try, n for its n-th retry; ``failures`` the failed tries before this one; ``adaptation`` a
     change to later requests this exchange caused; ``context_full`` marks an answer stopped by the
-    server's context rather than by the answer budget.
+    server's context rather than by the answer budget, on the evidence of its usage; ``cut_short``
+    one that ended with ``finish_reason`` ``length`` below the budget with no such evidence (a
+    proxy or the server cut it short).
     """
 
     request: str
@@ -65,6 +67,7 @@ class Exchange:
     reasoning_tokens: int | None = None  # usage.completion_tokens_details.reasoning_tokens, when reported
     adaptation: str | None = None
     context_full: bool = False
+    cut_short: bool = False
 
     @classmethod
     def answer(cls, request: FormRequest, content: str, *, body: str | None = None, latency_s: float = 0.0,

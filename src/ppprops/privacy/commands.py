@@ -27,8 +27,8 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
 
     ``parser_class`` is accepted for the main CLI's calling convention and not used here.
     """
-    au = sub.add_parser("audit", help="check every recorded request of a run for raw values (exit 0 clean; 1 leak, unverified or exposed)")
-    au.add_argument("dir", type=Path, help="a run directory")
+    au = sub.add_parser("audit", help="check every recorded request of a run or study for raw values (exit 0 clean; 1 leak, unverified or exposed)")
+    au.add_argument("dir", type=Path, help="a run or study directory")
     au.add_argument("--strict", action="store_true", help="also fail (exit 1) on known side channels")
     au.add_argument("--json", action="store_true", help="one JSON object with every finding on stdout")
     _sim_options(au)
@@ -167,11 +167,11 @@ def self_audit_line(run_dir: Path, mode: str = "quick") -> str:
     checked = f"quick check of {report.requests} request{'s' if report.requests != 1 else ''}"
     if not report.clean:  # a leak, an identifier or something unaccounted for: the attacks cannot make it better
         return f"privacy audit: {report.verdict()} ({checked}).{channels} The attacks on the transcript did not run: {how}."
-    paper = ""
+    known = f"; known channels: {', '.join(kinds)}" if kinds else ""
+    head = f"privacy audit: nothing raw was sent ({checked}{known}). Attacks not run: 'ppprops audit {run_dir}'"
     if _keeps_paper_channels(report.mechanisms):
-        paper = (f" {report.method} keeps the side channels of the paper's scheme, so the full audit usually finds such a run "
-                 "EXPOSED by design (pp-hardened closes them).")
-    return f"privacy audit: nothing raw was sent ({checked}).{channels}{paper} The attacks on the transcript did not run: {how}."
+        return f"{head}; they usually find {report.method} EXPOSED by design (pp-hardened closes its channels)."
+    return f"{head}."
 
 
 def _keeps_paper_channels(mechanisms: dict[str, bool]) -> bool:

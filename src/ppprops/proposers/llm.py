@@ -220,6 +220,8 @@ class LLMProposer:
             result = self.form.judge(ex.content, ex.reasoning, self.ctx, shown, finish_reason=ex.finish_reason)
             if result.error == "length" and ex.context_full:  # the server's context filled up, not the answer budget
                 result = replace(result, error="context_full")
+            elif result.error == "length" and ex.cut_short:  # cut below the budget, with no sign of a full context
+                result = replace(result, error="truncated")
             self.llm.judged(ex, parse_error=result.error, answer_source=result.source if result.ok else "content")
             if result.values is not None:
                 with np.errstate(over="ignore"):  # a huge answer decodes to +-inf, then clips to the box

@@ -215,6 +215,17 @@ class Task:
         finally:
             env.close()
 
+    def detailed_feedback(self) -> str:
+        """This task's detailed feedback counted in words, for a note: ``4 reward components and 1
+        diagnostic`` (``episode_length``, which every task with an env counts, left out); "" when
+        it has none."""
+        parts = []
+        diagnostics = [d for d in self.diagnostics if d != "episode_length"]
+        for n, what in ((len(self.components), "reward component"), (len(diagnostics), "diagnostic")):
+            if n:
+                parts.append(f"{n} {what}{'s' if n != 1 else ''}")
+        return " and ".join(parts)
+
     def summary(self) -> dict[str, Any]:
         """The task's shape as a dict (name, env id, n_s, n_a, D, action type, feedback keys), for ``show`` and JSON output."""
         return {

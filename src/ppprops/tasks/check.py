@@ -8,6 +8,9 @@ all of them at once:
 
 - the env resets and steps without raising (a failure is one line naming the user's exception
   and where in their code: ``envs.describe_user_error``);
+- what reset and every step return is well-formed: the observation fits the declared space, the
+  reward is a number, the flags are booleans, the info a dict (``outputs.OutputCheck``, the line a
+  run would stop with);
 - the observation adapter gives n_s values;
 - each declared component is in the env's info at the first step, each diagnostic at some step,
   every one a number (a dict names its entries, so ``KEY.*`` is expanded into them here and only
@@ -26,9 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from .base import Task
 from .envs import describe_user_error, has_time_limit, load_attr, user_frame
 from .feedback import MISSING, FeedbackKeyError, InfoKey, check_value, lookup, missing_key
+from .outputs import OutputCheck, call_line
 from .spec import Declared, TaskSpec, build_task, finish_spec, resolve_spaces
 
 PROBE_STEPS = 10_000  # longest check episode of an env with no time limit
@@ -54,6 +59,7 @@ class TaskCheck:
     ended: bool = False
     time_limit: bool = False
     raised: bool = False  # the env's reset or a step raised (``problems`` says what and where)
+    malformed: bool = False  # the env's reset or a step returned a malformed value (``problems`` says which)
     expanded: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     kinds: Mapping[str, str] = field(default_factory=dict)  # "component" or "diagnostic", per key of ``expanded``
     checked: Task | None = field(default=None, compare=False, repr=False)
@@ -69,6 +75,7 @@ class TaskCheck:
             return [f"task {self.task}: no env (a robot outside Python, driven with ask/tell); the declaration is valid "
                     "and there is nothing to simulate"]  # fmt: skip
         how = "ended" if self.ended else "the env raised" if self.raised else \
+            "the env returned a malformed value" if self.malformed else \
             f"stopped after {self.steps} steps without ending" if self.time_limit else "did not end"  # fmt: skip
         head = f"task {self.task}: one zero-policy episode (seed {self.seed}): {self.steps} steps, {how}"
         out = [f"{head}; {len(self.problems)} problem{'s' if len(self.problems) != 1 else ''}:" if self.problems else f"{head}; no problem"]
@@ -81,8 +88,8 @@ class TaskCheck:
     def to_json(self) -> dict[str, Any]:
         """The report as JSON values."""
         return {"task": self.task, "has_env": self.has_env, "ok": self.ok, "problems": list(self.problems), "steps": self.steps,
-                "ended": self.ended, "time_limit": self.time_limit, "raised": self.raised, "seed": self.seed, "max_steps": self.max_steps,
-                "expanded": {k: list(v) for k, v in self.expanded.items()}}  # fmt: skip
+                "ended": self.ended, "time_limit": self.time_limit, "raised": self.raised, "malformed": self.malformed, "seed": self.seed,
+                "max_steps": self.max_steps, "expanded": {k: list(v) for k, v in self.expanded.items()}}  # fmt: skip
 
 
 def check_spec(spec: TaskSpec, *, seed: int = 0, max_steps: int = PROBE_STEPS) -> TaskCheck:
@@ -103,9 +110,18 @@ def check_spec(spec: TaskSpec, *, seed: int = 0, max_steps: int = PROBE_STEPS) -
     try:
         if not spec.complete:
             spec = resolve_spaces(spec.model_copy(update={"env": recipe}), env)
-        return _episode(spec, env, seed, max_steps)
+        try:
+            return _episode(spec, env, seed, max_steps)
+        except ConfigError:
+            raise
+        except Exception as e:  # whatever else goes wrong with the user's env: a problem line, never a traceback
+            return TaskCheck(task=spec.name, has_env=True, seed=seed, max_steps=max_steps, raised=True,
+                             problems=(f"{spec.name}: the check stopped: {describe_user_error(e)}",))
     finally:
-        env.close()
+        try:
+            env.close()
+        except Exception:
+            pass  # a close that fails says nothing about the declaration
 
 
 def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
@@ -125,11 +141,16 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
     diagnostics = [d for d in spec.diagnostics if d.info is not None] if by_info else []
     result = functools.partial(TaskCheck, task=name, has_env=True, seed=seed, max_steps=max_steps, time_limit=limited)
     hint = _kwargs_hint(spec)
+    output = OutputCheck(env, adapter.keys)
     try:
-        obs, info = env.reset(seed=seed)
+        returned = env.reset(seed=seed)
     except Exception as e:
         problem = f"{name}: the env's reset raised {describe_user_error(e)}{hint(e)}"
         return result(problems=(problem,), raised=True)
+    wrong = output.reset(returned)
+    if wrong is not None:
+        return result(problems=(call_line(name, "reset", seed, wrong),), malformed=True)
+    obs, info = returned
     if adapter(obs).shape != (n_s,):
         problems.append(f"{name}: the observation adapter gives {adapter(obs).shape[0]} values, not {n_s}")
         return result(problems=tuple(problems))
@@ -137,15 +158,21 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
     kinds: dict[str, str] = {}
     bad: set[str] = set()
     seen: set[str] = set()
-    step, ended, raised = 0, False, False
+    step, ended, raised, malformed = 0, False, False, False
     terminated = truncated = False
     while step < max_steps:
         try:
-            obs, reward, terminated, truncated, info = env.step(policy.act(adapter(obs)))
+            returned = env.step(policy.act(adapter(obs)))
         except Exception as e:
             problems.append(f"{name}: the env's step {step + 1} raised {describe_user_error(e)}{hint(e)}")
             raised = True
             break
+        wrong = output.step(returned)
+        if wrong is not None:
+            problems.append(call_line(name, f"step {step + 1}", seed, wrong))
+            malformed = True
+            break
+        obs, reward, terminated, truncated, info = returned
         step += 1
         if step == 1:
             components = _expand(name, "component", components, info, problems, expanded)
@@ -179,7 +206,7 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
         if terminated or truncated:
             ended = True
             break
-    if not ended and not raised and not limited and step >= max_steps:
+    if not ended and not raised and not malformed and not limited and step >= max_steps:
         problems.append(f"task {name}: an episode of {spec.env.id if spec.env else name} did not end within {max_steps} steps "
                         "and the env has no time limit: give one with --max-episode-steps N (max_episode_steps in a task file)")  # fmt: skip
     if ended:
@@ -198,8 +225,8 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
             computed = tuple(d for d in spec.diagnostics if d.info is None)
             spec = spec.model_copy(update={"components": tuple(components), "diagnostics": (*computed, *diagnostics)})
         checked = build_task(spec if spec.complete else finish_spec(spec))
-    return result(problems=tuple(problems), steps=step, ended=ended, raised=raised, expanded=expanded, kinds=kinds,
-                     checked=checked)
+    return result(problems=tuple(problems), steps=step, ended=ended, raised=raised, malformed=malformed, expanded=expanded,
+                  kinds=kinds, checked=checked)
 
 
 def _kwargs_hint(spec: TaskSpec) -> Callable[[BaseException], str]:

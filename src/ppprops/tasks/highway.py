@@ -55,7 +55,7 @@ def setup_highway() -> None:
         import gymnasium as gym
         import highway_env
     except ImportError as e:
-        raise MissingExtraError("highway", "the Highway tasks (highway-v0)") from e
+        raise MissingExtraError("highway", "each Highway task (highway-v0)") from e
     gym.register_envs(highway_env)
 
 

@@ -56,7 +56,7 @@ def require_mujoco() -> None:
     try:
         import mujoco  # noqa: F401
     except ImportError as e:
-        raise MissingExtraError("mujoco", "the MuJoCo tasks (Ant-v5, Humanoid-v5)") from e
+        raise MissingExtraError("mujoco", "each MuJoCo task (Ant-v5, Humanoid-v5)") from e
 
 
 class LocomotionRecorder:

@@ -256,7 +256,9 @@ def _read_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     except FileNotFoundError:
         raise TaskFileError(f"task file {path} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise TaskFileError(f"task file {path} cannot be read ({e.__class__.__name__})") from None
+        from ..fileio import read_error
+
+        raise TaskFileError(f"task file {path} cannot be read: {read_error(e)}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

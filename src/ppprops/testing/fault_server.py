@@ -51,6 +51,9 @@ For tests of what a client does around a request rather than with its answer:
 ``record``
     every request received is kept, byte for byte (request line, headers, blank line, body), for
     ``received()``: what crossed the wire, to compare with what the client recorded.
+``burst``
+    requests ``first`` to ``last`` (numbered from 1) always get a fault (of ``kinds``), the others
+    one at ``fault_rate``: a run of bad answers at a moment the test chooses.
 
 Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
 
@@ -114,6 +117,7 @@ class FaultConfig:
     fixed_body: str = "{}"  # the JSON body of those answers (with fixed_status)
     hold_after: int | None = None  # hold the requests after the first hold_after open until release() or stop
     record: bool = False  # keep every request received, byte for byte, for FaultServer.received()
+    burst: tuple[int, int] | None = None  # requests first..last (from 1) always get a fault: a burst of them
 
     def validate(self) -> None:
         """Check the settings (``FaultServer`` calls it).
@@ -122,7 +126,8 @@ class FaultConfig:
             ValueError: ``fault_rate`` outside [0, 1], no or unknown ``kinds``, unknown ``personas``,
                 personas together with an upstream, an upstream that is not ``http://``,
                 ``max_requests`` < 1 or ``max_seconds`` <= 0; a ``fixed_status`` outside 100-599, with
-                personas or an upstream, or whose ``fixed_body`` is not JSON; ``hold_after`` < 0.
+                personas or an upstream, or whose ``fixed_body`` is not JSON; ``hold_after`` < 0; a
+                ``burst`` whose first request is not between 1 and its last.
         """
         if not (0.0 <= self.fault_rate <= 1.0):
             raise ValueError(f"fault rate must be in [0, 1], got {self.fault_rate}")
@@ -151,6 +156,8 @@ class FaultConfig:
                 raise ValueError(f"fixed body must be JSON: {e}") from None
         if self.hold_after is not None and self.hold_after < 0:
             raise ValueError(f"hold after must be >= 0, got {self.hold_after}")
+        if self.burst is not None and not (1 <= self.burst[0] <= self.burst[1]):
+            raise ValueError(f"a burst is requests first..last with 1 <= first <= last, got {self.burst[0]}..{self.burst[1]}")
 
 
 @dataclass
@@ -176,7 +183,9 @@ class _State:
         with self.lock:
             self.requests += 1
             n = self.requests
-            kind = self.rng.choice(self.config.kinds) if self.rng.random() < self.config.fault_rate else None
+            burst = self.config.burst is not None and self.config.burst[0] <= n <= self.config.burst[1]
+            faulty = self.rng.random() < self.config.fault_rate or burst  # one draw either way: the sequence stays the same
+            kind = self.rng.choice(self.config.kinds) if faulty else None
             if kind is None:
                 self.passed += 1
             else:
@@ -660,6 +669,14 @@ def _kinds(text: str) -> tuple[str, ...]:
     return tuple(k.strip() for k in text.split(",") if k.strip())
 
 
+def _burst(text: str) -> tuple[int, int]:
+    first, sep, last = text.partition("-")
+    try:
+        return (int(first), int(last)) if sep else (int(first), int(first))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected FIRST-LAST (request numbers), got {text!r}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """The command line (see the module docstring): serve until the budget is spent, SIGTERM or Ctrl-C.
 
@@ -692,6 +709,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hold-after", type=int, default=None, metavar="N",
                    help="hold the requests after the first N open, unanswered, until POST /release (then answered as "
                         "usual) or the server stops (then dropped)")
+    p.add_argument("--burst", type=_burst, default=None, metavar="FIRST-LAST",
+                   help="requests FIRST to LAST (numbered from 1) always get a fault, the others at --fault-rate")
     p.add_argument("--requests-file", type=str, default=None,
                    help="write every request received (request line, headers, body; UTF-8) here as a JSON list when stopping")
     a = p.parse_args(argv)
@@ -699,7 +718,7 @@ def main(argv: list[str] | None = None) -> int:
         fault_rate=a.fault_rate, kinds=_kinds(a.kinds), seed=a.seed, upstream=a.upstream, delay_max_s=a.delay_max,
         timeout_s=a.timeout_delay, retry_after_s=a.retry_after, max_requests=a.max_requests, max_seconds=a.max_seconds,
         default_dim=a.dim, v1_only=a.v1_only, error_body_code=a.error_body_code, fixed_status=a.fixed_status,
-        fixed_body=a.fixed_body, hold_after=a.hold_after, record=a.requests_file is not None,
+        fixed_body=a.fixed_body, hold_after=a.hold_after, record=a.requests_file is not None, burst=a.burst,
         personas=tuple(PERSONAS) if a.personas == "all" else tuple(x.strip() for x in a.personas.split(",") if x.strip()),
     )
     try:

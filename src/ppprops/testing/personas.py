@@ -31,6 +31,7 @@ from ..wire.transcript import history_entries
 REASONING_TOKENS = 1000
 EXPLANATION_TOKENS = 200  # what the chatty persona's explanation costs (four characters a token)
 CONTEXT_TOKENS = 4096  # the context of the context_full personas' server
+CUT_SHORT_PROMPT, CUT_SHORT_TOKENS = 1500, 10  # the usage of the cut_short persona's answers
 SLOW_TOKENS_PER_S = 1000.0  # the generation speed of the slow CPU personas (they sleep for it)
 
 
@@ -444,6 +445,29 @@ def slow_cpu_reasoner(turn: Turn) -> Reply:
                       answer=turn.answer)
 
 
+def needs_schema(turn: Turn) -> Reply:
+    """A small model that answers the JSON object when a JSON schema holds it to it, and prose with
+    no numbers when nothing does."""
+    # Gemma 3 270M (the embedded model) behind a fault-injecting proxy, asked in the chat form: under
+    # a json_schema response_format (which llama.cpp turns into a grammar) every answer it wrote was
+    # the object; once the schema was dropped, every answer was unusable.
+    if turn.schema:
+        return completion(turn, params_json(turn.answer), answer=turn.answer)
+    return completion(turn, "Sure! A better policy pushes the cart towards the side the pole leans to.")
+
+
+def cut_short(turn: Turn) -> Reply:
+    """An answer cut short on its way (a proxy, a server): ``finish_reason`` "length" after
+    ``CUT_SHORT_TOKENS`` completion tokens, far below the budget sent, with a prompt far from any
+    context size (``CUT_SHORT_PROMPT`` tokens)."""
+    # A fault-injecting proxy in front of llama.cpp that cut answers: 10 completion tokens,
+    # finish_reason "length", the budget and the context nowhere near.
+    doc = json.loads(completion(turn, params_json(turn.answer)[:40], finish="length").body)
+    total = CUT_SHORT_PROMPT + CUT_SHORT_TOKENS
+    doc["usage"] = {"prompt_tokens": CUT_SHORT_PROMPT, "completion_tokens": CUT_SHORT_TOKENS, "total_tokens": total}
+    return Reply(200, json.dumps(doc).encode())
+
+
 PERSONAS: dict[str, Callable[[Turn], Reply]] = {
     "plain": plain,
     "vllm_gpt_oss": vllm_gpt_oss,
@@ -470,6 +494,8 @@ QUIRK_PERSONAS: dict[str, Callable[[Turn], Reply]] = {
     "llamacpp_forced_think": llamacpp_forced_think,
     "context_full": context_full,
     "slow_cpu_reasoner": slow_cpu_reasoner,
+    "needs_schema": needs_schema,
+    "cut_short": cut_short,
 }
 
 
