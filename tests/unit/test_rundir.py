@@ -59,8 +59,12 @@ def test_not_a_run_directory_is_one_line(tmp_path: Path) -> None:
 
 def test_an_occupied_output_directory_is_refused_before_anything_is_written(tmp_path: Path) -> None:
     run = _run(tmp_path / "r")
-    with pytest.raises(ConfigError, match="already holds another run"):
+    with pytest.raises(ConfigError, match=rf"already holds another run; choose a new --out or continue it with 'ppprops resume {run}'$"):
         create_run(_config(), run)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("x")
+    with pytest.raises(ConfigError, match=r"already holds files; choose a new --out$"):
+        check_out(tmp_path / "other")
     (tmp_path / "f").write_text("x")
     with pytest.raises(ConfigError, match="is a file, not a directory"):
         check_out(tmp_path / "f")
