@@ -394,7 +394,7 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
     episodes on stderr.
 
     Raises:
-        ConfigError: ``episodes`` < 1, or the file does not fit its task.
+        ConfigError: ``episodes`` < 1, the file does not fit its task, or its task has no env.
         PPPropsError: the file is missing or not a ppprops policy file.
     """
     from . import seeding
@@ -408,6 +408,9 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
     task = task_from_json(doc["task_spec"]) if doc.get("task_spec") else get_task(str(doc.get("task")))
     if (task.n_s, task.n_a) != (pol.n_s, pol.n_a):
         raise ConfigError(f"policy file {pol.path} has n_s={pol.n_s}, n_a={pol.n_a}; task {task.name} needs {task.n_s}, {task.n_a}")
+    if not task.has_env:  # before any progress bar, so the error is the only line
+        raise ConfigError(f"task {task.name} has no env to evaluate {pol.path} on: run the policy on your robot "
+                          "(the file states its forward pass)")
     from .progress import episode_events
     from .runner import final_returns
 

@@ -113,7 +113,8 @@ def check_out(run_dir: Path) -> None:
         raise ConfigError(f"--out {run_dir} is a file, not a directory; choose a new --out")
     if run_dir.is_dir() and any(run_dir.iterdir()):
         what = "another run" if is_run_dir(run_dir) else "files"
-        resume = f" or continue it with 'ppprops resume {run_dir}'" if what == "another run" else ""
+        resume = (f" or continue it with 'ppprops resume {run_dir}' ('ppprops ask {run_dir}' for a study driven by ask/tell)"
+                  if what == "another run" else "")
         raise ConfigError(f"output directory {run_dir} already holds {what}; choose a new --out{resume}")
 
 

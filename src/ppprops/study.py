@@ -351,13 +351,17 @@ class Study:
         return aggregate(episodes)
 
     # -- the env-driven loop ------------------------------------------------------------------
+    def _no_env(self) -> ConfigError:
+        """The one line for running the env loop of a task that has no env."""
+        return ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
+
     @property
     def evaluator(self) -> Evaluator:
         """The episode runner of the task's env (``config.workers`` processes), made on first use.
         Raises ConfigError for a task without an env."""
         if self._evaluator is None:
             if not self.has_env:
-                raise ConfigError(f"task {self.task.name} has no env: drive it with ask/tell ('ppprops ask' / 'ppprops tell')")
+                raise self._no_env()
             self._evaluator = Evaluator(self.task, workers=self.config.workers, env=self._env)
             self._env = None  # the evaluator's now
         return self._evaluator
@@ -381,6 +385,8 @@ class Study:
             ConfigError: another process runs this study, or the task has no env.
         """
         events = events if events is not None else self.events
+        if not self.has_env:  # refused before any lock file is made
+            raise self._no_env()
         try:
             with file_lock(self.run_dir, RUNNING_LOCK, wait=False):
                 return self._optimize(callbacks, events)

@@ -79,6 +79,16 @@ BAD_ENV = textwrap.dedent('''
     class ObjectObservation(Good):
         def observe(self):
             return np.array([0.1, None, 0.3], dtype=object)
+
+
+    class NaNReward(Good):
+        def reward(self):
+            return float("nan") if self.t == 3 else 1.0
+
+
+    class InfObservation(Good):
+        def first(self):
+            return np.array([0.0, np.inf, 0.0])
 ''')
 
 SPACE = "Box(-10.0, 10.0, (3,), float64)"
@@ -161,6 +171,19 @@ def test_task_check_reports_the_same_line_and_exits_1(bad_env: Path, cls: str, c
     assert main(["task", "check", "--env", f"bad_env:{cls}", "--json"]) == 1
     doc = json.loads(capsys.readouterr().out)
     assert (doc["ok"], doc["malformed"], doc["raised"], doc["problems"]) == (False, True, False, [_line(cls, call, 0, problem)])
+
+
+@pytest.mark.parametrize(("cls", "call", "what", "steps"), [
+    ("NaNReward", "step 3", "reward nan", 3),
+    ("InfObservation", "reset", "observation [ 0. inf  0.]", 0),
+])
+def test_task_check_reports_a_non_finite_value_where_a_run_would_end_the_episode(bad_env: Path, cls: str, call: str, what: str,
+                                                                                steps: int, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["task", "check", "--env", f"bad_env:{cls}", "--json"]) == 1
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["ok"], doc["steps"], doc["problems"]) == (False, steps, [
+        f"bad_env:{cls}: the env's {call} (episode seed 0) returned a non-finite {what}; a run ends each such episode "
+        "there and keeps it out of the prompt"])
 
 
 def test_a_good_env_passes_every_check(bad_env: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -109,3 +109,39 @@ def test_show_and_audit_say_they_take_a_study_directory(command: str, capsys: py
     out = capsys.readouterr().out
     assert exited.value.code == 0 and "  dir " in out
     assert [line.split(None, 1)[1] for line in out.splitlines() if line.startswith("  dir ")] == ["a run or study directory"]
+
+
+def test_a_new_study_audits_clean_with_nothing_sent_and_resume_of_a_rig_study_leaves_no_lock(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "new"
+    assert main(["study", "create", "--task-file", str(ROBOT), "--method", "pp-hardened", "--seed", "4", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["audit", str(out), "--json"]) == 0  # no candidate yet: an (N, D) of N = 0, not a traceback
+    doc = json.loads(capsys.readouterr().out)
+    assert (doc["requests"], doc["entries"], doc["findings"]) == (0, 0, [])
+    assert doc["verdict"].startswith("CLEAN") and doc["notes"] == []
+    key = out / "secrets.key"
+    text = key.read_bytes()
+    for state, damage in (("unusable (damaged, or another run's)", lambda: key.write_bytes(b"\xa0 garbage")), ("missing", key.unlink)):
+        damage()
+        assert main(["audit", str(out), "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["notes"] == [
+            f"the key file {key} is {state}: what was sent is checked without the secrets, so the requests' sampling seeds "
+            "are not verified, and the attacks are scored from the stored values where the run's maps allow it"]
+    key.write_bytes(text)
+    before = sorted(p.name for p in out.iterdir())
+    assert main(["resume", str(out)]) == 2
+    assert capsys.readouterr().err == ("ppprops: error: task RigArm has no env: drive it with ask/tell "
+                                       "('ppprops ask' / 'ppprops tell')\n")
+    assert sorted(p.name for p in out.iterdir()) == before  # no lock file made for a loop that cannot run
+
+
+def test_policy_eval_of_a_rig_policy_is_one_line_with_no_progress_bar(study: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["tell", str(study), "0", "--return", "-10", *FEEDBACK]) == 0
+    assert main(["ask", str(study)]) == 0
+    assert main(["tell", str(study), "1", "--return", "-8", *FEEDBACK]) == 0
+    assert main(["study", "finalize", str(study)]) == 0
+    capsys.readouterr()
+    assert main(["policy", "eval", str(study)]) == 2  # progress on: the bar would come first
+    assert capsys.readouterr().err == (f"ppprops: error: task RigArm has no env to evaluate {study / 'best_policy.json'} on: "
+                                       "run the policy on your robot (the file states its forward pass)\n")

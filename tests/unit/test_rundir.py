@@ -59,7 +59,8 @@ def test_not_a_run_directory_is_one_line(tmp_path: Path) -> None:
 
 def test_an_occupied_output_directory_is_refused_before_anything_is_written(tmp_path: Path) -> None:
     run = _run(tmp_path / "r")
-    with pytest.raises(ConfigError, match=rf"already holds another run; choose a new --out or continue it with 'ppprops resume {run}'$"):
+    line = rf"already holds another run; choose a new --out or continue it with 'ppprops resume {run}' \('ppprops ask {run}' for a study driven by ask/tell\)$"
+    with pytest.raises(ConfigError, match=line):
         create_run(_config(), run)
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("x")

@@ -264,8 +264,9 @@ class _Auditor:
         self.adaptations = [str(a.get("change")) for a in adaptations]
         self.report = AuditReport(str(run_dir), config.method, self.mech.to_json(), attacked=attacks)
         self._findings: dict[tuple[str, str, str], Finding] = {}
-        self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
-        self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
+        D = self.task.D  # (N, D) even when nothing was evaluated yet (N = 0: a new study, a run stopped at its first reset)
+        self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), D)
+        self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), D)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
         self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
         counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
@@ -966,5 +967,11 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         keyed = store.streams_keyed()
         secrets = run.load_secrets(optional=True)  # a key file that does not load counts as absent
-    return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks).run()
+        key_state = "" if secrets is not None else ("missing" if not run.key_path.exists() else "unusable (damaged, or another run's)")
+    report = _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
+                      adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks).run()
+    if key_state:  # the audit reads what was sent without the key; say what that leaves unverified
+        report.notes.append(f"the key file {run.key_path} is {key_state}: what was sent is checked without the secrets, "
+                            "so the requests' sampling seeds are not verified, and the attacks are scored from the stored values "
+                            "where the run's maps allow it")
+    return report

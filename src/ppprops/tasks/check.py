@@ -154,6 +154,8 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
     if adapter(obs).shape != (n_s,):
         problems.append(f"{name}: the observation adapter gives {adapter(obs).shape[0]} values, not {n_s}")
         return result(problems=tuple(problems))
+    if not np.all(np.isfinite(adapter(obs))):
+        return result(problems=(_non_finite(name, "reset", seed, "observation", adapter(obs)),))
     expanded: dict[str, tuple[str, ...]] = {}
     kinds: dict[str, str] = {}
     bad: set[str] = set()
@@ -174,6 +176,11 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
             break
         obs, reward, terminated, truncated, info = returned
         step += 1
+        non_finite = [_non_finite(name, f"step {step}", seed, what, value) for what, value in (("reward", reward), ("observation", adapter(obs)))
+                      if not np.all(np.isfinite(np.asarray(value, dtype=np.float64)))]  # fmt: skip
+        if non_finite:  # where a run's episode ends too
+            problems.extend(non_finite)
+            break
         if step == 1:
             components = _expand(name, "component", components, info, problems, expanded)
             diagnostics = _expand(name, "diagnostic", diagnostics, info, problems, expanded)
@@ -227,6 +234,15 @@ def _episode(spec: TaskSpec, env: Any, seed: int, max_steps: int) -> TaskCheck:
         checked = build_task(spec if spec.complete else finish_spec(spec))
     return result(problems=tuple(problems), steps=step, ended=ended, raised=raised, malformed=malformed, expanded=expanded,
                   kinds=kinds, checked=checked)
+
+
+def _non_finite(name: str, call: str, seed: int, what: str, value: Any) -> str:
+    """The line for a NaN or infinite observation or reward in the probe episode: a run ends such an
+    episode there (diagnostic ``numerical_fault``) and keeps it out of the prompt, so every candidate
+    would be judged on a cut episode."""
+    shown = np.array2string(np.asarray(value, dtype=np.float64), precision=4, threshold=8)
+    return (f"{name}: the env's {call} (episode seed {seed}) returned a non-finite {what} {shown}; a run ends each "
+            "such episode there and keeps it out of the prompt")
 
 
 def _kwargs_hint(spec: TaskSpec) -> Callable[[BaseException], str]:
