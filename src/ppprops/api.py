@@ -408,9 +408,8 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
     task = task_from_json(doc["task_spec"]) if doc.get("task_spec") else get_task(str(doc.get("task")))
     if (task.n_s, task.n_a) != (pol.n_s, pol.n_a):
         raise ConfigError(f"policy file {pol.path} has n_s={pol.n_s}, n_a={pol.n_a}; task {task.name} needs {task.n_s}, {task.n_a}")
-    if not task.has_env:  # before any progress bar, so the error is the only line
-        raise ConfigError(f"task {task.name} has no env to evaluate {pol.path} on: run the policy on your robot "
-                          "(the file states its forward pass)")
+    if not task.has_env:  # NoEnvError before any progress bar or worker, so the error is the only line
+        task.make_env()
     from .progress import episode_events
     from .runner import final_returns
 

@@ -143,5 +143,6 @@ def test_policy_eval_of_a_rig_policy_is_one_line_with_no_progress_bar(study: Pat
     assert main(["study", "finalize", str(study)]) == 0
     capsys.readouterr()
     assert main(["policy", "eval", str(study)]) == 2  # progress on: the bar would come first
-    assert capsys.readouterr().err == (f"ppprops: error: task RigArm has no env to evaluate {study / 'best_policy.json'} on: "
-                                       "run the policy on your robot (the file states its forward pass)\n")
+    assert capsys.readouterr().err == ("ppprops: error: task RigArm has no env: it describes a robot outside Python, whose "
+                                       "episodes only its own driver runs; search it with ask/tell (`ppprops ask` / `ppprops "
+                                       "tell`, or Study.ask / Study.tell), and evaluate its policy on the robot\n")
