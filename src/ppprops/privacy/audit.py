@@ -72,7 +72,7 @@ from .runseed import find_run_seed
 from .simfit import SimLimits
 from .simulator import env_is_public
 from .tokens import renders, token_value
-from .view import Estimate, view_of
+from .view import Estimate, same_marker, view_of
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``),
@@ -267,6 +267,7 @@ class _Auditor:
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), -1)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
+        self.shown_diagnostics: dict[int, dict[str, str]] = {}  # candidate -> each diagnostic as some request printed it
         self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
         counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
         self._stalls = [0]
@@ -363,6 +364,7 @@ class _Auditor:
             return None
         c = self.cands[idx]
         self.shown[c.index] = c
+        self.shown_diagnostics.setdefault(c.index, {}).update(dict(e.diagnostics))
         where = f"{where} = candidate {c.index}"
         self.report.entries += 1
         # parameters, position by position
@@ -451,6 +453,28 @@ class _Auditor:
                 if c.ret in caps and c.ret != 0:
                     self.finding("channel", "known_cap", f"a return at the public cap {c.ret:g} gives c = printed / {c.ret:g}",
                                  f"candidate {c.index}")
+
+    def anchors(self) -> None:
+        """Shown entries whose shown diagnostic marks an episode end at a public cap (the task's
+        ``privacy.caps``) while their raw return is that cap: the diagnostic pins the raw return
+        exactly (CartPole ``termination=time_limit``: 500; Acrobot ``success=0``: -500), whatever
+        the reward map. Exposed (the best shown one is named), since a raw return is recovered
+        exactly; ``hide_anchors`` withholds those diagnostics."""
+        if not self.mech.scale_rewards or not self.shown:
+            return
+        best = max(self.shown.values(), key=lambda c: c.ret)
+        for cap in facts_for(self.task).caps or ():
+            pinned = [c for c in self.shown.values()
+                      if same_marker(self.shown_diagnostics.get(c.index, {}).get(cap.diagnostic), cap.marker)
+                      and math.isclose(c.ret, cap.value, rel_tol=1e-9, abs_tol=1e-9)]
+            if not pinned:
+                continue
+            which = "the best shown policy's raw return" if best in pinned else "a shown raw return"
+            self.finding("exposed", "anchored_return",
+                         f"recovers {which} exactly: {cap.diagnostic}={cap.marker} marks an episode end at the public cap, "
+                         f"raw return {cap.value:g} ({len(pinned)} of {len(self.shown)} shown entries; --hide-anchors on "
+                         "withholds it)", ", ".join(f"candidate {c.index}" for c in sorted(pinned, key=lambda c: c.index)),
+                         by_design=not self.mech.hardened)
 
     def _determined(self, shown: list[Candidate]) -> None:
         """Numeric diagnostics that, together, are an exact affine function of the raw return or a component."""
@@ -776,6 +800,7 @@ class _Auditor:
                          f"exchanges lead to ({len(self.adaptations)} recorded, {len(self.replay.changes)} replayed)",
                          "llm_adaptations")
         self.channels()
+        self.anchors()
         self.identifiers()
         if self.attacks:
             self.exposure()
