@@ -142,7 +142,7 @@ def test_a_pp_transcript_sends_no_raw_value_but_fails_on_the_papers_channels(pp_
     assert "run_seed" not in kinds  # the warm-up of a new run is keyed by its secrets, not drawn from the run seed
     assert any("episode_length equals the raw return" in f.detail for f in r.channels)
     assert any("episode_length equals the raw component alive" in f.detail for f in r.channels)
-    assert "not checked: request timing" in r.format()
+    assert "not checked: request sizes" in r.format()
 
 
 def test_a_factor_of_one_is_a_coincidence_not_a_leak(tmp_path: Path) -> None:

@@ -16,7 +16,9 @@ named get the form their body shows, ``wire.forms.recorded_form``, once); 6 adds
 ``llm_calls.answered``: every try is written before its bytes leave (``begin_llm_call``, answered
 0) and completed with its answer after (``complete_llm_call``, answered 1), so a process killed
 while a request is in flight leaves that request in the store, marked unanswered (calls recorded
-before were recorded after their answer: answered 1). Older stores are migrated in place. Changes the LLM
+before were recorded after their answer: answered 1), and ``llm_calls.sent``, when each try left
+(Unix seconds; unknown, NULL, for calls recorded before: their ``created`` is when the answer
+came). Older stores are migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
 in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
 (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
@@ -113,6 +115,7 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("candidates", "reevaluates", "INTEGER"),
     ("pending", "reevaluates", "INTEGER"),
     ("llm_calls", "answered", "INTEGER NOT NULL DEFAULT 1"),
+    ("llm_calls", "sent", "REAL"),
 )
 
 # What a try written ahead holds until its answer completes it: to every reader it is a failed
@@ -451,13 +454,14 @@ class RunStore:
         """Write one try ahead, before its bytes leave: ``request`` is the body about to be sent.
         Until ``complete_llm_call`` it reads as an unanswered try (``answered`` false, not ``ok``,
         error kind ``unanswered``), and so it stays if the process ends first. ``created`` is when
-        it was written, i.e. when it left. Returns its row id."""
+        it was written, i.e. when it left (also its ``sent``). Returns its row id."""
+        now = time.time()
         with self._tx() as db:
             cur = db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, prompt_chars, latency_s, ok, error, created, error_kind, retry,"
-                " form, decisions, answered) VALUES (?, ?, ?, ?, 0.0, 0, ?, ?, ?, ?, ?, ?, 0)",
-                (iteration, attempt, request, prompt_chars, UNANSWERED_ERROR, time.time(), UNANSWERED, int(retry), form,
-                 None if decisions is None else json.dumps(dict(decisions))),
+                " form, decisions, answered, sent) VALUES (?, ?, ?, ?, 0.0, 0, ?, ?, ?, ?, ?, ?, 0, ?)",
+                (iteration, attempt, request, prompt_chars, UNANSWERED_ERROR, now, UNANSWERED, int(retry), form,
+                 None if decisions is None else json.dumps(dict(decisions)), now),
             )
             return int(cur.lastrowid or 0)
 
@@ -540,6 +544,16 @@ class RunStore:
                 starts.append(n)
                 db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_sessions', ?)", (json.dumps(starts),))
 
+    def pacing_state(self) -> dict[str, Any]:
+        """The request pacer's state (``llm.pacing.Pacer``), shared by the processes that drive
+        one study: {} before the first paced request."""
+        raw = self._meta("pacing")
+        return dict(json.loads(raw)) if raw else {}
+
+    def set_pacing_state(self, state: Mapping[str, Any]) -> None:
+        """Replace the request pacer's state."""
+        self._set_meta("pacing", json.dumps(dict(state)))
+
     def llm_sessions(self) -> list[int] | None:
         """Where each LLM client session began, as a count of the calls before it (ascending);
         None for runs recorded before sessions were (then only endpoint changes are known)."""
@@ -549,12 +563,13 @@ class RunStore:
     def llm_calls(self) -> list[dict[str, Any]]:
         """Every recorded HTTP try, in the order sent, as dicts with the ``llm_calls`` columns
         (request and response bodies as sent and received, tokens, latency in seconds, ok, errors,
-        ``answered`` (false: written ahead and never completed), ``created``: when it was sent, in
-        Unix seconds, for calls written ahead; when it was answered for calls recorded before)."""
+        ``answered`` (false: written ahead and never completed), ``sent``: when it left, in Unix
+        seconds (None for calls recorded before requests were written ahead: their ``created``
+        is when the answer came))."""
         cur = self._read(
             "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
             " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions,"
-            " answered, created FROM llm_calls ORDER BY id"
+            " answered, created, sent FROM llm_calls ORDER BY id"
         )
         cols = [d[0] for d in cur.description]
         out = []

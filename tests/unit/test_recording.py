@@ -87,7 +87,6 @@ class Announcing:
     before 'sending' it, and looks at the store at that moment."""
 
     endpoints = (ENDPOINT_CHAT,)
-    announces_tries = True
 
     def __init__(self, store: RunStore, tries: list[tuple[str, Exchange | None]], *, answer: Exchange | BaseException) -> None:
         self.store, self.tries, self.answer = store, tries, answer
@@ -167,8 +166,7 @@ def test_requests_in_flight_together_from_threads_are_each_written_ahead(tmp_pat
     with RunStore(tmp_path / "run.sqlite") as store:
         class Parallel:
             endpoints = (ENDPOINT_CHAT,)
-            announces_tries = True
-
+        
             def send(self, request, *, seed=None, before_try=None, after_failure=None):  # type: ignore[no-untyped-def]
                 body = json.dumps({"n": request.iteration})
                 before_try(body, 0)

@@ -36,6 +36,10 @@ class Mechanisms:
     # value marks an episode end at a public cap, which pins that entry's raw return exactly
     # (CartPole termination=time_limit: 500; Acrobot success=0: -500).
     hide_anchors: bool = False
+    # Transport, not encoding: each new LLM request waits until the gap since the last answer
+    # reaches a padded, keyed length, so the provider's clock does not follow evaluation time
+    # (llm.pacing; docs/threat-model.md, "The provider's clock"). Costs wall time; off by default.
+    pace_requests: bool = False
 
     def to_json(self) -> dict[str, bool]:
         """Each switch by name, as stored in a run's config."""
@@ -109,6 +113,7 @@ SWITCH_HELP: dict[str, str] = {
     "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
     "encoded_warmup": "hardening: warm-up drawn in the encoded space",
     "hide_anchors": "hardening: drop diagnostics that mark a return at a public cap (termination=time_limit)",
+    "pace_requests": "hardening: pad the gap before each LLM request, so request times do not follow evaluation time (costs wall time)",
 }
 
 

@@ -428,7 +428,6 @@ class EndpointClient:
     """
 
     endpoints = (ENDPOINT_CHAT, ENDPOINT_COMPLETIONS)
-    announces_tries = True  # ``send`` takes ``before_try`` (the recording client writes each try ahead)
 
     def __init__(self, config: LLMConfig, *, base_url: str | None = None, api_key: str | None = None, model: str | None = None,
                  grammar_ok: bool = False, shape: RequestShape | None = None, gate: AbstractContextManager[object] | None = None,

@@ -18,8 +18,8 @@ the request ends. Until then, and for good if the process dies first, a try read
 Write-ahead is per try, and the tries of one ``send`` are that call's own: several threads may
 send at once (requests in flight together), each writing its own tries ahead.
 
-A wrapped model that sends over the wire itself announces each try before its bytes leave: it
-has ``announces_tries = True`` and its ``send`` takes ``before_try(body, retry)``, called with
+A wrapped model that sends over the wire itself announces each try before its bytes leave: its
+``send`` takes ``before_try(body, retry)``, called with
 the exact body of each try, and ``after_failure(exchange)``, called with each failed try
 (``llm.client.EndpointClient``). Any other model is written ahead
 once per ``send``, with the form's payload and sampling fields (what ``Exchange.answer`` records
@@ -28,6 +28,7 @@ by default), and completed with the exchange it returns.
 
 from __future__ import annotations
 
+import inspect
 import json
 import threading
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -38,6 +39,7 @@ from .protocol import LLM, Exchange, LLMUnavailable
 
 if TYPE_CHECKING:
     from ..wire.forms import FormRequest
+    from .pacing import Pacer
 
 
 class CallLog(Protocol):
@@ -62,17 +64,31 @@ class CallLog(Protocol):
         ...
 
 
+def announces_tries(model: LLM) -> bool:
+    """True when ``model.send`` takes ``before_try`` and ``after_failure`` (it sends over the wire
+    itself and announces each try: ``llm.client.EndpointClient``). Read off the signature, so a
+    subclass whose ``send`` does not take them is written ahead once per request."""
+    try:
+        params = inspect.signature(model.send).parameters
+    except (TypeError, ValueError):
+        return False
+    return "before_try" in params and "after_failure" in params
+
+
 class RecordingLLM:
     """An ``LLM`` that writes every try to ``log`` before sending it through ``inner``, and
     completes it with the answer after. Safe to call from several threads at once.
 
     ``on_first_use`` runs before the first request (the study marks where a new client session
-    begins, so the audit replays its request shape from there).
+    begins, so the audit replays its request shape from there). ``pacer`` (``llm.pacing.Pacer``)
+    holds each request before its first try is written ahead and sent, and hears when it ended.
     """
 
-    def __init__(self, inner: LLM, log: CallLog, *, on_first_use: Callable[[], None] | None = None) -> None:
+    def __init__(self, inner: LLM, log: CallLog, *, on_first_use: Callable[[], None] | None = None,
+                 pacer: Pacer | None = None) -> None:
         self.inner = inner
         self.log = log
+        self.pacer = pacer
         self._on_first_use = on_first_use
         self._lock = threading.Lock()  # guards the first-use hook and ``_ids``
         self._ids: dict[int, int] = {}  # id(exchange) -> recorded row
@@ -95,6 +111,8 @@ class RecordingLLM:
             hook, self._on_first_use = self._on_first_use, None
         if hook is not None:
             hook()
+        if self.pacer is not None:
+            self.pacer.before_request()
         ahead: list[int] = []  # this call's tries written ahead, in the order sent
         done: list[int] = []  # those completed so far
 
@@ -108,14 +126,18 @@ class RecordingLLM:
                 done.append(ahead[len(done)])
 
         try:
-            if getattr(self.inner, "announces_tries", False):
+            if announces_tries(self.inner):
                 ex = self.inner.send(request, seed=seed, before_try=before_try, after_failure=after_failure)  # type: ignore[call-arg]
             else:
                 before_try(json.dumps({**request.payload, **request.sampling}), 0)
                 ex = self.inner.send(request, seed=seed)
         except LLMUnavailable as e:
             self._complete(ahead, done, e.failures, request)
+            if self.pacer is not None:
+                self.pacer.answered()
             raise
+        if self.pacer is not None:
+            self.pacer.answered()
         rows = self._complete(ahead, done, (*ex.failures, ex), request)
         ex = replace(ex, failures=())  # recorded: the proposer needs the answer, not the tries
         with self._lock:

@@ -31,8 +31,10 @@ with why. Under a preset that encodes parameters, a name of the user's own env (
 file, folder) in any request is an **identifier** finding.
 
 Exit code: 0 when nothing leaked, no identifier was sent, everything was accounted for and nothing
-is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
-checked (named in every report).
+is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing is
+measured on the recorded request times (``privacy.timing``: a channel when the gaps between an
+answer and the next request follow the episodes, exposed when the calibrated clock gives the best
+shown raw return within 1%); request sizes are not checked (named in every report).
 
 ``audit_run(..., attacks=False)`` is the quick audit a finished run prints about itself: every
 check above but the attacks (no exposure, no public-dynamics line, no run seed read off the
@@ -80,8 +82,7 @@ MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
                          "response_format", "grammar", "stop", "top_p", "min_p", "top_k"})
 _SHAPE_FIELDS = frozenset({"model", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort"})
-NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
-               "token counts, and the provider's own answers")
+NOT_CHECKED = "request sizes, token counts, and the provider's own answers"
 
 
 @dataclass
@@ -242,7 +243,8 @@ class _Auditor:
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
                  limits: SimLimits | None = None, simulate: bool = True, keyed_streams: bool = False,
-                 attacks: bool = True) -> None:
+                 attacks: bool = True, told: Sequence[tuple[float, Candidate]] = ()) -> None:
+        self.told = list(told)  # (when recorded, candidate): the request timing check
         self.limits = limits or simfit.DEFAULT_LIMITS
         self.attacks = attacks
         self.keyed_streams = keyed_streams  # the run's draws are keyed by its secrets (seeding.Streams): no seed replay
@@ -475,6 +477,30 @@ class _Auditor:
                          f"raw return {cap.value:g} ({len(pinned)} of {len(self.shown)} shown entries; --hide-anchors on "
                          "withholds it)", ", ".join(f"candidate {c.index}" for c in sorted(pinned, key=lambda c: c.index)),
                          by_design=not self.mech.hardened)
+
+    def timing(self) -> None:
+        """The provider's clock (``privacy.timing``): do the gaps between an answer and the next
+        request follow the candidates' episodes? A channel when significantly so; exposed when the
+        gap, calibrated on the run, gives the best shown raw return within 1%."""
+        if not self.mech.scale_rewards or not self.shown:
+            return
+        from . import timing
+
+        pure = not self.mech.warp_rewards and not self.mech.secret_offsets
+        got = timing.measure(self.calls, self.told, list(self.shown), c=self.secrets.c if self.secrets is not None else None,
+                             pure_scale=pure)
+        paced = " (requests paced)" if self.mech.pace_requests else ""
+        if isinstance(got, str):
+            self.report.notes.append(f"request timing not measured: {got}")
+            return
+        self.report.notes.append(f"request timing{paced}: Spearman {got.rho_steps:+.2f} with the episode steps, {got.rho_return:+.2f} "
+                                 f"with the raw return over {len(got.gaps)} gaps (p = {got.p:.2g})")
+        if got.best_error is not None and got.best_error <= 0.01 and got.significant:
+            self.finding("exposed", "request-timing", f"recovers the best shown policy's raw return to {100 * got.best_error:.2g}%: "
+                         f"{got.describe()}", "request times", by_design=not self.mech.hardened)
+        elif got.significant:
+            self.finding("channel", "request_timing", got.describe() + (paced or "; --pace-requests on pads the gaps"),
+                         "request times")
 
     def _determined(self, shown: list[Candidate]) -> None:
         """Numeric diagnostics that, together, are an exact affine function of the raw return or a component."""
@@ -801,6 +827,7 @@ class _Auditor:
                          "llm_adaptations")
         self.channels()
         self.anchors()
+        self.timing()
         self.identifiers()
         if self.attacks:
             self.exposure()
@@ -990,6 +1017,9 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         calls = store.llm_calls()
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         keyed = store.streams_keyed()
+        created = {t[0]: t[3] for t in store.candidate_times()}
         secrets = run.load_secrets(optional=True)  # a key file that does not load counts as absent
+    told = [(created[c.index], c) for c in candidates if c.index in created]
     return _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks).run()
+                   adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks,
+                   told=told).run()

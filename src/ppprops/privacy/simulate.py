@@ -32,7 +32,6 @@ class EchoOptimizer:
     """
 
     endpoints: Collection[str] = (ENDPOINT_CHAT, ENDPOINT_COMPLETIONS)
-    announces_tries = True  # the body it "sends" is given to ``before_try`` first, as the endpoint client's is
 
     def __init__(self, llm: LLMConfig | None = None, *, spread: float = 0.5) -> None:
         self.spread = spread
