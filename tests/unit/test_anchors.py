@@ -59,3 +59,12 @@ def test_pp_hardened_hides_anchors_by_default() -> None:
     from ppprops.methods import resolve
 
     assert resolve("pp-hardened").hide_anchors and not resolve("pp").hide_anchors
+
+
+def test_a_near_miss_is_named_in_the_verdict_line() -> None:
+    from ppprops.privacy.audit import AuditReport
+
+    r = AuditReport("runs/x", "pp", {}, near_misses=["sim-marginal: c within 1.31%"])
+    assert r.clean and r.verdict() == ("CLEAN: no raw parameter, return, reward component or optimal return was sent; "
+                                       "near miss (within 2%, not 1%): sim-marginal: c within 1.31%")
+    assert r.to_json()["near_misses"] == ["sim-marginal: c within 1.31%"] and r.exit_code() == 0

@@ -132,6 +132,7 @@ class AuditReport:
     public_dynamics: str = ""  # the line naming a task whose env the provider can simulate
     estimates: list[Estimate] = field(default_factory=list, repr=False)  # every attack's estimate (not in the JSON)
     attacked: bool = True  # the attacks ran (``audit_run(attacks=False)``: the transcript checks only)
+    near_misses: list[str] = field(default_factory=list)  # attacks within 2% but not 1%: named in the verdict
 
     def _of(self, severity: str) -> list[Finding]:
         return [f for f in self.findings if f.severity == severity]
@@ -198,9 +199,10 @@ class AuditReport:
         if not self.attacked:
             return (f"NOTHING RAW SENT: no raw parameter, return, reward component or optimal return was sent{tail}; the attacks "
                     "on the transcript did not run")
+        near = f"; near miss (within 2%, not 1%): {', '.join(self.near_misses)}" if self.near_misses else ""
         if strict and n:
-            return f"CHANNELS (strict): no raw value was sent, but {n} known channel(s) remain"
-        return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}"
+            return f"CHANNELS (strict): no raw value was sent, but {n} known channel(s) remain{near}"
+        return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}{near}"
 
     def to_json(self, strict: bool = False) -> dict[str, Any]:
         """The ``ppprops audit --json`` object: the counts, the verdict, the exit code and every finding."""
@@ -209,7 +211,7 @@ class AuditReport:
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
                 "findings": [f.to_json() for f in self.findings], "notes": self.notes,
                 "not_run": [{"attack": a, "why": w} for a, w in self.not_run], "simulator_bound": self.sim_bound,
-                "public_dynamics": self.public_dynamics, "attacked": self.attacked}
+                "public_dynamics": self.public_dynamics, "attacked": self.attacked, "near_misses": self.near_misses}
 
     def format(self, strict: bool = False) -> str:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
@@ -499,6 +501,8 @@ class _Auditor:
             self.finding("exposed", "request-timing", f"recovers the best shown policy's raw return to {100 * got.best_error:.2g}%: "
                          f"{got.describe()}", "request times", by_design=not self.mech.hardened)
         elif got.significant:
+            if got.best_error is not None and got.best_error <= 0.02:
+                self.report.near_misses.append(f"request timing: the best shown raw return within {100 * got.best_error:.3g}%")
             self.finding("channel", "request_timing", got.describe() + (paced or "; --pace-requests on pads the gaps"),
                          "request times")
 
@@ -856,6 +860,7 @@ class _Auditor:
             self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
                          by_design=x.paper)
         self.report.not_run = found.not_run
+        self.report.near_misses += found.near_misses
         self.report.estimates = found.estimates
         if found.note:
             self.report.notes.append(found.note)
