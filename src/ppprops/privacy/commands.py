@@ -106,6 +106,8 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
     from ..rundir import DB_NAME, KEY_NAME, find_runs
     from .matrix import privacy_report, run_matrix, write_report
 
+    if a.runs is not None and a.pace_requests:
+        raise ConfigError("--pace-requests is a setting of new runs; the runs under --runs were made as they were")
     if a.runs is not None:
         dirs = find_runs(a.runs, recursive=True, with_key=True)
         if not dirs:
