@@ -127,7 +127,7 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
     assert main(["privacy-report", "--runs", str(tmp_path)]) == 2  # no runs there: one line, exit 2
     capsys.readouterr()
     assert main(["privacy-report", "--runs", str(root), "--pace-requests"]) == 2  # a setting of new runs only
-    assert capsys.readouterr().err == ("ppprops: --pace-requests is a setting of new runs; the runs under --runs were made as "
+    assert capsys.readouterr().err == ("ppprops: error: --pace-requests is a setting of new runs; the runs under --runs were made as "
                                        "they were\n")
 
 
