@@ -125,6 +125,10 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
     assert "| Acrobot pp |" in capsys.readouterr().out
     assert (root / "privacy-report.md").exists() and len(json.loads((root / "privacy-report.json").read_text())) == len(runs)
     assert main(["privacy-report", "--runs", str(tmp_path)]) == 2  # no runs there: one line, exit 2
+    capsys.readouterr()
+    assert main(["privacy-report", "--runs", str(root), "--pace-requests"]) == 2  # a setting of new runs only
+    assert capsys.readouterr().err == ("ppprops: error: --pace-requests is a setting of new runs; the runs under --runs were made as "
+                                       "they were\n")
 
 
 def test_privacy_report_runs_a_users_task_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

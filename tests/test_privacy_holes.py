@@ -96,6 +96,14 @@ def _prose(doc: dict[str, Any], sentence: str) -> None:
                                                                           f" {sentence}\n\n4. How we will interact:", 1)
 
 
+def _diagnostic(doc: dict[str, Any], c: Any, text: str) -> None:
+    """A diagnostics line added to the entry of ``c`` (pp-hardened shows none of its own)."""
+    content = doc["messages"][0]["content"]
+    start = content.index(shown_vector(c.params_enc) + "\nreturn: " + fmt(c.feedback_enc.ret, 2))
+    end = content.index("\n\n", start)
+    doc["messages"][0]["content"] = content[:end] + f"\ndiagnostics: {text}" + content[end:]
+
+
 PLACEMENTS: dict[str, Callable[[dict[str, Any], Any], None]] = {
     "top-level user field": lambda d, c: d.update(user=f"client {int(c.ret)}"),
     "top-level metadata field": lambda d, c: d.update(metadata={"note": f"best so far {c.ret:.1f}"}),
@@ -110,10 +118,7 @@ PLACEMENTS: dict[str, Callable[[dict[str, Any], Any], None]] = {
     "return with one decimal in the prose": lambda d, c: _prose(d, f"The best return so far is {c.ret:.1f}."),
     "return with two decimals in the prose": lambda d, c: _prose(d, f"The best return so far is {c.ret:.2f}."),
     "raw parameters in the prose": lambda d, c: _prose(d, "Start from " + "[" + ", ".join(fmt(v, 2) for v in c.params) + "]."),
-    "episode_length in an entry": lambda d, c: d["messages"][0].update(content=d["messages"][0]["content"].replace(
-        shown_vector(c.params_enc) + "\nreturn: " + fmt(c.feedback_enc.ret, 2),
-        shown_vector(c.params_enc) + "\nreturn: " + fmt(c.feedback_enc.ret, 2), 1).replace(
-        "termination=pole_fell", f"episode_length={int(c.ret)}, termination=pole_fell", 1)),
+    "episode_length in an entry": lambda d, c: _diagnostic(d, c, f"episode_length={int(c.ret)}"),
     "raw parameter inside an entry": lambda d, c: d["messages"][0].update(content=d["messages"][0]["content"].replace(
         shown_vector(c.params_enc), shown_vector(list(c.params_enc[:4]) + [c.params[4]] + list(c.params_enc[5:])), 1)),
 }
@@ -197,11 +202,13 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
 
 
 # -- the new attacks on pp and pp-hardened --------------------------------------------------------------
-def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20, warmup: int = 10) -> Path:
+def _simulate(root: Path, task: str, method: str, seed: int, iterations: int = 20, warmup: int = 10, **switches: bool) -> Path:
     out = root / f"{task}__{method}__{seed}"
+    config = make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, seed=seed)
+    if switches:
+        config = replace(config, mechanisms=resolve(method, **switches))
     with offline_llm():
-        start(make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, seed=seed), out,
-              secrets=seeded_secrets(method, task, seed))
+        start(config, out, secrets=seeded_secrets(method, task, seed))
     return out
 
 
@@ -223,7 +230,9 @@ def test_warped_lattice_recovers_c_under_pp_and_the_old_undithered_warp_but_not_
     facts = hardening.facts_for
     monkeypatch.setattr(hardening, "facts_for", lambda name: facts(name).model_copy(update={"resolution": {}}))
     # (it needs a favourable draw: 1 of these 8 seeded runs on CartPole, 2 on Acrobot)
-    old = [(s, _estimate(_simulate(tmp_path / "old", task, "pp-hardened", s), task, "warped-lattice")) for s in range(8)]
+    # ... and the diagnostics that mark a cap shown, as pp-hardened showed them then (the lattice's anchor)
+    old = [(s, _estimate(_simulate(tmp_path / "old", task, "pp-hardened", s, hide_anchors=False), task, "warped-lattice"))
+           for s in range(8)]
     hits = [(s, e) for s, e in old if e.applicable]
     assert hits, [e.detail for _, e in old]
     for s, e in hits:

@@ -138,7 +138,7 @@ def test_a_schema_1_store_migrates_in_place(tmp_path: Path) -> None:
     with sqlite3.connect(db) as con:
         con.executescript(_SCHEMA_1)
     store = RunStore(db)
-    assert store.schema_version() == SCHEMA_VERSION == 5 and store.run_id() == "old-run"
+    assert store.schema_version() == SCHEMA_VERSION == 6 and store.run_id() == "old-run"
     (first,) = store.candidates()  # an old row reads back, its timings unknown
     assert first.ret == 3.0 and first.ask_s is None and first.eval_s is None
     fb = Feedback(ret=4.0)
@@ -148,6 +148,7 @@ def test_a_schema_1_store_migrates_in_place(tmp_path: Path) -> None:
     old, document = store.llm_calls()
     assert old["parse_error"] == "no_numbers" and old["retry"] == 0 and old["error_kind"] is None
     assert (old["form"], document["form"]) == ("chat", "document")  # every call names its form, old ones as their body shows
+    assert old["answered"] and document["answered"]  # recorded after their answers: none was left in flight
     ex = types.SimpleNamespace(request="{}", response=None, content=None, reasoning=None, prompt_chars=2, prompt_tokens=None,
                                completion_tokens=None, latency_s=0.1, ok=False, error="timeout", error_kind="timeout", retry=1)
     store.add_llm_call(1, 0, ex, None, form="chat")

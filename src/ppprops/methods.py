@@ -1,7 +1,7 @@
 """Every method ppprops runs, in one registry, and the mechanisms the prompted ones combine.
 
 The paper's four configurations (vanilla, pe, df, pp) are combinations of independent
-privacy/feedback mechanisms (``Mechanisms``); ``pp-hardened`` adds five switches that close the
+privacy/feedback mechanisms (``Mechanisms``); ``pp-hardened`` adds six switches that close the
 side channels measured in docs/threat-model.md (the four paper presets keep every new switch off,
 so they behave exactly as the paper defines them). ``describe_task`` is the ProPS / ProPS+
 distinction: off, the prompt carries no task description, only the policy structure.

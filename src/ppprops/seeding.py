@@ -22,6 +22,7 @@ FALLBACK = 4
 LLM_SAMPLING = 5
 OPTIMIZER = 6  # a black-box optimizer's own seed (CMA-ES)
 SELECTION = 7  # re-evaluation episodes of the selection stage
+PACING = 8  # the keyed jitter of paced requests (llm.pacing)
 
 
 def _seq(seed: int, stream: int, index: int, key: tuple[int, ...] = ()) -> np.random.SeedSequence:

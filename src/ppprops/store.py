@@ -12,8 +12,13 @@ Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``a
 asked for and not yet been told: stored before ``ask`` returns, so a restart asks nothing twice)
 and ``llm_calls.form`` and ``decisions`` (the prompt form of each call and the public choices it
 made, which the audit reads); 5 names the form of every call (calls recorded before forms were
-named get the form their body shows, ``wire.forms.recorded_form``, once). Older stores are
-migrated in place. Changes the LLM
+named get the form their body shows, ``wire.forms.recorded_form``, once); 6 adds
+``llm_calls.answered``: every try is written before its bytes leave (``begin_llm_call``, answered
+0) and completed with its answer after (``complete_llm_call``, answered 1), so a process killed
+while a request is in flight leaves that request in the store, marked unanswered (calls recorded
+before were recorded after their answer: answered 1), and ``llm_calls.sent``, when each try left
+(Unix seconds; unknown, NULL, for calls recorded before: their ``created`` is when the answer
+came). Older stores are migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
 in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
 (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
@@ -23,6 +28,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -35,7 +41,7 @@ from .errors import StoreError
 from .status import RunStatus
 from .values import Candidate, Feedback, FinalEval, Trial
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"  # the store's file in a run directory (the directory's other files: ppprops.rundir)
 
@@ -108,7 +114,16 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("llm_calls", "decisions", "TEXT"),
     ("candidates", "reevaluates", "INTEGER"),
     ("pending", "reevaluates", "INTEGER"),
+    ("llm_calls", "answered", "INTEGER NOT NULL DEFAULT 1"),
+    ("llm_calls", "sent", "REAL"),
 )
+
+# What a try written ahead holds until its answer completes it: to every reader it is a failed
+# try of this kind, so a process that died with it in flight leaves a try the audit reads and
+# ``show`` counts.
+UNANSWERED = "unanswered"
+UNANSWERED_ERROR = ("unanswered: the request was sent and no answer was recorded (still in flight, or the process "
+                    "ended while it was)")
 
 
 def _describe(e: sqlite3.Error, path: Path) -> str:
@@ -124,6 +139,19 @@ def _describe(e: sqlite3.Error, path: Path) -> str:
     if "malformed" in low or "not a database" in low:
         return f"run store {path} is not a readable SQLite database ({text})"
     return f"run store {path}: {e.__class__.__name__}: {text}"
+
+
+class _Rows:
+    """A query's rows, read whole (``fetchone``/``fetchall``/``description`` as a cursor's)."""
+
+    def __init__(self, rows: list[Any], description: Any) -> None:
+        self.rows, self.description = rows, description
+
+    def fetchone(self) -> Any:
+        return self.rows[0] if self.rows else None
+
+    def fetchall(self) -> list[Any]:
+        return self.rows
 
 
 class RunStore:
@@ -148,8 +176,11 @@ class RunStore:
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
+        self._lock = threading.RLock()
         try:
-            self._db = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None)
+            # one connection, shared by the threads of a process (requests in flight at once): ``_lock``
+            # serialises its use, so each transaction is one thread's
+            self._db = sqlite3.connect(self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False)
         except sqlite3.Error as e:
             raise StoreError(f"run store {self.path} cannot be opened ({e})") from None
         try:
@@ -205,29 +236,34 @@ class RunStore:
     def _tx(self) -> Iterator[sqlite3.Connection]:
         """One write transaction, taken up front (BEGIN IMMEDIATE) so concurrent writers queue
         on the busy timeout instead of failing on a lock upgrade. SQLite errors become StoreError;
-        IntegrityError passes through for the caller to word."""
-        try:
-            self._db.execute("BEGIN IMMEDIATE")
-        except sqlite3.Error as e:
-            raise StoreError(_describe(e, self.path)) from None
-        try:
-            yield self._db
-            self._db.execute("COMMIT")
-        except BaseException as e:
-            if self._db.in_transaction:
-                try:
-                    self._db.execute("ROLLBACK")
-                except sqlite3.Error:
-                    pass  # SQLite already rolled back (e.g. after SQLITE_FULL)
-            if isinstance(e, sqlite3.Error) and not isinstance(e, sqlite3.IntegrityError):
+        IntegrityError passes through for the caller to word. Other threads of this process wait
+        for it to end (the connection's lock)."""
+        with self._lock:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+            except sqlite3.Error as e:
                 raise StoreError(_describe(e, self.path)) from None
-            raise
+            try:
+                yield self._db
+                self._db.execute("COMMIT")
+            except BaseException as e:
+                if self._db.in_transaction:
+                    try:
+                        self._db.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass  # SQLite already rolled back (e.g. after SQLITE_FULL)
+                if isinstance(e, sqlite3.Error) and not isinstance(e, sqlite3.IntegrityError):
+                    raise StoreError(_describe(e, self.path)) from None
+                raise
 
-    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> sqlite3.Cursor:
-        try:
-            return self._db.execute(sql, args)
-        except sqlite3.Error as e:
-            raise StoreError(_describe(e, self.path)) from None
+    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> _Rows:
+        """The rows of one query, read whole under the connection's lock."""
+        with self._lock:
+            try:
+                cur = self._db.execute(sql, args)
+                return _Rows(cur.fetchall(), cur.description)
+            except sqlite3.Error as e:
+                raise StoreError(_describe(e, self.path)) from None
 
     def _meta(self, key: str) -> str | None:
         row = self._read("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -248,7 +284,8 @@ class RunStore:
 
     def close(self) -> None:
         """Close the connection (the last one to close checkpoints the WAL into the database file)."""
-        self._db.close()
+        with self._lock:
+            self._db.close()
 
     def __enter__(self) -> RunStore:
         return self
@@ -412,6 +449,54 @@ class RunStore:
             "SELECT idx, source, iteration, created, ask_s, eval_s FROM candidates ORDER BY idx").fetchall()]
 
     # -- LLM exchanges --------------------------------------------------------------------
+    def begin_llm_call(self, iteration: int, attempt: int, request: str, *, prompt_chars: int, retry: int = 0, form: str,
+                       decisions: Mapping[str, Any] | None = None) -> int:
+        """Write one try ahead, before its bytes leave: ``request`` is the body about to be sent.
+        Until ``complete_llm_call`` it reads as an unanswered try (``answered`` false, not ``ok``,
+        error kind ``unanswered``), and so it stays if the process ends first. ``created`` is when
+        it was written, i.e. when it left (also its ``sent``). Returns its row id."""
+        now = time.time()
+        with self._tx() as db:
+            cur = db.execute(
+                "INSERT INTO llm_calls (iteration, attempt, request, prompt_chars, latency_s, ok, error, created, error_kind, retry,"
+                " form, decisions, answered, sent) VALUES (?, ?, ?, ?, 0.0, 0, ?, ?, ?, ?, ?, ?, 0, ?)",
+                (iteration, attempt, request, prompt_chars, UNANSWERED_ERROR, now, UNANSWERED, int(retry), form,
+                 None if decisions is None else json.dumps(dict(decisions)), now),
+            )
+            return int(cur.lastrowid or 0)
+
+    def complete_llm_call(self, call_id: int, ex: Any) -> None:
+        """Complete the try ``call_id`` written ahead with what came back (an ``Exchange``, failed
+        or not; its ``request`` replaces the one written ahead, which it equals for the endpoint
+        client), and append its adaptation to ``llm_adaptations``, in one transaction.
+
+        Raises:
+            StoreError: no try ``call_id`` is waiting for its answer.
+        """
+        adaptation = getattr(ex, "adaptation", None)
+        with self._tx() as db:
+            row = db.execute("SELECT iteration, attempt FROM llm_calls WHERE id = ? AND answered = 0", (int(call_id),)).fetchone()
+            if row is None:
+                raise StoreError(f"LLM call {call_id} is not waiting for its answer in {self.path}")
+            if adaptation:
+                self._log_adaptation(db, row[0], row[1], adaptation)
+            db.execute(
+                "UPDATE llm_calls SET request = ?, response = ?, content = ?, reasoning = ?, prompt_chars = ?, prompt_tokens = ?,"
+                " completion_tokens = ?, latency_s = ?, ok = ?, error = ?, error_kind = ?, retry = ?, answer_source = ?,"
+                " answered = 1 WHERE id = ? AND answered = 0",
+                (ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars, ex.prompt_tokens, ex.completion_tokens,
+                 ex.latency_s, int(ex.ok), ex.error, getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)),
+                 getattr(ex, "answer_source", None), int(call_id)),
+            )
+
+    @staticmethod
+    def _log_adaptation(db: sqlite3.Connection, iteration: int, attempt: int, change: str) -> None:
+        """Append one change of the LLM client's requests to ``llm_adaptations`` (inside the caller's transaction)."""
+        row = db.execute("SELECT value FROM meta WHERE key = 'llm_adaptations'").fetchone()
+        log = json.loads(row[0]) if row else []
+        log.append({"iteration": iteration, "attempt": attempt, "change": change, "created": time.time()})
+        db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
+
     def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str,
                      decisions: Mapping[str, Any] | None = None) -> int:
         """One HTTP try, failed or not: ``ex`` is an ``Exchange`` (its error_kind, retry,
@@ -422,10 +507,7 @@ class RunStore:
         adaptation = getattr(ex, "adaptation", None)
         with self._tx() as db:
             if adaptation:
-                row = db.execute("SELECT value FROM meta WHERE key = 'llm_adaptations'").fetchone()
-                log = json.loads(row[0]) if row else []
-                log.append({"iteration": iteration, "attempt": attempt, "change": adaptation, "created": time.time()})
-                db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
+                self._log_adaptation(db, iteration, attempt, adaptation)
             cur = db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, response, content, reasoning, prompt_chars,"
                 " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created, error_kind, retry,"
@@ -462,6 +544,16 @@ class RunStore:
                 starts.append(n)
                 db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_sessions', ?)", (json.dumps(starts),))
 
+    def pacing_state(self) -> dict[str, Any]:
+        """The request pacer's state (``llm.pacing.Pacer``), shared by the processes that drive
+        one study: {} before the first paced request."""
+        raw = self._meta("pacing")
+        return dict(json.loads(raw)) if raw else {}
+
+    def set_pacing_state(self, state: Mapping[str, Any]) -> None:
+        """Replace the request pacer's state."""
+        self._set_meta("pacing", json.dumps(dict(state)))
+
     def llm_sessions(self) -> list[int] | None:
         """Where each LLM client session began, as a count of the calls before it (ascending);
         None for runs recorded before sessions were (then only endpoint changes are known)."""
@@ -469,18 +561,22 @@ class RunStore:
         return [int(n) for n in json.loads(raw)] if raw else None
 
     def llm_calls(self) -> list[dict[str, Any]]:
-        """Every recorded HTTP try, oldest first, as dicts with the ``llm_calls`` columns
-        (request and response bodies as sent and received, tokens, latency in seconds, ok, errors)."""
+        """Every recorded HTTP try, in the order sent, as dicts with the ``llm_calls`` columns
+        (request and response bodies as sent and received, tokens, latency in seconds, ok, errors,
+        ``answered`` (false: written ahead and never completed), ``sent``: when it left, in Unix
+        seconds (None for calls recorded before requests were written ahead: their ``created``
+        is when the answer came))."""
         cur = self._read(
             "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
-            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions"
-            " FROM llm_calls ORDER BY id"
+            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions,"
+            " answered, created, sent FROM llm_calls ORDER BY id"
         )
         cols = [d[0] for d in cur.description]
         out = []
         for row in cur.fetchall():
             d = dict(zip(cols, row))
             d["ok"] = bool(d["ok"])
+            d["answered"] = bool(d["answered"])
             d["decisions"] = json.loads(d["decisions"]) if d["decisions"] else None
             out.append(d)
         return out

@@ -58,6 +58,7 @@ from .values import Candidate, Feedback, FinalEval, Trial
 # forms, the LLM client, the policy file) is imported where it is used: `ppprops tell` and
 # `ppprops ask`, one process per trial, load a study without them (tests/test_startup.py).
 if TYPE_CHECKING:
+    from .llm.pacing import Pacer
     from .llm.protocol import LLM
     from .llm.recording import RecordingLLM
     from .policy_file import Policy
@@ -589,8 +590,21 @@ class Study:
                     server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size)
                 model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
                                                                   on_ready=self.events.on_llm_ready, server=server)))
-            self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session)
+            self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session, pacer=self._pacer())
         return self._recording
+
+    def _pacer(self) -> Pacer | None:
+        """The request pacer when ``pace_requests`` is on (``llm.pacing``): its jitter keyed by the
+        secrets, its floor the longest time between two warm-up trials (told back to back)."""
+        if not self.config.mechanisms.pace_requests:
+            return None
+        from .llm.pacing import Pacer
+
+        def floor() -> float:
+            times = [t[3] for t in self.store.candidate_times() if t[1] == "warmup"]
+            return max(np.diff(times), default=0.0) if len(times) > 1 else 0.0
+
+        return Pacer(self.store, lambda n: self.streams.rng(seeding.PACING, n), floor=floor)
 
     def feedback_notice(self, form: PromptForm) -> str | None:
         """The line a run says once when the prompt form will not show the detailed feedback the

@@ -27,7 +27,7 @@ def _finite(x: Any) -> Any:
 
 def _fault_counts(cands: list[Any], calls: list[dict[str, Any]]) -> dict[str, Any]:
     """Endpoint faults, retries, unusable answers and numerical faults, each counted per kind."""
-    transport = Counter(c["error_kind"] or "unknown" for c in calls if not c["ok"])
+    transport = Counter(c["error_kind"] or "unknown" for c in calls if not c["ok"] and c.get("answered", True))
     answers = Counter(c["parse_error"] for c in calls if c["ok"] and c["parse_error"])
     reasons: Counter[str] = Counter()
     for c in cands:
@@ -38,6 +38,7 @@ def _fault_counts(cands: list[Any], calls: list[dict[str, Any]]) -> dict[str, An
     )
     return {
         "llm_requests_failed": sum(transport.values()),
+        "llm_unanswered": sum(1 for c in calls if not c.get("answered", True)),  # sent, no answer recorded (written ahead)
         "transport_failures": dict(sorted(transport.items())),
         "retries": sum(1 for c in calls if c["retry"]),
         "answer_failures": dict(sorted(answers.items())),
@@ -149,6 +150,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
                 "error_kind": call["error_kind"] or call["parse_error"],
                 "retry": call["retry"],
                 "answer_source": call["answer_source"],
+                "answered": call["answered"],
             }
             for call in calls
         ],
@@ -194,6 +196,9 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append("answers  unusable: " + ", ".join(f"{k} x{v}" for k, v in sorted(c["answer_failures"].items())))
     if c.get("answers_from_reasoning"):
         lines.append(f"answers  {c['answers_from_reasoning']} taken from the reasoning text (empty content)")
+    if c.get("llm_unanswered"):
+        lines.append(f"llm      {c['llm_unanswered']} request(s) sent and never answered (in flight, or the process ended while "
+                     "they were); recorded before they were sent, the audit reads them like the others")
     if c.get("transport_failures"):
         lines.append(
             "endpoint failed tries: " + ", ".join(f"{k} x{v}" for k, v in c["transport_failures"].items())
@@ -226,7 +231,7 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["final_eval"]:
         fe = s["final_eval"]
         lines.append(f"final    {fe['mean']:.2f} +- {fe['std']:.2f} over {fe['episodes']} fresh episodes")
-    lat = [x["latency_s"] for x in s["llm_calls"]]
+    lat = [x["latency_s"] for x in s["llm_calls"] if x.get("answered", True)]
     if lat:
         lines.append(f"llm      mean latency {sum(lat) / len(lat):.2f} s, last prompt {s['llm_calls'][-1]['prompt_chars']} chars")
     return "\n".join(lines)

@@ -248,7 +248,12 @@ def test_hardened_prompt_wording_states_nothing_the_encoding_does_not_keep() -> 
     text = build_prompt(ctx, [e])
     assert "increasing transformation" in text and "drawn uniformly from [-6, 6] in these encoded coordinates" in text
     assert "Signs and order are kept" not in text and "multiplied by one positive constant" not in text
-    assert "episode_length" not in text and "diagnostics: termination=pole_fell" in text
+    assert "episode_length" not in text and "termination" not in text  # hide_anchors: termination=time_limit would pin 500
+    old = replace(cfg, mechanisms=resolve("pp-hardened", hide_anchors=False))  # as pp-hardened was: the termination shown
+    codec = codec_for(generate_secrets("h", task, old.encoding), task, old.encoding)
+    enc = encode_feedback(codec, fb)
+    e = codec.entry(0, codec.encode(np.full(task.D, 0.5)), enc.ret, enc.components, enc.diagnostics)
+    assert "diagnostics: termination=pole_fell" in build_prompt(prompt_context(task, old.prompt, codec), [e])
     assert "500" not in set(re.findall(r"-?\d+(?:\.\d+)?", text)) and "optimal return" not in text
 
 

@@ -42,6 +42,15 @@ def return_determining(task: Task) -> frozenset[str]:
     return frozenset(facts_for(task).return_determining or ())
 
 
+def anchoring(task: Task) -> frozenset[str]:
+    """Diagnostics whose value marks an episode end at a public cap (hidden by ``hide_anchors``;
+    docs/threat-model.md, "Anchored returns"): the diagnostic of each of the task's
+    ``privacy.caps`` (CartPole ``termination``, whose ``time_limit`` pins the raw return to 500;
+    Acrobot ``success``, whose 0 pins it to -500). The whole diagnostic goes, for every entry:
+    leaving out only the marked value would mark the entry by its absence."""
+    return frozenset(c.diagnostic for c in facts_for(task).caps or ())
+
+
 def residual_component(task: Task) -> frozenset[str]:
     """The component hidden with ``hide_return_diagnostics`` (none for tasks without components).
 
@@ -101,7 +110,8 @@ def codec_for(secrets: Secrets, task: Task, config: EncodingSettings) -> Codec:
         warp_params=m.warp_params,
         warp_rewards=m.warp_rewards,
         box=config.box,
-        hidden_diagnostics=return_determining(task) if m.hide_return_diagnostics else frozenset(),
+        hidden_diagnostics=(return_determining(task) if m.hide_return_diagnostics else frozenset())
+        | (anchoring(task) if m.hide_anchors else frozenset()),
         hidden_components=residual_component(task) if m.hide_return_diagnostics else frozenset(),
         resolution=facts_for(task).resolution or {},
         episodes=config.episodes,

@@ -32,6 +32,14 @@ class Mechanisms:
     # ProPS+ (on) or ProPS (off): the task description (environment, state and action meanings,
     # reward text, hints) in the prompt. Off leaves the policy structure, feedback, interaction, history.
     describe_task: bool = True
+    # Hardening, added later (stored configs without it read it off): drop the diagnostics whose
+    # value marks an episode end at a public cap, which pins that entry's raw return exactly
+    # (CartPole termination=time_limit: 500; Acrobot success=0: -500).
+    hide_anchors: bool = False
+    # Transport, not encoding: each new LLM request waits until the gap since the last answer
+    # reaches a padded, keyed length, so the provider's clock does not follow evaluation time
+    # (llm.pacing; docs/threat-model.md, "The provider's clock"). Costs wall time; off by default.
+    pace_requests: bool = False
 
     def to_json(self) -> dict[str, bool]:
         """Each switch by name, as stored in a run's config."""
@@ -70,7 +78,7 @@ class Mechanisms:
             raise ConfigError("--secret-offsets needs --encode-params or --scale-rewards on")
 
 
-HARDENING = ("secret_offsets", "warp_params", "warp_rewards", "hide_return_diagnostics", "encoded_warmup")
+HARDENING = ("secret_offsets", "warp_params", "warp_rewards", "hide_return_diagnostics", "encoded_warmup", "hide_anchors")
 
 PRESETS: dict[str, Mechanisms] = {
     # Vanilla ProPS: raw parameters, scalar return, reward structure and optimum disclosed.
@@ -83,7 +91,7 @@ PRESETS: dict[str, Mechanisms] = {
     # reward definition is withheld too, because it states the optimum (e.g. 500 steps x +1).
     "pp": Mechanisms(True, True, True, False, False),
     # PP-ProPS with the side channels of docs/threat-model.md closed (not a configuration of the paper).
-    "pp-hardened": Mechanisms(True, True, True, False, False, True, True, True, True, True),
+    "pp-hardened": Mechanisms(True, True, True, False, False, True, True, True, True, True, hide_anchors=True),
 }
 
 
@@ -104,6 +112,8 @@ SWITCH_HELP: dict[str, str] = {
     "warp_rewards": "hardening: a secret increasing power warp of the rewards",
     "hide_return_diagnostics": "hardening: drop diagnostics that pin the return",
     "encoded_warmup": "hardening: warm-up drawn in the encoded space",
+    "hide_anchors": "hardening: drop diagnostics that mark a return at a public cap (termination=time_limit)",
+    "pace_requests": "hardening: pad the gap before each LLM request, so request times do not follow evaluation time (costs wall time)",
 }
 
 

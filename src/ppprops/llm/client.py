@@ -490,26 +490,37 @@ class EndpointClient:
         """The request body ``send`` would send now for ``req`` (``RequestShape.body``)."""
         return self.shape.body(req, seed)
 
-    def send(self, request: FormRequest, *, seed: int | None = None) -> Exchange:
+    def send(self, request: FormRequest, *, seed: int | None = None, before_try: Callable[[str, int], None] | None = None,
+             after_failure: Callable[[Exchange], None] | None = None) -> Exchange:
         """One usable answer (``ok``) to ``request``, after adapting the request and retrying transient faults.
 
-        The failed tries come back in ``failures``. Raises ``LLMUnavailable`` past the retry
-        bound and ``LLMRejected`` for deterministic failures, both carrying the failed tries;
-        ``LLMError`` when the embedded server fails to start.
+        The failed tries come back in ``failures``. ``before_try(body, retry)`` is called with
+        the exact JSON body of each try just before its bytes leave (the recording client writes
+        it ahead there; if it raises, that try is not sent), and ``after_failure(ex)`` with each
+        failed try as soon as it failed, as it will be in ``failures``. Raises ``LLMUnavailable`` past the
+        retry bound and ``LLMRejected`` for deterministic failures, both carrying the failed
+        tries; ``LLMError`` when the embedded server fails to start.
         """
         client = self._client()
         with self.gate:
-            return self._request(request, seed, client)
+            return self._request(request, seed, client, before_try, after_failure)
 
-    def _request(self, req: FormRequest, seed: int | None, client: OpenAI) -> Exchange:
+    def _request(self, req: FormRequest, seed: int | None, client: OpenAI, before_try: Callable[[str, int], None] | None = None,
+                 after_failure: Callable[[Exchange], None] | None = None) -> Exchange:
         failures: list[Exchange] = []
+
+        def failed(ex: Exchange) -> None:
+            failures.append(ex)
+            if after_failure is not None:
+                after_failure(ex)
+
         transient = 0
         retry = 0
         stretch = 1.0  # each timed-out try of this request waits twice as long the next time
         while True:
             body = self.shape.body(req, seed)
             wait = stretch * self.shape.timeout(req)
-            ex, retry_after, err = self._attempt(client, req, body, retry=retry, timeout_s=wait)
+            ex, retry_after, err = self._attempt(client, req, body, retry=retry, timeout_s=wait, before_try=before_try)
             if ex.ok:
                 return replace(self._after_answer(req, ex), failures=tuple(failures))
             if ex.error_kind == "timeout":
@@ -518,12 +529,12 @@ class EndpointClient:
                 change, hint = self.shape.adapt(err)
                 if change is not None:
                     self.adaptations.append(change)
-                    failures.append(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
+                    failed(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
                     retry += 1
                     continue
                 if hint:
                     ex = replace(ex, error=f"{ex.error} ({hint})")
-            failures.append(ex)
+            failed(ex)
             if not _retryable(ex.error_kind):
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", tuple(failures))
             if transient >= self.config.transport_retries:
@@ -551,11 +562,11 @@ class EndpointClient:
         return replace(ex, adaptation="; ".join(notes))
 
     # -- one HTTP round trip ------------------------------------------------------------------
-    def _attempt(self, client: OpenAI, req: FormRequest, body: dict[str, Any], *, retry: int,
-                 timeout_s: float) -> tuple[Exchange, float | None, ServerError | None]:
+    def _attempt(self, client: OpenAI, req: FormRequest, body: dict[str, Any], *, retry: int, timeout_s: float,
+                 before_try: Callable[[str, int], None] | None = None) -> tuple[Exchange, float | None, ServerError | None]:
         """One HTTP round trip of ``body`` (a chat or completions body of ``req``), waiting at most
         ``timeout_s`` for the answer, never raising for endpoint faults: (exchange, Retry-After
-        seconds, what the server said when it refused)."""
+        seconds, what the server said when it refused). ``before_try`` sees the body first."""
         import openai
 
         document = req.endpoint == ENDPOINT_COMPLETIONS
@@ -565,6 +576,8 @@ class EndpointClient:
         known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
         sdk_args = {k: v for k, v in body.items() if k in known}
         extra = {k: v for k, v in body.items() if k not in known} or None
+        if before_try is not None:
+            before_try(request, retry)
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:

@@ -31,8 +31,10 @@ with why. Under a preset that encodes parameters, a name of the user's own env (
 file, folder) in any request is an **identifier** finding.
 
 Exit code: 0 when nothing leaked, no identifier was sent, everything was accounted for and nothing
-is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing and sizes are not
-checked (named in every report).
+is exposed; 1 with the locations otherwise; ``--strict`` also fails on channels. Request timing is
+measured on the recorded request times (``privacy.timing``: a channel when the gaps between an
+answer and the next request follow the episodes, exposed when the calibrated clock gives the best
+shown raw return within 1%); request sizes are not checked (named in every report).
 
 ``audit_run(..., attacks=False)`` is the quick audit a finished run prints about itself: every
 check above but the attacks (no exposure, no public-dynamics line, no run seed read off the
@@ -72,7 +74,7 @@ from .runseed import find_run_seed
 from .simfit import SimLimits
 from .simulator import env_is_public
 from .tokens import renders, token_value
-from .view import Estimate, view_of
+from .view import Estimate, same_marker, view_of
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 # Every top-level field the client may send in some state of its request shape (``RequestShape``),
@@ -80,8 +82,7 @@ MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
                          "response_format", "grammar", "stop", "top_p", "min_p", "top_k"})
 _SHAPE_FIELDS = frozenset({"model", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort"})
-NOT_CHECKED = ("request timing and sizes (the gaps between calls can follow episode lengths on Ant and Acrobot), "
-               "token counts, and the provider's own answers")
+NOT_CHECKED = "request sizes, token counts, and the provider's own answers"
 
 
 @dataclass
@@ -131,6 +132,7 @@ class AuditReport:
     public_dynamics: str = ""  # the line naming a task whose env the provider can simulate
     estimates: list[Estimate] = field(default_factory=list, repr=False)  # every attack's estimate (not in the JSON)
     attacked: bool = True  # the attacks ran (``audit_run(attacks=False)``: the transcript checks only)
+    near_misses: list[str] = field(default_factory=list)  # attacks within 2% but not 1%: named in the verdict
 
     def _of(self, severity: str) -> list[Finding]:
         return [f for f in self.findings if f.severity == severity]
@@ -197,9 +199,10 @@ class AuditReport:
         if not self.attacked:
             return (f"NOTHING RAW SENT: no raw parameter, return, reward component or optimal return was sent{tail}; the attacks "
                     "on the transcript did not run")
+        near = f"; near miss (within 2%, not 1%): {', '.join(self.near_misses)}" if self.near_misses else ""
         if strict and n:
-            return f"CHANNELS (strict): no raw value was sent, but {n} known channel(s) remain"
-        return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}"
+            return f"CHANNELS (strict): no raw value was sent, but {n} known channel(s) remain{near}"
+        return f"CLEAN: no raw parameter, return, reward component or optimal return was sent{tail}{near}"
 
     def to_json(self, strict: bool = False) -> dict[str, Any]:
         """The ``ppprops audit --json`` object: the counts, the verdict, the exit code and every finding."""
@@ -208,7 +211,7 @@ class AuditReport:
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
                 "findings": [f.to_json() for f in self.findings], "notes": self.notes,
                 "not_run": [{"attack": a, "why": w} for a, w in self.not_run], "simulator_bound": self.sim_bound,
-                "public_dynamics": self.public_dynamics, "attacked": self.attacked}
+                "public_dynamics": self.public_dynamics, "attacked": self.attacked, "near_misses": self.near_misses}
 
     def format(self, strict: bool = False) -> str:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
@@ -242,7 +245,8 @@ class _Auditor:
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
                  limits: SimLimits | None = None, simulate: bool = True, keyed_streams: bool = False,
-                 attacks: bool = True) -> None:
+                 attacks: bool = True, told: Sequence[tuple[float, Candidate]] = ()) -> None:
+        self.told = list(told)  # (when recorded, candidate): the request timing check
         self.limits = limits or simfit.DEFAULT_LIMITS
         self.attacks = attacks
         self.keyed_streams = keyed_streams  # the run's draws are keyed by its secrets (seeding.Streams): no seed replay
@@ -268,6 +272,7 @@ class _Auditor:
         self.enc = np.array([c.params_enc for c in self.cands], dtype=np.float64).reshape(len(self.cands), D)
         self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), D)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
+        self.shown_diagnostics: dict[int, dict[str, str]] = {}  # candidate -> each diagnostic as some request printed it
         self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
         counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
         self._stalls = [0]
@@ -364,6 +369,7 @@ class _Auditor:
             return None
         c = self.cands[idx]
         self.shown[c.index] = c
+        self.shown_diagnostics.setdefault(c.index, {}).update(dict(e.diagnostics))
         where = f"{where} = candidate {c.index}"
         self.report.entries += 1
         # parameters, position by position
@@ -452,6 +458,54 @@ class _Auditor:
                 if c.ret in caps and c.ret != 0:
                     self.finding("channel", "known_cap", f"a return at the public cap {c.ret:g} gives c = printed / {c.ret:g}",
                                  f"candidate {c.index}")
+
+    def anchors(self) -> None:
+        """Shown entries whose shown diagnostic marks an episode end at a public cap (the task's
+        ``privacy.caps``) while their raw return is that cap: the diagnostic pins the raw return
+        exactly (CartPole ``termination=time_limit``: 500; Acrobot ``success=0``: -500), whatever
+        the reward map. Exposed (the best shown one is named), since a raw return is recovered
+        exactly; ``hide_anchors`` withholds those diagnostics."""
+        if not self.mech.scale_rewards or not self.shown:
+            return
+        best = max(self.shown.values(), key=lambda c: c.ret)
+        for cap in facts_for(self.task).caps or ():
+            pinned = [c for c in self.shown.values()
+                      if same_marker(self.shown_diagnostics.get(c.index, {}).get(cap.diagnostic), cap.marker)
+                      and math.isclose(c.ret, cap.value, rel_tol=1e-9, abs_tol=1e-9)]
+            if not pinned:
+                continue
+            which = "the best shown policy's raw return" if best in pinned else "a shown raw return"
+            self.finding("exposed", "anchored_return",
+                         f"recovers {which} exactly: {cap.diagnostic}={cap.marker} marks an episode end at the public cap, "
+                         f"raw return {cap.value:g} ({len(pinned)} of {len(self.shown)} shown entries; --hide-anchors on "
+                         "withholds it)", ", ".join(f"candidate {c.index}" for c in sorted(pinned, key=lambda c: c.index)),
+                         by_design=not self.mech.hardened)
+
+    def timing(self) -> None:
+        """The provider's clock (``privacy.timing``): do the gaps between an answer and the next
+        request follow the candidates' episodes? A channel when significantly so; exposed when the
+        gap, calibrated on the run, gives the best shown raw return within 1%."""
+        if not self.mech.scale_rewards or not self.shown:
+            return
+        from . import timing
+
+        pure = not self.mech.warp_rewards and not self.mech.secret_offsets
+        got = timing.measure(self.calls, self.told, list(self.shown), c=self.secrets.c if self.secrets is not None else None,
+                             pure_scale=pure)
+        paced = " (requests paced)" if self.mech.pace_requests else ""
+        if isinstance(got, str):
+            self.report.notes.append(f"request timing not measured: {got}")
+            return
+        self.report.notes.append(f"request timing{paced}: Spearman {got.rho_steps:+.2f} with the episode steps, {got.rho_return:+.2f} "
+                                 f"with the raw return over {len(got.gaps)} gaps (p = {got.p:.2g})")
+        if got.best_error is not None and got.best_error <= 0.01 and got.significant:
+            self.finding("exposed", "request-timing", f"recovers the best shown policy's raw return to {100 * got.best_error:.2g}%: "
+                         f"{got.describe()}", "request times", by_design=not self.mech.hardened)
+        elif got.significant:
+            if got.best_error is not None and got.best_error <= 0.02:
+                self.report.near_misses.append(f"request timing: the best shown raw return within {100 * got.best_error:.3g}%")
+            self.finding("channel", "request_timing", got.describe() + (paced or "; --pace-requests on pads the gaps"),
+                         "request times")
 
     def _determined(self, shown: list[Candidate]) -> None:
         """Numeric diagnostics that, together, are an exact affine function of the raw return or a component."""
@@ -777,6 +831,8 @@ class _Auditor:
                          f"exchanges lead to ({len(self.adaptations)} recorded, {len(self.replay.changes)} replayed)",
                          "llm_adaptations")
         self.channels()
+        self.anchors()
+        self.timing()
         self.identifiers()
         if self.attacks:
             self.exposure()
@@ -805,6 +861,7 @@ class _Auditor:
             self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
                          by_design=x.paper)
         self.report.not_run = found.not_run
+        self.report.near_misses += found.near_misses
         self.report.estimates = found.estimates
         if found.note:
             self.report.notes.append(found.note)
@@ -966,10 +1023,13 @@ def audit_run(run_dir: Path, *, limits: SimLimits | None = None, simulate: bool 
         calls = store.llm_calls()
         sessions, changes, adaptations = store.llm_sessions(), store.endpoint_changes(), store.llm_adaptations()
         keyed = store.streams_keyed()
+        created = {t[0]: t[3] for t in store.candidate_times()}
         secrets = run.load_secrets(optional=True)  # a key file that does not load counts as absent
         key_state = "" if secrets is not None else ("missing" if not run.key_path.exists() else "unusable (damaged, or another run's)")
+    told = [(created[c.index], c) for c in candidates if c.index in created]
     report = _Auditor(run_dir, config, candidates, calls, secrets, sessions=sessions, endpoint_changes=changes,
-                      adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks).run()
+                      adaptations=adaptations, limits=limits, simulate=simulate, keyed_streams=keyed, attacks=attacks,
+                      told=told).run()
     if key_state:  # the audit reads what was sent without the key; say what that leaves unverified
         report.notes.append(f"the key file {run.key_path} is {key_state}: what was sent is checked without the secrets, "
                             "so the requests' sampling seeds are not verified, and the attacks are scored from the stored values "

@@ -48,6 +48,8 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
     pr.add_argument("--out", type=Path, default=None, help="where new runs and the report go (default runs/privacy-report-<time>)")
     pr.add_argument("--offline", action="store_true",
                     help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")
+    pr.add_argument("--pace-requests", action="store_true",
+                    help="new runs pace their LLM requests (the pace_requests switch, both schemes): the timing channel closed")
     pr.add_argument("--json", action="store_true", help="print one JSON list of per-run analyses")
     _sim_options(pr)
 
@@ -104,6 +106,8 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
     from ..rundir import DB_NAME, KEY_NAME, find_runs
     from .matrix import privacy_report, run_matrix, write_report
 
+    if a.runs is not None and a.pace_requests:
+        raise ConfigError("--pace-requests is a setting of new runs; the runs under --runs were made as they were")
     if a.runs is not None:
         dirs = find_runs(a.runs, recursive=True, with_key=True)
         if not dirs:
@@ -121,7 +125,8 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
             raise ConfigError("--envs names no task (give task names, or --task-file FILE)")
         out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
         dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
-                          final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline)
+                          final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline,
+                          switches={"pace_requests": True} if a.pace_requests else None)
     text, analyses = privacy_report(dirs, _limits(a), log=lambda s: print(s, file=sys.stderr), simulate=not a.no_simulate)
     write_report(out, text, analyses, "ppprops " + " ".join(shlex.quote(x) for x in sys.argv[1:]))
     print(json.dumps([x.to_json() for x in analyses]) if a.json else text)

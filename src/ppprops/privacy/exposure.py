@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from ..tasks.base import Task
 
 EXPOSED_WITHIN = 0.01  # an attack that recovers a secret (or a raw value) within 1% fails the audit
+NEAR_MISS = 0.02  # within 2% (and not 1%): named in the verdict's line, the run still CLEAN
 PRIOR = 1.0  # the prior guess of c and a_j (the geometric mean of both schemes' distributions)
 
 # Channels that PP-ProPS as the paper defines it keeps (unscaled diagnostics, integer returns and
@@ -78,6 +79,7 @@ class Assessment:
     simulated: list[SimOutcome] = field(default_factory=list)
     estimates: list[Estimate] = field(default_factory=list)
     note: str = ""
+    near_misses: list[str] = field(default_factory=list)  # "attack: what within x%", for errors in (1%, 2%]
 
 
 def true_secrets(mech: Mechanisms, cands: Sequence[Candidate], secrets: Secrets | None) -> tuple[float | None, np.ndarray | None]:
@@ -161,6 +163,8 @@ def assess(requests: Sequence[Request], task: str | Task, box: tuple[float, floa
             if not mech.scale_rewards or true_c is None:
                 continue
             err = float(error_factor(float(est.value), true_c))
+            if EXPOSED_WITHIN < err <= NEAR_MISS:
+                out.near_misses.append(f"{est.attack}: c within {100 * err:.3g}%")
             if est.attack in SIMULATOR_ATTACKS:
                 out.simulated.append(SimOutcome(est.attack, "c", err, float(error_factor(PRIOR, true_c))))
             if err <= EXPOSED_WITHIN:
@@ -174,6 +178,8 @@ def assess(requests: Sequence[Request], task: str | Task, box: tuple[float, floa
                 continue
             errs = error_factor(v[known], true_a[known])
             err = float(np.median(errs))
+            if EXPOSED_WITHIN < err <= NEAR_MISS:
+                out.near_misses.append(f"{est.attack}: a within {100 * err:.3g}%")
             if est.attack in SIMULATOR_ATTACKS:
                 out.simulated.append(SimOutcome(est.attack, "a", err, float(np.median(error_factor(PRIOR, true_a[known])))))
             if err <= EXPOSED_WITHIN:

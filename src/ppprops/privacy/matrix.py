@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -146,11 +146,13 @@ def _model_of(calls: Sequence[dict[str, Any]]) -> str:
 def run_matrix(
     out: Path, *, envs: Sequence[str | Task], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
     iterations: int = 10, final_episodes: int = 20, log: Callable[[str], None] = print, offline: bool = False,
+    switches: Mapping[str, bool] | None = None,
 ) -> list[Path]:
     """One run per (task, scheme, seed) with the embedded model (or the offline stand-in), in
     ``out/<task>__<scheme>__<seed>``; finished runs are kept, so a stopped matrix continues.
 
-    ``envs``: task names, or Tasks (a user's task file, as ``load_task`` reads it). Returns the run
+    ``envs``: task names, or Tasks (a user's task file, as ``load_task`` reads it); ``switches``:
+    mechanism switches over each scheme's preset (``{"pace_requests": True}``). Returns the run
     directories. Raises ConfigError for an unfinished run in the way, UnknownTaskError for a name
     that names no task.
     """
@@ -172,7 +174,7 @@ def run_matrix(
                     raise ConfigError(f"{d} holds an unfinished run; finish it with 'ppprops resume {d}' or remove it")
                 t0 = time.time()
                 cfg = build_config({"method": scheme, "warmup": warmup, "iterations": iterations,
-                                    "final_episodes": final_episodes, "seed": seed}, task=task)  # fmt: skip
+                                    "final_episodes": final_episodes, "seed": seed, **(switches or {})}, task=task)  # fmt: skip
                 start(cfg, d, llm=EchoOptimizer(cfg.llm) if offline else None)
                 log(f"{d}: done in {time.time() - t0:.0f} s")
     return dirs

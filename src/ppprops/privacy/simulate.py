@@ -11,7 +11,7 @@ would have sent, so the audit reads a real one. Pass it as a study's model: ``ll
 from __future__ import annotations
 
 import json
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 
 import numpy as np
 
@@ -38,11 +38,16 @@ class EchoOptimizer:
         self.calls = 0
         self.shape = RequestShape.for_config(llm) if llm is not None else RequestShape(LLMConfig(), model=MODEL_NAME, grammar_ok=True)
 
-    def send(self, request: FormRequest, *, seed: int | None = None) -> Exchange:
+    def send(self, request: FormRequest, *, seed: int | None = None, before_try: Callable[[str, int], None] | None = None,
+             after_failure: Callable[[Exchange], None] | None = None) -> Exchange:
         """Answer ``request``: ``{"params": [...]}`` for a chat request, the continuation of the open
         list for a document; from the history entries of the prompt (zeros plus noise when it shows
-        none of length D). ``seed`` fixes the noise. Latency 0."""
+        none of length D). ``seed`` fixes the noise. Latency 0. ``before_try`` sees the body first
+        (``llm.recording``); it never fails, so ``after_failure`` is never called."""
         self.calls += 1
+        body = json.dumps(self.shape.body(request, seed))
+        if before_try is not None:
+            before_try(body, 0)
         form = FORMS[request.form]
         prompt = request.prompt if request.endpoint == ENDPOINT_COMPLETIONS else (request.messages or ({"content": ""},))[0]["content"]
         proposal = self._propose(form.entries(prompt or ""), request.D, seed)
@@ -50,7 +55,6 @@ class EchoOptimizer:
             content = ",".join(f"{i}:{v:.2f}" for i, v in enumerate(proposal)) + "]"
         else:
             content = json.dumps({"params": [round(float(v), 2) for v in proposal]})
-        body = json.dumps(self.shape.body(request, seed))
         finish = "stop" if request.endpoint == ENDPOINT_COMPLETIONS else None
         return Exchange.answer(request, content, body=body, finish_reason=finish)
 
