@@ -74,8 +74,8 @@ def commands() -> dict[str, Command]:
         "show": Command("summarise a run or study", _add_show, _cmd_show),
         "policy": Command("work with a policy file", _add_policy, _cmd_policy),
         "baseline": Command("train a standard baseline and store it as a run", _add_baseline, _cmd_baseline),
-        "study": Command("a search driven from outside: create a study, finalize it (see ask, tell)", _add_study, _cmd_study),
-        "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask)", _add_ask, _cmd_ask),
+        "study": Command("a search driven from outside: create a study, retry a failed trial, finalize it (see ask, tell)", _add_study, _cmd_study),
+        "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask; 4: --parallel trials are out)", _add_ask, _cmd_ask),
         "tell": Command("tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)", _add_tell,
                          _cmd_tell),  # fmt: skip
         "audit": Command("check every recorded request of a run or study for raw values (exit 0 clean; 1 leak, unverified or exposed)",

@@ -11,6 +11,7 @@ from), which updates the recorded row.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -46,6 +47,7 @@ class RecordingLLM:
         self.log = log
         self._on_first_use = on_first_use
         self._ids: dict[int, int] = {}  # id(exchange) -> recorded row
+        self._lock = threading.Lock()  # one recording at a time; the requests themselves run concurrently
 
     @property
     def endpoints(self) -> Collection[str]:
@@ -58,9 +60,10 @@ class RecordingLLM:
         Returns the exchange as recorded (``ok`` or not: a model may return a refused one);
         raises ``LLMUnavailable``/``LLMRejected`` as the wrapped model does, after recording the tries.
         """
-        if self._on_first_use is not None:
-            hook, self._on_first_use = self._on_first_use, None
-            hook()
+        with self._lock:
+            if self._on_first_use is not None:
+                hook, self._on_first_use = self._on_first_use, None
+                hook()
         try:
             ex = self.inner.send(request, seed=seed)
         except LLMUnavailable as e:
@@ -70,17 +73,21 @@ class RecordingLLM:
         for t in ex.failures:
             self._record(t, request)
         ex = replace(ex, failures=())  # recorded: the proposer needs the answer, not the tries
-        self._ids[id(ex)] = self._record(ex, request)
+        call_id = self._record(ex, request)
+        with self._lock:
+            self._ids[id(ex)] = call_id
         return ex
 
     def _record(self, ex: Exchange, req: FormRequest) -> int:
-        return self.log.add_llm_call(req.iteration, req.attempt, ex, None, form=req.form, decisions=dict(req.decisions))
+        with self._lock:
+            return self.log.add_llm_call(req.iteration, req.attempt, ex, None, form=req.form, decisions=dict(req.decisions))
 
     def judged(self, ex: Exchange, *, parse_error: str | None, answer_source: str | None) -> None:
         """Record the proposer's verdict on ``ex`` (an exchange ``send`` returned)."""
-        call_id = self._ids.pop(id(ex), None)
-        if call_id is not None:
-            self.log.annotate_llm_call(call_id, parse_error=parse_error, answer_source=answer_source)
+        with self._lock:
+            call_id = self._ids.pop(id(ex), None)
+            if call_id is not None:
+                self.log.annotate_llm_call(call_id, parse_error=parse_error, answer_source=answer_source)
 
     def close(self) -> None:
         """Nothing of its own: the study closes the wrapped model."""
