@@ -184,3 +184,23 @@ def test_the_fault_server_serves_requests_side_by_side_with_a_fixed_latency(widt
         wall = time.monotonic() - t0
         assert server.stats()["most_in_flight"] == 4
     assert (1.9 < wall < 3.0) if width == 1 else (0.45 < wall < 1.2), wall
+
+
+def test_the_fleet_example_runs_two_rigs_to_the_end(tmp_path: Path) -> None:
+    env = {**ENV, "PPPROPS_METHOD": "pp-hardened", "PPPROPS_WARMUP": "4", "PPPROPS_ITERATIONS": "4"}
+    bindir = tmp_path / "bin"  # `ppprops` as the installed console script would be, for this interpreter
+    bindir.mkdir()
+    (bindir / "ppprops").write_text(f"#!/bin/sh\nexec {sys.executable} -m ppprops \"$@\"\n")
+    (bindir / "ppprops").chmod(0o755)
+    env["PATH"] = f"{bindir}{os.pathsep}{env['PATH']}"
+    with FaultServer(FaultConfig(fault_rate=0.0, seed=1, latency_s=0.3)) as server:  # long enough to overlap
+        proc = subprocess.run(["bash", str(ROOT / "examples" / "robot_outside" / "fleet.sh"), "study", "--base-url", server.base_url,
+                               "--model", "m"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=600)  # fmt: skip
+        most = server.stats()["most_in_flight"]
+    assert proc.returncode == 0, proc.stderr
+    assert most == 2  # each round's two requests at once
+    with open_store(tmp_path / "study") as store:
+        assert store.status() == "finished" and [c.index for c in store.candidates()] == list(range(8))
+        assert [c.source for c in store.candidates()].count("llm") == 4 and len(store.llm_calls()) == 4
+    audit = _ppprops(["audit", "study"], tmp_path)
+    assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout

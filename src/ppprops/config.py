@@ -67,7 +67,8 @@ class RunConfig:
     mechanisms: Mechanisms
     warmup: Annotated[Int, Field(ge=1, le=MAX_WARMUP), Flag("random warm-up policies", hint="the history starts from it")] = 10
     iterations: Annotated[Int, Field(ge=0, le=MAX_ITERATIONS), Flag(
-        "LLM iterations; r2po: LLM calls, two per two-stage iteration; random, cmaes: samples")] = 50
+        "LLM iterations, i.e. candidates (a round of --parallel P counts P); r2po: LLM calls, two per two-stage "
+        "iteration; random, cmaes: samples")] = 50
     top_k: Annotated[Int, Field(ge=0), Flag("history entries in the prompt; 0 = all", hint="0 keeps every entry", group="prompt")] = 10
     episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag("episodes per candidate", default_text="1; 20 for r2po", group="evaluation")] = 1
     final_episodes: Annotated[Int, Field(ge=0, le=MAX_EPISODES), Flag("fresh episodes for the best policy", group="evaluation")] = 20
