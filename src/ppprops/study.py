@@ -780,11 +780,16 @@ class Study:
             if model is None:
                 from .llm.client import connect
 
-                server = None
+                server: Callable[[], AbstractContextManager[Any]] | None = None
+                slots = {"slots": self.parallel} if self.parallel > 1 else {}  # a round's P requests decoded together
                 if self._warm_llm and self.config.llm.embedded:
                     from .llm.embedded import WarmServer
 
-                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size)
+                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size, **slots)
+                elif slots and self.config.llm.embedded:
+                    from .llm.embedded import EmbeddedServer
+
+                    server = partial(EmbeddedServer, context_size=self.config.llm.context_size, **slots)
                 model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
                                                                   on_ready=self.events.on_llm_ready, server=server)))
             self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session)
