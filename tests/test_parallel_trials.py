@@ -204,3 +204,24 @@ def test_the_fleet_example_runs_two_rigs_to_the_end(tmp_path: Path) -> None:
         assert [c.source for c in store.candidates()].count("llm") == 4 and len(store.llm_calls()) == 4
     audit = _ppprops(["audit", "study"], tmp_path)
     assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
+
+
+@pytest.mark.slow
+def test_ray_address_local_evaluates_the_rounds_as_ray_tasks(tmp_path: Path) -> None:
+    """``--ray-address local``: the candidates' episodes run as Ray tasks and give the returns the
+    local evaluator gives for the same parameters and seeds."""
+    import numpy as np
+
+    from ppprops.evaluation import Evaluator
+    from ppprops.tasks import get_task
+
+    proc = _ppprops(["run", "--env", "CartPole", "--method", "random", "--warmup", "4", "--iterations", "4", "--parallel", "2",
+                     "--episodes", "2", "--ray-address", "local", "--final-episodes", "2", "--select-top", "0", "--out", "r",
+                     "--quiet"], tmp_path)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    with open_store(tmp_path / "r") as store:
+        cands = store.candidates()
+    assert [c.index for c in cands] == list(range(8))
+    with Evaluator(get_task("CartPole")) as local:
+        for c in cands:
+            assert local.evaluate(np.asarray(c.params), c.seeds).episode_returns == c.feedback.episode_returns

@@ -162,6 +162,9 @@ def _experiment_commands(sub: Any) -> None:
 
 def _add_run(r: argparse.ArgumentParser) -> None:
     add_run_flags(r)
+    r.add_argument("--ray-address", default=None, metavar="ADDRESS",
+                   help="evaluate each round's candidates as Ray tasks on this cluster (local: start Ray here; auto, "
+                        "ray://head:10001); needs the ray extra")  # fmt: skip
     _audit_flag(r)
 
 
@@ -320,8 +323,21 @@ def _cmd_run(a: argparse.Namespace) -> int:
     a.run_dir = out  # named by the Ctrl-C line
     if not a.quiet:
         _say(f"run directory: {out} (seed {config.seed})")
-    with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
-        start(config, out, events.hooks(), env=env)  # the run's episodes use the env the checks made
+    fleet = None
+    if a.ray_address:
+        from .ray_fleet import RayFleet
+
+        try:
+            fleet = RayFleet(config.make_task(), a.ray_address)
+        except BaseException:
+            env.close()
+            raise
+    try:
+        with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
+            start(config, out, events.hooks(), env=env, fleet=fleet)  # the run's episodes use the env the checks made
+    finally:
+        if fleet is not None:
+            fleet.close()
     return _finished(out, a.json, a.audit)
 
 
