@@ -225,3 +225,41 @@ def test_ray_address_local_evaluates_the_rounds_as_ray_tasks(tmp_path: Path) -> 
     with Evaluator(get_task("CartPole")) as local:
         for c in cands:
             assert local.evaluate(np.asarray(c.params), c.seeds).episode_returns == c.feedback.episode_returns
+
+
+PY_DRIVER = textwrap.dedent("""
+    import json, sys, time
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.study import Study
+    with Study.load(sys.argv[1], llm=EchoOptimizer()) as study:
+        trial = study.ask(worker="robot-2")
+        print(json.dumps(trial.to_json()), flush=True)
+        time.sleep(60)  # the robot moves: a SIGKILL lands here
+""")
+
+
+def test_a_python_driver_killed_between_ask_and_tell_gets_its_trial_back(tmp_path: Path) -> None:
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.settings import build_config
+    from ppprops.study import Study
+    from ppprops.tasks import get_task
+
+    config = build_config({"method": "pp", "warmup": 4, "iterations": 4, "parallel": 4, "prompt_form": "chat", "seed": 9,
+                           "select_top": 0, "final_episodes": 1}, task=get_task("CartPole"))  # fmt: skip
+    with Study.create(config, tmp_path / "s", llm=EchoOptimizer(config.llm)) as study:
+        for t in [study.ask(worker=f"robot-{i}") for i in range(4)]:
+            study.tell(t, [10.0 + t.number])
+    (tmp_path / "driver.py").write_text(PY_DRIVER)
+    victim = subprocess.Popen([sys.executable, "driver.py", "s"], cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, text=True)
+    assert victim.stdout is not None
+    held = json.loads(victim.stdout.readline())
+    victim.send_signal(signal.SIGKILL)
+    victim.wait()
+    with open_store(tmp_path / "s") as store:
+        assert len(store.llm_calls()) == 4  # the round of 4, asked by the driver before it died
+    llm = EchoOptimizer(config.llm)
+    with Study.load(tmp_path / "s", llm=llm) as study:
+        again = study.ask(worker="robot-2")
+        assert again.to_json() == held and (again.number, again.source) == (4, "llm")
+        rest = [study.ask(worker=f"robot-{i}") for i in (0, 1, 3)]
+        assert sorted(t.number for t in rest) == [5, 6, 7] and llm.calls == 0  # the rest of the round, no new request
