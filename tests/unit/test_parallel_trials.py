@@ -236,17 +236,24 @@ def test_on_episode_error_fail_trial_records_the_error_and_goes_on(tmp_path: Pat
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
     values = {"env": "faulty_robot:Faulty", "method": "pp", "warmup": 6, "iterations": 4, "seed": 5, "final_episodes": 1,
-              "select_top": 0, "prompt_form": "chat", "top_k": 0, "on_episode_error": "fail-trial", "parallel": 2}
+              "select_top": 2, "select_episodes": 1, "prompt_form": "chat", "top_k": 0, "on_episode_error": "fail-trial",
+              "parallel": 2}
     config = build_config(values)
     with Study.create(config, tmp_path / "r", llm=EchoOptimizer(config.llm)) as study:
         study.optimize()
         failed = study.failed
         cands = study.trials
     assert failed and all("raised in step" in why and "RuntimeError: e-stop" in why for _, why in failed)
-    assert sorted([c.index for c in cands] + [t.number for t, _ in failed]) == list(range(10))
+    assert sorted([c.index for c in cands] + [t.number for t, _ in failed]) == list(range(12))
     fail_enc = {t.number for t, _ in failed}
+    assert not fail_enc & {c.reevaluates for c in cands if c.reevaluates is not None}  # never re-evaluated by the selection
+    from ppprops.summary import format_summary, run_summary
+
+    s = run_summary(tmp_path / "r")
+    assert [f["trial"] for f in s["failed_trials"]] == sorted(fail_enc) and s["counts"]["failed"] == len(fail_enc)
+    assert f"failed   {len(fail_enc)} trial(s), never shown to the LLM nor selected: " in format_summary(s)
     for it, text, _ in _prompts(tmp_path / "r"):
-        told_before = [c for c in cands if c.index < 6 + (it // 2) * 2]
+        told_before = [c for c in cands if c.index < 6 + (it // 2) * 2 and c.reevaluates is None]
         assert text.count("return:") == len(told_before)  # exactly the told candidates: no failed trial
     policy = json.loads((tmp_path / "r" / "best_policy.json").read_text())
     assert policy["search"]["candidate"] not in fail_enc
