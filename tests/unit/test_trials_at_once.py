@@ -88,7 +88,7 @@ def test_four_workers_hold_four_trials_and_a_fifth_waits(tmp_path: Path) -> None
         calls = store.llm_calls()
     assert [c.index for c in cands] == list(range(12))  # every candidate recorded once
     assert len(calls) == sum(c.source in ("llm", "fallback") for c in cands) == 8
-    report = audit_run(tmp_path / "s", simulate=False, attacks=False)  # the attacks too: tests/test_parallel_trials.py
+    report = audit_run(tmp_path / "s", simulate=False, attacks=False)  # the attacks too: tests/test_parallel_trials.py (shell)
     assert report.requests == 8 and report.findings == [] and report.verdict().startswith("NOTHING RAW SENT"), report.format()
 
 
