@@ -141,7 +141,7 @@ def test_workers_failed_trials_and_retry_from_the_shell(tmp_path: Path) -> None:
 
 
 def test_run_parallel_evaluates_rounds_on_the_pool_and_bad_settings_are_one_line(tmp_path: Path) -> None:
-    with FaultServer(FaultConfig(fault_rate=0.0, seed=4)) as server:
+    with FaultServer(FaultConfig(fault_rate=0.0, seed=4, latency_s=0.5)) as server:  # long enough for a round to overlap
         run = _ppprops(["run", "--env", "CartPole", "--method", "pp", "--warmup", "4", "--iterations", "8", "--seed", "2",
                         "--parallel", "4", "--workers", "2", "--final-episodes", "2", "--select-top", "2",
                         "--base-url", server.base_url, "--model", "m", "--out", "r", "--quiet"], tmp_path)  # fmt: skip
