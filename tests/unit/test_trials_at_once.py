@@ -257,3 +257,20 @@ def test_on_episode_error_fail_trial_records_the_error_and_goes_on(tmp_path: Pat
         assert text.count("return:") == len(told_before)  # exactly the told candidates: no failed trial
     policy = json.loads((tmp_path / "r" / "best_policy.json").read_text())
     assert policy["search"]["candidate"] not in fail_enc
+
+
+def test_the_embedded_server_gets_p_slots(tmp_path: Path) -> None:
+    """At --parallel P the embedded model's server is started with P slots (each with the whole
+    context size), so a round's requests are decoded together; at P = 1 its command is as before."""
+    from ppprops.llm.embedded import _command
+
+    config = _config(method="pp", parallel=4)
+    with Study.create(config, tmp_path / "s") as study:
+        client = study._llm().inner  # connected lazily: nothing is started before the first request
+        server = client._server  # type: ignore[attr-defined]
+        assert (server.func.__name__, server.keywords) == ("EmbeddedServer", {"context_size": 16384, "slots": 4})
+    with Study.create(_config(method="pp"), tmp_path / "one") as study:
+        assert study._llm().inner._server.__name__ == "_own_server"  # type: ignore[attr-defined]
+    model = Path("m.gguf")
+    assert _command(model, 16384, 1)[-2:] == ["--threads", "1"]
+    assert _command(model, 16384, 1, 4)[-4:] == ["--threads", "1", "--slots", "4"]
