@@ -138,7 +138,8 @@ def test_a_schema_1_store_migrates_in_place(tmp_path: Path) -> None:
     with sqlite3.connect(db) as con:
         con.executescript(_SCHEMA_1)
     store = RunStore(db)
-    assert store.schema_version() == SCHEMA_VERSION == 6 and store.run_id() == "old-run"
+    assert store.schema_version() == SCHEMA_VERSION == 7 and store.run_id() == "old-run"
+    assert store.pending_trials() == [] and store.failed_trials() == [] and store.next_number() == 1  # schema 7: workers, failed trials
     (first,) = store.candidates()  # an old row reads back, its timings unknown
     assert first.ret == 3.0 and first.ask_s is None and first.eval_s is None
     fb = Feedback(ret=4.0)

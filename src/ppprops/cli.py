@@ -74,8 +74,8 @@ def commands() -> dict[str, Command]:
         "show": Command("summarise a run or study", _add_show, _cmd_show),
         "policy": Command("work with a policy file", _add_policy, _cmd_policy),
         "baseline": Command("train a standard baseline and store it as a run", _add_baseline, _cmd_baseline),
-        "study": Command("a search driven from outside: create a study, finalize it (see ask, tell)", _add_study, _cmd_study),
-        "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask)", _add_ask, _cmd_ask),
+        "study": Command("a search driven from outside: create a study, retry a failed trial, finalize it (see ask, tell)", _add_study, _cmd_study),
+        "ask": Command("the next trial of a study as one JSON object (exit 3: nothing more to ask; 4: --parallel trials are out)", _add_ask, _cmd_ask),
         "tell": Command("tell a study the feedback of a trial (raw values; flags for one episode, or JSON on stdin)", _add_tell,
                          _cmd_tell),  # fmt: skip
         "audit": Command("check every recorded request of a run or study for raw values (exit 0 clean; 1 leak, unverified or exposed)",
@@ -162,6 +162,9 @@ def _experiment_commands(sub: Any) -> None:
 
 def _add_run(r: argparse.ArgumentParser) -> None:
     add_run_flags(r)
+    r.add_argument("--ray-address", default=None, metavar="ADDRESS",
+                   help="evaluate each round's candidates as Ray tasks on this cluster (local: start Ray here; auto, "
+                        "ray://head:10001); needs the ray extra")  # fmt: skip
     _audit_flag(r)
 
 
@@ -320,8 +323,21 @@ def _cmd_run(a: argparse.Namespace) -> int:
     a.run_dir = out  # named by the Ctrl-C line
     if not a.quiet:
         _say(f"run directory: {out} (seed {config.seed})")
-    with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
-        start(config, out, events.hooks(), env=env)  # the run's episodes use the env the checks made
+    fleet = None
+    if a.ray_address:
+        from .ray_fleet import RayFleet
+
+        try:
+            fleet = RayFleet(config.make_task(), a.ray_address)
+        except BaseException:
+            env.close()
+            raise
+    try:
+        with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
+            start(config, out, events.hooks(), env=env, fleet=fleet)  # the run's episodes use the env the checks made
+    finally:
+        if fleet is not None:
+            fleet.close()
     return _finished(out, a.json, a.audit)
 
 

@@ -41,6 +41,7 @@ MAX_WARMUP = 10_000
 MAX_ITERATIONS = 100_000
 MAX_EPISODES = 10_000
 MAX_PARSE_RETRIES = 10
+MAX_PARALLEL = 256
 ON_LLM_FAILURE = ("stop", "skip")
 PROMPT_PARAMS = ("list", "indexed")  # see ppprops.wire.prompt.PARAMS_STYLES
 PROMPT_LAYOUTS = ("static-first", "history-first")
@@ -66,7 +67,8 @@ class RunConfig:
     mechanisms: Mechanisms
     warmup: Annotated[Int, Field(ge=1, le=MAX_WARMUP), Flag("random warm-up policies", hint="the history starts from it")] = 10
     iterations: Annotated[Int, Field(ge=0, le=MAX_ITERATIONS), Flag(
-        "LLM iterations; r2po: LLM calls, two per two-stage iteration; random, cmaes: samples")] = 50
+        "LLM iterations, i.e. candidates (a round of --parallel P counts P); r2po: LLM calls, two per two-stage "
+        "iteration; random, cmaes: samples")] = 50
     top_k: Annotated[Int, Field(ge=0), Flag("history entries in the prompt; 0 = all", hint="0 keeps every entry", group="prompt")] = 10
     episodes: Annotated[Int, Field(ge=1, le=MAX_EPISODES), Flag("episodes per candidate", default_text="1; 20 for r2po", group="evaluation")] = 1
     final_episodes: Annotated[Int, Field(ge=0, le=MAX_EPISODES), Flag("fresh episodes for the best policy", group="evaluation")] = 20
@@ -89,6 +91,15 @@ class RunConfig:
         "when the endpoint stays down past --retries: stop, resumable, or skip: record a fallback candidate and go on",
         group="llm")] = "stop"
     workers: Annotated[Int, Field(ge=1, le=256), Flag("processes running episodes in parallel", range_text="[1, 256]", group="evaluation")] = 1
+    # Trials out at once (study.Study.ask): a round of P LLM requests from one shown history, P
+    # samples of random search or CMA-ES, P trials held by workers; 1 keeps one trial at a time.
+    parallel: Annotated[Int, Field(ge=1, le=MAX_PARALLEL), Flag(
+        "trials out at once: the LLM proposes P per round from the same shown history (P concurrent requests), "
+        "and P trials can be held by workers; --iterations still counts candidates", range_text=f"[1, {MAX_PARALLEL}]",
+        group="evaluation")] = 1
+    on_episode_error: Annotated[Literal["stop", "fail-trial"], Flag(
+        "when an episode of the env raises: stop the run (resumable), or record the trial as failed with the error "
+        "as its reason and go on (never shown to the LLM, never selected)", group="evaluation")] = "stop"
     components: tuple[str, ...] = ()  # runs stored before task_spec existed: a generic task's component info keys
     diagnostics: tuple[str, ...] = ()  # the same, for diagnostics
     prompt_params: Annotated[Literal["list", "indexed"], Flag(
@@ -126,6 +137,14 @@ class RunConfig:
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ConfigError(f"--box must be two finite numbers LOW < HIGH, got {lo}, {hi}")
         get_method(self.method).check_settings(self.mechanisms, prompt_form=self.prompt_form, options=self.method_options)
+        if self.parallel > 1:
+            budget, what = (self.iterations, f"--iterations {self.iterations}") if self.iterations else (self.warmup, f"--warmup {self.warmup}")
+            if self.parallel > budget:
+                raise ConfigError(f"--parallel {self.parallel} is larger than the budget ({what} candidates): "
+                                  f"use at most --parallel {budget}")
+            if not get_method(self.method).parallel:
+                raise ConfigError(f"--method {self.method} asks one candidate at a time (each of its steps waits for the "
+                                  f"last one's result): use --parallel 1")
         return self
 
     def selection(self, has_env: bool = True) -> tuple[int, int]:
@@ -180,6 +199,9 @@ class RunConfig:
             del d["task_spec"]  # a config naming its task matches the stored one that holds the declaration
         if not self.method_options:
             del d["method_options"]  # as stored before methods had options
+        for key, default in (("parallel", 1), ("on_episode_error", "stop")):
+            if d[key] == default:
+                del d[key]  # as stored before trials could run side by side or fail
         return d
 
     @classmethod

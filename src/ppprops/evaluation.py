@@ -56,6 +56,21 @@ POOL_BROKEN = ("the worker processes of workers > 1 stopped before running an ep
                "worker, so put the code that runs the search under `if __name__ == \"__main__\":` (or use workers=1)")
 
 
+class Fleet(Protocol):
+    """What evaluates a round of trials side by side for ``Study.optimize``: ppprops's own
+    ``Evaluator`` (its process pool), ``RayFleet`` (Ray tasks), or a user's fleet of rigs.
+
+    ``evaluate_each(thetas, seeds_list)`` runs candidate i (raw parameters, shape (D,)) on one
+    episode per seed of ``seeds_list[i]`` and returns, in the same order, its ``Feedback`` (raw
+    values, the mean over its episodes: ``aggregate``) or the ``EpisodeError`` that stopped it.
+    """
+
+    def evaluate_each(self, thetas: Sequence[NDArray[np.floating]],
+                      seeds_list: Sequence[Sequence[int]]) -> list[Feedback | EpisodeError]:
+        """One Feedback (or the EpisodeError that stopped it) per candidate, in order."""
+        ...
+
+
 class Actor(Protocol):
     """Anything that maps a policy input (shape (n_s,)) to an env action: a ``LinearPolicy``, an SB3 model's wrapper."""
 
@@ -335,6 +350,39 @@ class Evaluator:
             raise ConfigError(f"{len(thetas)} parameter vectors but {len(seeds_list)} seed lists")
         run = self._episodes_serial if self.workers == 1 else self._episodes_parallel
         return [aggregate(eps) for eps in run(thetas, seeds_list)]
+
+    def evaluate_each(self, thetas: Sequence[NDArray[np.floating]],
+                      seeds_list: Sequence[Sequence[int]]) -> list[Feedback | EpisodeError]:
+        """Like ``evaluate_many`` (the ``Fleet`` protocol), but a candidate whose env raised in an
+        episode (``EpisodeError``) gets the error in its place while the others are evaluated:
+        ``--on-episode-error fail-trial`` records it as a failed trial. Other errors (a broken
+        pool, an env that breaks its task's declaration) are raised."""
+        if len(thetas) != len(seeds_list):
+            raise ConfigError(f"{len(thetas)} parameter vectors but {len(seeds_list)} seed lists")
+        if self.workers == 1:
+            out: list[Feedback | EpisodeError] = []
+            for theta, seeds in zip(thetas, seeds_list, strict=True):
+                try:
+                    out.append(aggregate(self._episodes_serial([theta], [seeds])[0]))
+                except EpisodeError as e:
+                    out.append(e)
+            return out
+        from concurrent.futures.process import BrokenProcessPool
+
+        pool = self._pool_for()
+        try:
+            futures = [[pool.submit(_worker_episode, np.asarray(theta, dtype=np.float64), int(s)) for s in seeds]
+                       for theta, seeds in zip(thetas, seeds_list, strict=True)]
+            results: list[Feedback | EpisodeError] = []
+            for fs in futures:
+                try:
+                    results.append(aggregate([f.result() for f in fs]))
+                except EpisodeError as e:
+                    results.append(e)
+            return results
+        except BrokenProcessPool:
+            self._pool = None
+            raise PoolError(POOL_BROKEN) from None
 
     def close(self) -> None:
         """Shut the worker pool down (if any); the evaluator can still be used serially afterwards."""

@@ -97,6 +97,7 @@ class Method:
     algo: str | None = None  # RL baselines: the `ppprops baseline rl --algo` value
     options: type[BaseModel] | None = None  # the method's own options (a pydantic model), None: none
     forms: tuple[str, ...] = ("auto", *CHOOSABLE)  # the --prompt-form values it takes
+    parallel: bool = True  # takes --parallel P > 1 (its proposer asks P candidates per round); False: one at a time
 
     @property
     def algorithm(self) -> Algorithm:
@@ -221,7 +222,7 @@ METHODS: dict[str, Method] = {
         _prompted("vanilla", "Vanilla ProPS: raw parameters and rewards, optimum disclosed", "vanilla"),
         Method("r2po", MethodKind.PROMPTED, "R2PO: Search-LLM proposal, Critic-LLM revision from rollouts", PRESETS["vanilla"],
                default_episodes=20, iteration_unit="LLM calls (two per two-stage iteration)", phase="r2po_phase",
-               raw_evidence=True, forms=("auto", CHAT_FORM)),
+               raw_evidence=True, forms=("auto", CHAT_FORM), parallel=False),
         _prompted("pe", "PE-ProPS: encoded parameters", "pe"),
         _prompted("df", "DF-ProPS: detailed feedback (reward components, diagnostics)", "df"),
         _prompted("pp", "PP-ProPS: encoded parameters, scaled rewards, detailed feedback, no optimum", "pp"),

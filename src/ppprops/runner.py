@@ -18,7 +18,7 @@ from typing import Any
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, StoreError
-from .evaluation import check_parallel
+from .evaluation import Fleet, check_parallel
 from .events import NO_EVENTS, RunEvents
 from .llm.protocol import LLM
 from .rundir import POLICY_NAME, create_run, final_returns, load_run, new_run_id
@@ -71,6 +71,7 @@ def start(
     llm: LLM | None = None,
     callbacks: Sequence[Callback] = (),
     env: Any = None,
+    fleet: Fleet | None = None,
 ) -> FinalEval | None:
     """Check that the run can start (``check_startable``), create the run directory
     (``create_run``) and run it: warm-up, search, final evaluation, policy file (Algorithm 1 of the
@@ -80,7 +81,9 @@ def start(
     semaphore) is held around every LLM request of the run; ``llm`` replaces the configured LLM;
     ``secrets`` replaces freshly drawn ones (tests, controlled grids); ``callbacks`` are called
     after each candidate (``Study.optimize``); ``env`` is the env ``check_startable`` returned,
-    when the caller ran the checks itself (they are not run again; the run closes it).
+    when the caller ran the checks itself (they are not run again; the run closes it); ``fleet``
+    evaluates each round's candidates instead of the run's own evaluator (``evaluation.Fleet``,
+    e.g. ``ray_fleet.RayFleet``).
 
     Returns:
         The final evaluation (the best search policy on ``final_episodes`` fresh episodes, raw
@@ -102,7 +105,7 @@ def start(
         env.close()
         raise
     with study:
-        return study.optimize(callbacks, events)
+        return study.optimize(callbacks, events, fleet=fleet)
 
 
 @dataclass(frozen=True)

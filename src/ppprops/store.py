@@ -18,7 +18,9 @@ named get the form their body shows, ``wire.forms.recorded_form``, once); 6 adds
 while a request is in flight leaves that request in the store, marked unanswered (calls recorded
 before were recorded after their answer: answered 1), and ``llm_calls.sent``, when each try left
 (Unix seconds; unknown, NULL, for calls recorded before: their ``created`` is when the answer
-came). Older stores are migrated in place. Changes the LLM
+came); 7 lets several trials be pending at once (``--parallel P``), each held by a worker
+(``pending.worker``), and keeps the trials that failed with their reason (the ``failed``
+table), out of the candidates. Older stores are migrated in place. Changes the LLM
 client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
 in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
 (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
@@ -32,6 +34,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +44,7 @@ from .errors import StoreError
 from .status import RunStatus
 from .values import Candidate, Feedback, FinalEval, Trial
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"  # the store's file in a run directory (the directory's other files: ppprops.rundir)
 
@@ -94,6 +97,23 @@ CREATE TABLE IF NOT EXISTS pending (
     n_a INTEGER NOT NULL,
     created REAL NOT NULL
 );
+CREATE TABLE IF NOT EXISTS failed (
+    idx INTEGER PRIMARY KEY,
+    phase TEXT NOT NULL,
+    iteration INTEGER NOT NULL,
+    source TEXT NOT NULL,
+    params TEXT NOT NULL,
+    seeds TEXT NOT NULL,
+    clipped INTEGER NOT NULL,
+    note TEXT NOT NULL DEFAULT '',
+    ask_s REAL,
+    n_s INTEGER NOT NULL,
+    n_a INTEGER NOT NULL,
+    reevaluates INTEGER,
+    worker TEXT,
+    reason TEXT NOT NULL,
+    created REAL NOT NULL
+);
 CREATE TABLE IF NOT EXISTS final_eval (
     id INTEGER PRIMARY KEY CHECK (id = 1),
     candidate_idx INTEGER NOT NULL,
@@ -116,6 +136,7 @@ _ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("pending", "reevaluates", "INTEGER"),
     ("llm_calls", "answered", "INTEGER NOT NULL DEFAULT 1"),
     ("llm_calls", "sent", "REAL"),
+    ("pending", "worker", "TEXT"),
 )
 
 # What a try written ahead holds until its answer completes it: to every reader it is a failed
@@ -391,35 +412,119 @@ class RunStore:
             ),
         )
 
-    # -- the pending trial ----------------------------------------------------------------
-    def add_pending(self, t: Trial) -> None:
-        """Store the trial a study has asked for (before ``ask`` returns it). StoreError when a
-        trial is already pending or its number is already a recorded candidate."""
-        try:
-            with self._tx() as db:
-                if db.execute("SELECT 1 FROM candidates WHERE idx = ?", (t.number,)).fetchone():
-                    raise StoreError(f"candidate {t.number} is already recorded in {self.path}")
-                other = db.execute("SELECT idx FROM pending").fetchone()
-                if other is not None:
-                    raise StoreError(f"trial {other[0]} is already pending in {self.path}")
-                db.execute(
-                    "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created,"
-                    " reevaluates) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                    (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
-                     t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time(), t.reevaluates),
-                )
-        except sqlite3.IntegrityError:
-            raise StoreError(f"trial {t.number} is already pending in {self.path}") from None
+    # -- the pending trials ---------------------------------------------------------------
+    _TRIAL_COLUMNS = "idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates, worker"
 
-    def pending_trial(self) -> Trial | None:
-        """The trial asked for and not yet told, or None."""
-        row = self._read("SELECT idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates FROM pending"
-                         " ORDER BY idx LIMIT 1").fetchone()
-        if row is None:
-            return None
+    @staticmethod
+    def _trial(row: Any) -> Trial:
         return Trial(number=row[0], phase=row[1], iteration=row[2], source=row[3], theta=np.asarray(json.loads(row[4])),
                      seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10],
-                     reevaluates=row[11])
+                     reevaluates=row[11], worker=row[12])
+
+    def add_pending(self, t: Trial, *, limit: int = 1) -> None:
+        """Store a trial a study has asked for (before ``ask`` returns it), held by ``t.worker``.
+        StoreError when ``limit`` trials are already pending (``--parallel``; 1: one at a time) or
+        its number is already a recorded candidate, a failed trial or a pending one."""
+        self.add_pending_many([t], limit=limit)
+
+    def add_pending_many(self, trials: list[Trial], *, limit: int = 1) -> None:
+        """Store several asked trials in one transaction (a round of ``--parallel P``): all or none."""
+        try:
+            with self._tx() as db:
+                for t in trials:
+                    if db.execute("SELECT 1 FROM candidates WHERE idx = ?", (t.number,)).fetchone():
+                        raise StoreError(f"candidate {t.number} is already recorded in {self.path}")
+                    if db.execute("SELECT 1 FROM failed WHERE idx = ?", (t.number,)).fetchone():
+                        raise StoreError(f"trial {t.number} is already recorded as failed in {self.path}")
+                    out = db.execute("SELECT idx FROM pending ORDER BY idx").fetchall()
+                    if len(out) >= limit:
+                        if limit == 1:
+                            raise StoreError(f"trial {out[0][0]} is already pending in {self.path}")
+                        raise StoreError(f"{len(out)} trials are already pending in {self.path} (at most {limit} at once)")
+                    self._insert_pending(db, t)
+        except sqlite3.IntegrityError:
+            raise StoreError(f"a trial of {[t.number for t in trials]} is already pending in {self.path}") from None
+
+    @staticmethod
+    def _insert_pending(db: sqlite3.Connection, t: Trial) -> None:
+        db.execute(
+            "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created,"
+            " reevaluates, worker) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
+             t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time(), t.reevaluates, t.worker),
+        )
+
+    def pending_trial(self) -> Trial | None:
+        """The first trial asked for and not yet told (lowest number), or None."""
+        trials = self.pending_trials()
+        return trials[0] if trials else None
+
+    def pending_trials(self) -> list[Trial]:
+        """Every trial asked for and not yet told, by number, each with the worker holding it
+        (``Trial.worker``: "" for a trial asked without a worker name, None for one nobody holds
+        yet: the rest of a round, or a failed trial asked again)."""
+        rows = self._read(f"SELECT {self._TRIAL_COLUMNS} FROM pending ORDER BY idx").fetchall()
+        return [self._trial(r) for r in rows]
+
+    def assign(self, number: int, worker: str) -> None:
+        """Hand the pending trial ``number`` to ``worker`` (a name; "" the unnamed worker); StoreError when it is not pending."""
+        with self._tx() as db:
+            if not db.execute("UPDATE pending SET worker = ? WHERE idx = ?", (worker, int(number))).rowcount:
+                raise StoreError(f"trial {number} is not pending in {self.path}")
+
+    # -- failed trials --------------------------------------------------------------------
+    def fail_trial(self, number: int, reason: str) -> None:
+        """Move the pending trial ``number`` to the failed trials with ``reason``, in one
+        transaction; StoreError when it is not pending. A failed trial is no candidate: no
+        proposer, prompt or selection ever sees it."""
+        with self._tx() as db:
+            row = db.execute(f"SELECT {self._TRIAL_COLUMNS} FROM pending WHERE idx = ?", (int(number),)).fetchone()
+            if row is None:
+                raise StoreError(f"trial {number} is not pending in {self.path}")
+            db.execute("DELETE FROM pending WHERE idx = ?", (int(number),))
+            db.execute(
+                "INSERT INTO failed (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates,"
+                " worker, reason, created) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (*row, reason, time.time()),
+            )
+
+    def failed_trials(self) -> list[tuple[Trial, str]]:
+        """Every failed trial, by number, with its reason."""
+        rows = self._read(f"SELECT {self._TRIAL_COLUMNS}, reason FROM failed ORDER BY idx").fetchall()
+        return [(self._trial(r[:13]), str(r[13])) for r in rows]
+
+    def retry_trial(self, number: int, *, limit: int = 1) -> Trial:
+        """Move the failed trial ``number`` back to the pending trials (held by nobody), with the
+        same parameters and seeds; returns it. StoreError when it did not fail or ``limit`` trials
+        are already pending."""
+        with self._tx() as db:
+            row = db.execute(f"SELECT {self._TRIAL_COLUMNS} FROM failed WHERE idx = ?", (int(number),)).fetchone()
+            if row is None:
+                raise StoreError(f"trial {number} did not fail in {self.path}")
+            (out,) = db.execute("SELECT COUNT(*) FROM pending").fetchone()
+            if out >= limit:
+                raise StoreError(f"{out} trial(s) are pending in {self.path} (at most {limit} at once): tell one first")
+            trial = replace(self._trial(row), worker=None)
+            db.execute("DELETE FROM failed WHERE idx = ?", (int(number),))
+            self._insert_pending(db, trial)
+            return trial
+
+    def next_number(self) -> int:
+        """The number the next new trial gets: one past every recorded, failed or pending one."""
+        row = self._read("SELECT MAX(m) FROM (SELECT MAX(idx) AS m FROM candidates UNION ALL SELECT MAX(idx) FROM pending"
+                         " UNION ALL SELECT MAX(idx) FROM failed)").fetchone()
+        return 0 if row[0] is None else int(row[0]) + 1
+
+    def trial_state(self, number: int) -> str | None:
+        """Where trial ``number`` stands: ``told`` (a recorded candidate), ``failed``, ``pending``, or None (never asked)."""
+        for table, state in (("candidates", "told"), ("failed", "failed"), ("pending", "pending")):
+            if self._read(f"SELECT 1 FROM {table} WHERE idx = ?", (int(number),)).fetchone():
+                return state
+        return None
+
+    def failed_count(self) -> int:
+        """How many trials failed (and were not retried)."""
+        return int(self._read("SELECT COUNT(*) FROM failed").fetchone()[0])
 
     def candidate_count(self) -> int:
         """How many candidates are recorded."""

@@ -26,13 +26,16 @@ then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7
 
 from __future__ import annotations
 
+import itertools
 import math
+import re
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 
@@ -42,7 +45,7 @@ from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, LLMError, StoreError
-from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, PoolError, WorkerError, aggregate
+from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, Fleet, PoolError, WorkerError, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
 from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
@@ -121,7 +124,9 @@ class Study:
         self._stack = ExitStack()
         self._recording: RecordingLLM | None = None
         self._phases: list[Phase] | None = None
-        self._told = 0  # candidates the proposers have been told
+        self._told = 0  # every trial before it is settled and told to the proposers
+        self._told_set: set[int] = set()  # candidates the proposers have been told
+        self._failed_seen: set[int] = set()  # failed trials the proposers have heard of
         self._evaluator: Evaluator | None = None
         self._env = env
 
@@ -198,8 +203,13 @@ class Study:
 
     @property
     def pending(self) -> Trial | None:
-        """The trial asked for and not yet told, or None."""
+        """The first trial asked for and not yet told (the lowest number), or None."""
         return self.store.pending_trial()
+
+    @property
+    def out(self) -> list[Trial]:
+        """Every trial asked for and not yet told, by number, each with the worker holding it (``Trial.worker``)."""
+        return self.store.pending_trials()
 
     @property
     def status(self) -> tuple[RunStatus, str]:
@@ -214,7 +224,7 @@ class Study:
             return False
         if self.status[0] in (RunStatus.STOPPED, RunStatus.FINISHED):
             return True
-        return self.store.candidate_count() >= self.total
+        return self.store.next_number() >= self.total
 
     @property
     def best(self) -> Candidate | None:
@@ -224,80 +234,163 @@ class Study:
         return select_best(cands) if search_candidates(cands) else None
 
     # -- ask / tell ---------------------------------------------------------------------------
-    def ask(self) -> Trial:
+    @property
+    def parallel(self) -> int:
+        """P, the trials that may be out at once (``--parallel``; 1: one at a time)."""
+        return int(self.config.parallel)
+
+    def ask(self, worker: str | None = None, *, wait: bool = True, timeout: float | None = None) -> Trial:
         """The next trial to evaluate: raw ``theta`` (shape (D,)), ``W``, ``b``, its episode seeds and source.
 
-        Returns the pending trial again until it is told (after a restart too: no LLM call is made
-        twice). Raises StudyComplete when the budget is spent or the search stopped; LLMError when
-        the endpoint stays down (the study stays as it was, resumable); StopSearch when the method
-        cannot go on (the study is then stopped, with the reason, and can be finalized).
+        ``worker`` names who evaluates it (a plain name: letters, digits, ``.``, ``_``, ``-``;
+        None: the unnamed worker). A worker gets its own pending trial again until it tells it
+        (after a restart too: no LLM call is made twice); another worker gets another trial, up
+        to ``--parallel`` P out at once. Past P (or while a round, a phase or a CMA-ES generation
+        waits for trials that are out) ``ask`` blocks until a trial is told, up to ``timeout``
+        seconds (None: no limit), or with ``wait=False`` raises TrialsOut at once.
+
+        Raises StudyComplete when the budget is spent or the search stopped; TrialsOut (above);
+        ConfigError for a worker name that is not a plain name; LLMError when the endpoint stays
+        down (the study stays as it was, resumable); StopSearch when the method cannot go on (the
+        study is then stopped, with the reason, and can be finalized).
         """
+        name = "" if worker is None else check_worker(worker)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        delay = 0.02
+        while True:
+            got = self._ask_once(name)
+            if isinstance(got, Trial):
+                return got
+            if not wait or (deadline is not None and time.monotonic() >= deadline):
+                raise TrialsOut(got, out=len(self.store.pending_trials()))
+            time.sleep(delay)
+            delay = min(delay * 2, 0.5)
+
+    def _ask_once(self, name: str) -> Trial | str:
+        """The trial for worker ``name``, or why it must wait (one line)."""
         with file_lock(self.run_dir, STUDY_LOCK):
-            pending = self.store.pending_trial()
-            if pending is not None:
-                return pending
+            out = self.store.pending_trials()
+            mine = [t for t in out if t.worker == name]
+            if mine:
+                return mine[0]
+            free = [t for t in out if t.worker is None]
+            if free:  # the rest of a round, or a failed trial asked again
+                self.store.assign(free[0].number, name)
+                return replace(free[0], worker=name)
+            if self.parallel == 1 and out and not name:  # one at a time: the pending trial again (as before workers had names)
+                return out[0]
             status, reason = self.store.run_status()
-            n = self.store.candidate_count()
+            n = self.store.next_number()
             if status is RunStatus.FINISHED:
-                raise StudyComplete(f"study {self.run_dir} is finalized ({n} of {self.total} trials told): nothing more to ask",
-                                    finalized=True)
+                raise StudyComplete(f"study {self.run_dir} is finalized ({self.store.candidate_count()} of {self.total} trials told): "
+                                    "nothing more to ask", finalized=True)
             if status is RunStatus.STOPPED or n >= self.total:
-                why = f"it stopped: {reason}" if status is RunStatus.STOPPED and reason else f"all {n} of {self.total} trials are told"
-                raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it")
+                settled = self.store.candidate_count() + self.store.failed_count()
+                why = (f"it stopped: {reason}" if status is RunStatus.STOPPED and reason
+                       else f"all {settled} of {self.total} trials are told" if not out
+                       else f"every trial is asked; {_holders(out)} still out")
+                raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it"
+                                    + (" once they are told" if out else ""))
+            if len(out) >= self.parallel:
+                return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {_holders(out)}; tell one first"
             from .proposers.base import StopSearch
 
             self._sync()
             phase, iteration = locate(self._get_phases(), n)
+            first = n - iteration  # the phase's first trial
+            earlier = [t for t in out if t.number < first]
+            if earlier:
+                return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {_holders(earlier)} still out")
+            end = phase.budget
+            if self.parallel > 1 and getattr(phase.proposer, "rounds", False):  # one shown history per round of P
+                start = (iteration // self.parallel) * self.parallel
+                if out:
+                    return f"the next round of {self.parallel} starts when the last one is told: {_holders(out)} still out"
+                end = min(end, start + self.parallel)
+            iterations = list(range(iteration, min(end, iteration + self.parallel - len(out))))
+            ready = getattr(phase.proposer, "ready", None)
+            if ready is not None:
+                iterations = list(itertools.takewhile(ready, iterations))
+                if not iterations:
+                    return f"the {phase.name} phase waits for its trials that are out: {_holders(out)}"
             t0 = time.perf_counter()
             try:
-                proposal = phase.proposer.ask(iteration)
+                proposals = ask_many(phase.proposer, iterations)
             except StopSearch as stop:
                 self.store.set_status(RunStatus.STOPPED, stop.reason)
                 raise
-            seeds = proposal.seeds if proposal.seeds is not None else tuple(self.streams.episode_seeds(n, self.config.episodes))
-            trial = Trial(number=n, phase=phase.name, iteration=iteration, source=proposal.source,
-                          theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
-                          seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=time.perf_counter() - t0,
-                          reevaluates=proposal.reevaluates)  # fmt: skip
-            self.store.add_pending(trial)
-            return trial
+            ask_s = time.perf_counter() - t0
+            trials = []
+            for k, (it, proposal) in enumerate(zip(iterations, proposals)):
+                number = n + k
+                seeds = proposal.seeds if proposal.seeds is not None else tuple(self.streams.episode_seeds(number, self.config.episodes))
+                trials.append(Trial(number=number, phase=phase.name, iteration=it, source=proposal.source,
+                                    theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
+                                    seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=ask_s,
+                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None))  # fmt: skip
+            self.store.add_pending_many(trials, limit=self.parallel)
+            return trials[0]
+
+    @overload
+    def tell(self, trial: Trial | int, returns: float | Sequence[float] | None = None, *,
+             components: Mapping[str, float] | Sequence[Mapping[str, float]] | None = None,
+             diagnostics: Mapping[str, float | str] | Sequence[Mapping[str, float | str]] | None = None,
+             feedback: Feedback | None = None, eval_s: float | None = None, failed: None = None,
+             worker: str | None = None) -> Candidate: ...
+
+    @overload
+    def tell(self, trial: Trial | int, returns: None = None, *, components: None = None, diagnostics: None = None,
+             feedback: None = None, eval_s: float | None = None, failed: str, worker: str | None = None) -> None: ...
 
     def tell(self, trial: Trial | int, returns: float | Sequence[float] | None = None, *,
              components: Mapping[str, float] | Sequence[Mapping[str, float]] | None = None,
              diagnostics: Mapping[str, float | str] | Sequence[Mapping[str, float | str]] | None = None,
-             feedback: Feedback | None = None, eval_s: float | None = None) -> Candidate:
-        """Tell the pending ``trial`` (or its number) its raw feedback; returns the recorded candidate.
+             feedback: Feedback | None = None, eval_s: float | None = None, failed: str | None = None,
+             worker: str | None = None) -> Candidate | None:
+        """Tell a pending ``trial`` (or its number) its raw feedback; returns the recorded candidate.
 
         ``returns`` is one episode's return or one per episode (raw reward units); ``components``
         (each declared reward component's sum over the episode, by name) and ``diagnostics`` (each
         declared diagnostic's value) one mapping, or one per episode. Their mean is the candidate's
         feedback (paper Sec. II-C); encoding happens here. ``feedback`` instead passes an evaluated
-        ``Feedback`` (``optimize``). Nothing is stored when this raises ConfigError: a trial that is
-        not the pending one or was already told, a non-finite value, a missing or unknown
+        ``Feedback`` (``optimize``). Trials out at once (``--parallel``) are told in any order.
+
+        ``failed="e-stop at 3.2 s"`` instead records that the trial could not be evaluated (returns
+        None): it is kept with its reason, never shown to the LLM, never selected, and uses up its
+        place in the budget unless ``retry`` asks it again. ``worker`` (default: the worker of a
+        ``Trial`` given) must be the worker holding the trial.
+
+        Nothing is stored when this raises ConfigError: a trial that is not pending or was already
+        told, one another worker holds, an empty ``failed`` reason, a non-finite value, a missing or unknown
         component, an unknown diagnostic, a mismatch between the episodes given, or fewer returns than the
         trial asked episodes for (more are welcome: the mean of all is used).
         """
         number = trial if isinstance(trial, int) else trial.number
+        teller = worker if worker is not None else (None if isinstance(trial, int) else trial.worker)
+        if teller:
+            check_worker(teller)
+        if failed is not None:
+            failed = " ".join(str(failed).split())
+            if not failed:
+                raise ConfigError("a failed trial needs a reason (what went wrong, e.g. 'e-stop at 3.2 s')")
         with file_lock(self.run_dir, STUDY_LOCK):
-            pending = self.store.pending_trial()
-            if pending is None or pending.number != number:
-                recorded = self.store.candidate_count()
-                if number < 0:
-                    raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
-                if number < recorded:
-                    raise ConfigError(f"trial {number} was already told; each trial is told once")
-                if pending is None:
-                    status, _ = self.store.run_status()
-                    if status is RunStatus.FINISHED:
-                        raise ConfigError(f"study {self.run_dir} is finalized ({recorded} of {self.total} trials told): "
-                                          "nothing more can be told")
-                    if status is RunStatus.STOPPED or recorded >= self.total:
-                        raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
-                                          f"{self.total} trials told): finalize it")
-                waiting = "no trial is pending: ask first" if pending is None else f"the study waits for trial {pending.number}"
-                raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
+            out = self.store.pending_trials()
+            pending = next((t for t in out if t.number == number), None)
+            if pending is None:
+                self._not_pending(number, out)
+            assert pending is not None
+            if teller and pending.worker and teller != pending.worker:
+                raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, not {teller!r}: each worker tells "
+                                  "the trials it asked for")
             if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
                 raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
+            if failed is not None:
+                if returns is not None or feedback is not None or components is not None or diagnostics is not None:
+                    raise ConfigError(f"trial {number}: tell either its feedback or that it failed, not both")
+                self.store.fail_trial(number, failed)
+                if self._phases is not None:
+                    self._sync()
+                return None
             if feedback is None and returns is not None and pending.seeds:
                 given_n = len(_returns(returns))
                 if 0 < given_n < len(pending.seeds):  # more is welcome (their mean is used), fewer is less evidence than asked
@@ -313,6 +406,54 @@ class Study:
             if self._phases is not None:
                 self._sync()
             return cand
+
+    def _not_pending(self, number: int, out: list[Trial]) -> None:
+        """Raise the ConfigError that says why trial ``number`` cannot be told (it is not pending)."""
+        recorded = self.store.candidate_count()
+        if number < 0:
+            raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
+        if self.store.trial_state(number) == "told":
+            raise ConfigError(f"trial {number} was already told; each trial is told once")
+        failed = dict((t.number, why) for t, why in self.store.failed_trials())
+        if number in failed:
+            raise ConfigError(f"trial {number} failed ({failed[number]}); ask it again with 'ppprops study retry {self.run_dir} "
+                              f"{number}' (study.retry) first")
+        if not out:
+            status, _ = self.store.run_status()
+            if status is RunStatus.FINISHED:
+                raise ConfigError(f"study {self.run_dir} is finalized ({recorded} of {self.total} trials told): "
+                                  "nothing more can be told")
+            if status is RunStatus.STOPPED or self.store.next_number() >= self.total:
+                raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
+                                  f"{self.total} trials told): finalize it")
+        if len(out) > 1:
+            raise ConfigError(f"trial {number} is not pending (the study waits for trials {', '.join(str(t.number) for t in out)})")
+        waiting = "no trial is pending: ask first" if not out else f"the study waits for trial {out[0].number}"
+        raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
+
+    def retry(self, trial: Trial | int) -> Trial:
+        """Ask a failed trial again: the same parameters and seeds, under its own number, pending
+        again for the next worker that asks (its place in the budget is kept). Returns it.
+        Raises ConfigError when it did not fail, or when ``--parallel`` trials are already out."""
+        number = trial if isinstance(trial, int) else trial.number
+        with file_lock(self.run_dir, STUDY_LOCK):
+            failed = {t.number for t, _ in self.store.failed_trials()}
+            if number not in failed:
+                state = {"told": "it was told", "pending": "it is pending"}.get(self.store.trial_state(number) or "", "it was never asked")
+                raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
+            out_n = len(self.store.pending_trials())
+            if out_n >= self.parallel:
+                raise ConfigError(f"{out_n} trials are out, the most at once (--parallel {self.parallel}): tell one before "
+                                  f"retrying trial {number}")
+            again = self.store.retry_trial(number, limit=self.parallel)
+            if self._phases is not None:
+                self._sync()
+            return again
+
+    @property
+    def failed(self) -> list[tuple[Trial, str]]:
+        """The failed trials (not asked again), by number, each with its reason."""
+        return self.store.failed_trials()
 
     def _feedback(self, returns: float | Sequence[float] | None, components: Any, diagnostics: Any) -> Feedback:
         """Told values as one Feedback (the mean over the episodes given), checked against the task."""
@@ -367,8 +508,15 @@ class Study:
             self._env = None  # the evaluator's now
         return self._evaluator
 
-    def optimize(self, callbacks: Sequence[Callback] = (), events: RunEvents | None = None) -> FinalEval | None:
+    def optimize(self, callbacks: Sequence[Callback] = (), events: RunEvents | None = None, *,
+                 fleet: Fleet | None = None) -> FinalEval | None:
         """Ask, evaluate on the task's env, tell, until nothing is left to ask; then ``finalize``.
+
+        With ``--parallel`` P > 1 each round's P trials are asked at once (workers ``run-0`` ...
+        ``run-{P-1}``) and evaluated side by side by ``fleet`` (an ``evaluation.Fleet``: default
+        the study's own ``Evaluator``, whose ``--workers`` processes take the round's episodes;
+        ``RayFleet`` for Ray tasks; or your own), then told. With ``--on-episode-error fail-trial``
+        a trial whose env raised is told as failed (its error the reason) and the search goes on.
 
         ``callbacks`` are called after each tell with the told trial (a ``Candidate``) and the
         study; one returning ``False`` stops the search cleanly (status ``stopped: stopped by a
@@ -390,15 +538,17 @@ class Study:
             raise self._no_env()
         try:
             with file_lock(self.run_dir, RUNNING_LOCK, wait=False):
-                return self._optimize(callbacks, events)
+                return self._optimize(callbacks, events, fleet)
         except BlockingIOError:
             raise ConfigError(f"another process is running {self.run_dir}; wait for it, or stop it first") from None
 
-    def _optimize(self, callbacks: Sequence[Callback], events: RunEvents) -> FinalEval | None:
+    def _optimize(self, callbacks: Sequence[Callback], events: RunEvents, fleet: Fleet | None = None) -> FinalEval | None:
         from .proposers.base import StopSearch
 
         store = self.store
         evaluator = self.evaluator
+        runner: Fleet = fleet if fleet is not None else evaluator
+        fail_trials = self.config.on_episode_error == "fail-trial"
         status, _ = store.run_status()
         if status is not RunStatus.STOPPED:
             store.set_status(RunStatus.RUNNING)
@@ -407,18 +557,38 @@ class Study:
         best = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
         try:
             while not self.done:
-                try:
-                    trial = self.ask()
-                except StopSearch:
-                    break
+                if self.parallel == 1 and fleet is None and not fail_trials:
+                    try:
+                        trials = [self.ask()]
+                    except StopSearch:
+                        break
+                else:
+                    try:
+                        trials = self._round()
+                    except StopSearch:
+                        break
                 t0 = time.perf_counter()
-                fb = evaluator.evaluate(trial.theta, trial.seeds)
-                cand = self.tell(trial, feedback=fb, eval_s=time.perf_counter() - t0)
-                if math.isfinite(cand.ret):  # a numerical fault is never the best so far
-                    best[0] = max(best[0], cand.ret)
-                latency = self._last_latency() if cand.source not in ("warmup", "reeval") else None
-                events.on_candidate(cand, latency, best[0])
-                if any(cb(cand, self) is False for cb in callbacks):
+                if len(trials) == 1 and fleet is None and not fail_trials:
+                    results: list[Feedback | EpisodeError] = [evaluator.evaluate(trials[0].theta, trials[0].seeds)]
+                else:
+                    results = list(runner.evaluate_each([t.theta for t in trials], [t.seeds for t in trials]))
+                eval_s = time.perf_counter() - t0
+                stop = False
+                for trial, fb in zip(trials, results, strict=True):
+                    if isinstance(fb, EpisodeError):
+                        if not fail_trials:
+                            raise fb
+                        self.tell(trial, failed=str(fb))
+                        events.on_notice(f"trial {trial.number} failed: {fb}")
+                        continue
+                    cand = self.tell(trial, feedback=fb, eval_s=eval_s)
+                    if math.isfinite(cand.ret):  # a numerical fault is never the best so far
+                        best[0] = max(best[0], cand.ret)
+                    latency = self._last_latency() if cand.source not in ("warmup", "reeval") else None
+                    events.on_candidate(cand, latency, best[0])
+                    if any(cb(cand, self) is False for cb in callbacks):
+                        stop = True
+                if stop:
                     store.set_status(RunStatus.STOPPED, "stopped by a callback")
                     break
             fe = self.finalize(events=events)
@@ -440,6 +610,22 @@ class Study:
         if fe is not None:
             events.on_final(fe)
         return fe
+
+    def _round(self) -> list[Trial]:
+        """The trials ``optimize`` evaluates next: each of its workers' (``run-0`` ...) held trial,
+        or a new one, as many as can be out now. Raises ConfigError when none can be had because
+        other workers hold every trial out."""
+        got: dict[int, Trial] = {}
+        for i in range(self.parallel):
+            try:
+                t = self.ask(worker=f"run-{i}", wait=False)
+            except (TrialsOut, StudyComplete):
+                continue
+            got.setdefault(t.number, t)
+        if not got:
+            raise ConfigError(f"every trial out is held by another worker ({_holders(self.out)}): tell them (or wait for them), "
+                              "then run again")
+        return [got[k] for k in sorted(got)]
 
     def _last_latency(self) -> float | None:
         phases = [p for p in self._phases or [] if p.name not in ("warmup", "selection")]
@@ -532,15 +718,32 @@ class Study:
 
     # -- the proposers ------------------------------------------------------------------------
     def _sync(self) -> None:
-        """Tell every proposer the candidates recorded since it was last told (another process's too)."""
+        """Tell every proposer the candidates recorded since it was last told (another process's
+        too), in trial order, up to the first trial still out: a proposer's state is a function of
+        the settled trials before it, the same in every process. A failed trial is never told as a
+        candidate; a proposer with a ``failed`` hook (CMA-ES) hears that it failed."""
         if self._phases is None:
             return
-        new = self.store.candidates(since=self._told)
+        out = [t.number for t in self.store.pending_trials()]
+        upto = min(out) if out else None
+        new = [c for c in self.store.candidates(since=self._told) if c.index not in self._told_set and (upto is None or c.index < upto)]
+        failed = [t for t, _ in self.store.failed_trials() if t.number not in self._failed_seen and (upto is None or t.number < upto)]
         proposers = list(dict.fromkeys(ph.proposer for ph in self._phases))
-        for c in new:
-            for p in proposers:
-                p.tell(c)
-        self._told += len(new)
+        events: list[tuple[int, Candidate | Trial]] = sorted([(c.index, c) for c in new] + [(t.number, t) for t in failed],
+                                                             key=lambda e: e[0])
+        for _, item in events:
+            if isinstance(item, Candidate):
+                for p in proposers:
+                    p.tell(item)
+                self._told_set.add(item.index)
+            else:
+                for p in proposers:
+                    hook = getattr(p, "failed", None)
+                    if hook is not None:
+                        hook(item)
+                self._failed_seen.add(item.number)
+        while self._told in self._told_set or self._told in self._failed_seen:  # the settled prefix, read no more
+            self._told += 1
 
     def _get_phases(self) -> list[Phase]:
         if self._phases is None:
@@ -570,6 +773,7 @@ class Study:
                 phases.append(Phase("selection", SelectionProposer(self.streams, episodes), top))
             self._phases = phases
             self._told = 0
+            self._told_set, self._failed_seen = set(), set()
             self._sync()
         return self._phases
 
@@ -583,11 +787,16 @@ class Study:
             if model is None:
                 from .llm.client import connect
 
-                server = None
+                server: Callable[[], AbstractContextManager[Any]] | None = None
+                slots = {"slots": self.parallel} if self.parallel > 1 else {}  # a round's P requests decoded together
                 if self._warm_llm and self.config.llm.embedded:
                     from .llm.embedded import WarmServer
 
-                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size)
+                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size, **slots)
+                elif slots and self.config.llm.embedded:
+                    from .llm.embedded import EmbeddedServer
+
+                    server = partial(EmbeddedServer, context_size=self.config.llm.context_size, **slots)
                 model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
                                                                   on_ready=self.events.on_llm_ready, server=server)))
             self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session, pacer=self._pacer())
@@ -629,6 +838,44 @@ class Study:
         return form
 
 
+WORKER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+
+def check_worker(name: str) -> str:
+    """``name`` if it is a plain worker name (a letter or digit, then up to 63 letters, digits,
+    ``.``, ``_`` or ``-``), else ConfigError."""
+    if not isinstance(name, str) or not WORKER_NAME.fullmatch(name):
+        raise ConfigError(f"worker name {name!r} is not a plain name: use letters, digits, '.', '_' and '-' "
+                          "(up to 64, starting with a letter or digit), e.g. robot-2")
+    return name
+
+
+class TrialsOut(ConfigError):
+    """``ask`` cannot hand out a trial now: ``--parallel`` trials are out, or a round, a phase or
+    a CMA-ES generation waits for trials that are out (``ppprops ask`` exits 4 with this line).
+    ``out``: how many trials are out."""
+
+    def __init__(self, message: str, *, out: int) -> None:
+        super().__init__(message)
+        self.out = out
+
+
+def ask_many(proposer: Any, iterations: Sequence[int]) -> list[Any]:
+    """``proposer``'s proposals for ``iterations`` (one round): its own ``ask_many`` when it has
+    one (the LLM proposer: concurrent requests from one shown history), else one ``ask`` each."""
+    if len(iterations) > 1 and hasattr(proposer, "ask_many"):
+        return list(proposer.ask_many(list(iterations)))
+    return [proposer.ask(it) for it in iterations]
+
+
+def _holders(trials: Sequence[Trial]) -> str:
+    """``trial 3 (robot-1), trial 4 (nobody yet)``: which trials are out and who holds them."""
+    def who(t: Trial) -> str:
+        return "nobody yet" if t.worker is None else (t.worker or "unnamed worker")
+
+    return ", ".join(f"trial {t.number} ({who(t)})" for t in trials)
+
+
 def _returns(returns: Any) -> list[Any]:
     """``returns`` as a list: one value (a number, or anything that is not a sequence of them: a text
     is one value, not its characters), or the values of a sequence."""
@@ -653,4 +900,4 @@ def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
     return out
 
 
-__all__ = ["Study", "StudyComplete", "Trial"]
+__all__ = ["Study", "StudyComplete", "Trial", "TrialsOut", "check_worker"]

@@ -9,6 +9,12 @@ A process that never imports ppprops drives a search with them::
     ...                                # until `ppprops ask` exits with 3: nothing more to ask
     ppprops study finalize study/      # best_policy.json (and the final evaluation, with an env)
 
+Several robots (or driver processes) evaluate trials side by side on a study created with
+``--parallel P``: each asks with its own name (``ppprops ask DIR --worker robot-2``) and gets its
+own trial (the same one again until it tells it); past P trials out, ``ask`` exits 4 with one line
+saying which are out and who holds them, or waits with ``--wait``. A trial that could not be
+evaluated is told ``--failed REASON``, and ``ppprops study retry DIR TRIAL`` asks it again.
+
 Every error is one line on stderr and exit 2 (the main CLI turns ``PPPropsError`` into that), and
 nothing is stored by a command that fails. ``ask`` exits 3 when the study has nothing more to ask.
 """
@@ -29,6 +35,7 @@ if TYPE_CHECKING:
     from .values import Trial
 
 EXIT_DONE = 3  # `ppprops ask` on a study with nothing more to ask
+EXIT_WAIT = 4  # `ppprops ask` without --wait while --parallel trials are out (or a round waits for them)
 
 
 def add_study_arguments(st: argparse.ArgumentParser, parser_class: type[argparse.ArgumentParser], add_run_flags: Any) -> None:
@@ -40,6 +47,9 @@ def add_study_arguments(st: argparse.ArgumentParser, parser_class: type[argparse
     stsub = st.add_subparsers(dest="study_command", required=True, parser_class=parser_class)
     cr = stsub.add_parser("create", help="create a study (the same flags as `run`); evaluate its trials with ask/tell")
     add_run_flags(cr)
+    rt = stsub.add_parser("retry", help="ask a failed trial again (the same parameters and seeds, under its own number)")
+    rt.add_argument("dir", type=Path, help="the study directory")
+    rt.add_argument("trial", type=int, help="the number of the failed trial")
     fi = stsub.add_parser("finalize", help="the final evaluation (with an env, or your own episodes) and best_policy.json")
     fi.add_argument("dir", type=Path, help="the study directory")
     fi.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
@@ -51,12 +61,22 @@ def add_study_arguments(st: argparse.ArgumentParser, parser_class: type[argparse
 def add_ask_arguments(ask: argparse.ArgumentParser) -> None:
     """Add the arguments of ``ppprops ask`` to its parser."""
     ask.add_argument("dir", type=Path, help="the study directory")
+    ask.add_argument("--worker", default=None, metavar="NAME",
+                     help="who evaluates the trial (a plain name, e.g. robot-2): a worker gets its own trial again until it "
+                          "tells it; with --parallel P, up to P workers hold a trial each")
+    ask.add_argument("--wait", action="store_true",
+                     help="when P trials are out (or a round waits for them), wait until one is told instead of exiting 4")
 
 
 def add_tell_arguments(tell: argparse.ArgumentParser) -> None:
     """Add the arguments of ``ppprops tell`` to its parser."""
     tell.add_argument("dir", type=Path, help="the study directory")
     tell.add_argument("trial", type=int, help="the trial number `ppprops ask` printed")
+    tell.add_argument("--worker", default=None, metavar="NAME", help="the worker that asked for the trial (checked: each worker "
+                      "tells its own trials)")
+    tell.add_argument("--failed", default=None, metavar="REASON",
+                      help="the trial could not be evaluated (e.g. 'e-stop at 3.2 s'): kept with its reason, never shown to "
+                           "the LLM nor selected; 'ppprops study retry' asks it again")
     tell.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
                       help="the episode's return (raw reward units); repeat for several episodes")
     tell.add_argument("--component", action="append", default=[], metavar="NAME=VALUE",
@@ -122,27 +142,36 @@ def _stdin_feedback() -> tuple[Any, Any, Any]:
 
 
 def cmd_ask(a: argparse.Namespace) -> int:
-    """``ppprops ask DIR``: print the next trial (or the pending one again) as one JSON object.
+    """``ppprops ask DIR [--worker NAME] [--wait]``: print the worker's trial (the one it holds
+    again, or a new one) as one JSON object.
 
     The embedded model is the study's warm server (``llm.embedded.WarmServer``): the first ask that
-    needs it starts it, the next ones reuse it. Returns 0, or ``EXIT_DONE`` (3) with one line on
-    stderr when the study has nothing more to ask (its warm server, if any, then stops).
+    needs it starts it, the next ones reuse it. Returns 0; ``EXIT_DONE`` (3) with one line on
+    stderr when the study has nothing more to ask (its warm server, if any, then stops);
+    ``EXIT_WAIT`` (4) with one line when ``--parallel`` trials are out and ``--wait`` is not given.
     """
     _import_numpy()
-    trial = _stored_trial(a.dir)
+    from .study import check_worker
+
+    worker = None if a.worker is None else check_worker(a.worker)
+    trial = _stored_trial(a.dir, worker or "")
     if trial is not None:  # asked before and not yet told: the same trial again, from the store alone
         print(json.dumps(trial.to_json()))
         return 0
     from .llm.embedded import stop_warm_server
-    from .study import Study, StudyComplete
+    from .study import Study, StudyComplete, TrialsOut
 
     with Study.load(a.dir, warm_llm=True) as study:
         try:
-            trial = study.ask()
+            trial = study.ask(worker, wait=a.wait)
         except StudyComplete as e:
-            stop_warm_server(a.dir)
-            print(f"ppprops: {e}" + ("" if e.finalized else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
+            if not study.out:
+                stop_warm_server(a.dir)
+            print(f"ppprops: {e}" + ("" if e.finalized or study.out else f": 'ppprops study finalize {a.dir}'"), file=sys.stderr)
             return EXIT_DONE
+        except TrialsOut as e:
+            print(f"ppprops: {e} (ask again later, or with --wait)", file=sys.stderr)
+            return EXIT_WAIT
         print(json.dumps(trial.to_json()))
     return 0
 
@@ -172,8 +201,8 @@ def _import_numpy() -> None:
         del os.environ[BLAS_THREAD_TIMEOUT]
 
 
-def _stored_trial(run_dir: Path) -> Trial | None:
-    """The study's pending trial (asked for, not yet told), as ``Study.ask`` returns it first, read
+def _stored_trial(run_dir: Path, worker: str = "") -> Trial | None:
+    """The pending trial ``worker`` holds (asked for, not yet told), as ``Study.ask`` returns it first, read
     from the store under the study's lock, after the key file is checked against the store as
     ``Study.load`` checks it; None when there is none, or when anything fails (``cmd_ask`` then
     loads the study, which says what in its own words).
@@ -193,7 +222,7 @@ def _stored_trial(run_dir: Path) -> Trial | None:
         return None
     try:
         with open_store(run_dir) as store, file_lock(run_dir, STUDY_LOCK):
-            trial = store.pending_trial()
+            trial = next((t for t in store.pending_trials() if t.worker == worker), None)
             if trial is not None:
                 Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=param_count(trial.n_s, trial.n_a),
                              fingerprint=store.key_fingerprint())  # fmt: skip
@@ -209,6 +238,17 @@ def cmd_tell(a: argparse.Namespace) -> int:
     _import_numpy()
     from .study import Study
 
+    if a.failed is not None:
+        if a.returns or a.component or a.diagnostic or a.stdin:
+            raise ConfigError("--failed says the trial could not be evaluated: give no --return, --component, --diagnostic or --stdin with it")
+        if not a.failed.strip():
+            raise ConfigError("--failed needs a reason (what went wrong, e.g. --failed 'e-stop at 3.2 s')")
+        with Study.load(a.dir) as study:
+            study.tell(a.trial, failed=a.failed, worker=a.worker)
+            told, failed, total = study.store.candidate_count(), study.store.failed_count(), study.total
+        print(f"trial {a.trial}: failed ({' '.join(a.failed.split())}); {told} of {total} told, {failed} failed "
+              f"(ask it again: ppprops study retry {a.dir} {a.trial})")
+        return 0
     if a.stdin:
         if a.returns or a.component or a.diagnostic:
             raise ConfigError("--stdin reads everything from stdin: give no --return, --component or --diagnostic with it")
@@ -223,7 +263,7 @@ def cmd_tell(a: argparse.Namespace) -> int:
         components = _pairs(a.component, "component", numeric=True)
         diagnostics = _pairs(a.diagnostic, "diagnostic", numeric=False)
     with Study.load(a.dir) as study:
-        cand = study.tell(a.trial, returns, components=components, diagnostics=diagnostics)
+        cand = study.tell(a.trial, returns, components=components, diagnostics=diagnostics, worker=a.worker)
         best = study.best
         told, total = study.store.candidate_count(), study.total
         if study.done:
@@ -248,6 +288,11 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
         with Study.create(config, out) as study:
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
                               "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
+        return 0
+    if a.study_command == "retry":
+        with Study.load(a.dir) as study:
+            again = study.retry(a.trial)
+        print(f"trial {again.number} is pending again (the same parameters and seeds): the next 'ppprops ask {a.dir}' hands it out")
         return 0
     from .summary import format_summary, run_summary
 

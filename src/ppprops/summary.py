@@ -69,7 +69,9 @@ def summarize(run: StoredRun) -> dict[str, Any]:
     calls = store.llm_calls()
     adaptations = store.llm_adaptations()
     fe = store.final_eval()
-    pending = store.pending_trial()
+    out = store.pending_trials()
+    pending = out[0] if out else None
+    failed = store.failed_trials()
     search = search_candidates(cands)
     best = select_best(cands) if search else None
     first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
@@ -91,6 +93,8 @@ def summarize(run: StoredRun) -> dict[str, Any]:
         "run_id": store.run_id(),
         "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
         "pending_trial": None if pending is None else pending.number,
+        "trials_out": [{"trial": t.number, "worker": t.worker, "source": t.source} for t in out],
+        "failed_trials": [{"trial": t.number, "source": t.source, "worker": t.worker, "reason": why} for t, why in failed],
         "notes": notes,
         "env": config.task,
         "method": config.method,
@@ -107,6 +111,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
         else None,
         "counts": {
             "candidates": len(cands),
+            "failed": len(failed),
             "warmup": sum(c.source == "warmup" for c in cands),
             "llm": sum(c.source == "llm" for c in cands),
             "fallback": sum(c.source == "fallback" for c in cands),
@@ -188,6 +193,15 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"WARNING  {head} ({why}; the best policy plus noise was evaluated instead)")
     for note in s.get("notes") or []:
         lines.append(f"note     {note}")
+    out = s.get("trials_out") or []
+    if len(out) > 1 or any(t["worker"] for t in out):  # one trial out by the unnamed worker: the status says enough
+        lines.append(f"out      {len(out)} trial(s): " + ", ".join(
+            f"{t['trial']} ({'held by nobody yet' if t['worker'] is None else 'held by ' + (t['worker'] or 'the unnamed worker')})"
+            for t in out))
+    failed = s.get("failed_trials") or []
+    if failed:
+        lines.append(f"failed   {len(failed)} trial(s), never shown to the LLM nor selected: " + "; ".join(
+            f"{t['trial']} ({t['reason']})" for t in failed))
     ep = c.get("episodes")
     if ep:
         lines.append(f"episodes {ep['search']} in the search, {ep['selection']} re-evaluating the best candidates, {ep['final']} in the "

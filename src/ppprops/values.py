@@ -131,6 +131,8 @@ class Trial:
         note: why a fallback was used, or other remarks.
         ask_s: seconds the proposer took to ask it (LLM calls included).
         reevaluates: a re-evaluation of the selection stage: the search candidate it runs again.
+        worker: the worker holding it (``Study.ask(worker=...)``, ``ppprops ask --worker``): ""
+            for a trial asked without a worker name, None for one nobody holds yet.
     """
 
     number: int
@@ -145,6 +147,7 @@ class Trial:
     note: str = ""
     ask_s: float | None = None
     reevaluates: int | None = None
+    worker: str | None = None
 
     @property
     def W(self) -> np.ndarray:
@@ -178,6 +181,7 @@ class Trial:
             "clipped": self.clipped,
             "note": self.note,
             "reevaluates": self.reevaluates,
+            **({"worker": self.worker} if self.worker else {}),
         }
 
     def __eq__(self, other: object) -> bool:

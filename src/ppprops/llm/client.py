@@ -53,6 +53,7 @@ import math
 import os
 import random
 import re
+import threading
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, ExitStack, nullcontext
@@ -445,6 +446,7 @@ class EndpointClient:
         self._on_loading, self._on_ready = on_loading, on_ready
         self.gate = gate if gate is not None else nullcontext()
         self._stack = ExitStack()
+        self._lock = threading.RLock()  # the SDK client's start and the request shape, shared by a round's threads
         self._sdk: OpenAI | None = None
         self.sleep: Callable[[float], None] = time.sleep
         self._jitter = random.Random()
@@ -466,7 +468,12 @@ class EndpointClient:
         return EmbeddedServer(context_size=self.config.context_size)
 
     def _client(self) -> OpenAI:
-        """The SDK client, made on first use (starting the embedded server first when this client runs it)."""
+        """The SDK client, made on first use (starting the embedded server first when this client
+        runs it; the concurrent requests of a round start it once)."""
+        with self._lock:
+            return self._make_client()
+
+    def _make_client(self) -> OpenAI:
         if self._sdk is None:
             if self._start_server:
                 self._on_loading()
@@ -518,15 +525,17 @@ class EndpointClient:
         retry = 0
         stretch = 1.0  # each timed-out try of this request waits twice as long the next time
         while True:
-            body = self.shape.body(req, seed)
-            wait = stretch * self.shape.timeout(req)
+            with self._lock:
+                body = self.shape.body(req, seed)
+                wait = stretch * self.shape.timeout(req)
             ex, retry_after, err = self._attempt(client, req, body, retry=retry, timeout_s=wait, before_try=before_try)
             if ex.ok:
                 return replace(self._after_answer(req, ex), failures=tuple(failures))
             if ex.error_kind == "timeout":
                 stretch *= 2.0
             if err is not None and ex.error_kind in ADAPTABLE_KINDS:
-                change, hint = self.shape.adapt(err)
+                with self._lock:
+                    change, hint = self.shape.adapt(err)
                 if change is not None:
                     self.adaptations.append(change)
                     failed(replace(ex, adaptation=change, error=f"{ex.error}; adapted: {change}"))
@@ -554,8 +563,9 @@ class EndpointClient:
 
     def _after_answer(self, req: FormRequest, ex: Exchange) -> Exchange:
         """Learn from a usable exchange (``RequestShape.learn``); a change rides on the exchange."""
-        notes = self.shape.learn(req, ex.content, ex.reasoning, finish_reason=ex.finish_reason, reasoning_tokens=ex.reasoning_tokens,
-                                 latency_s=ex.latency_s, completion_tokens=ex.completion_tokens)
+        with self._lock:
+            notes = self.shape.learn(req, ex.content, ex.reasoning, finish_reason=ex.finish_reason, reasoning_tokens=ex.reasoning_tokens,
+                                     latency_s=ex.latency_s, completion_tokens=ex.completion_tokens)
         if not notes:
             return ex
         self.adaptations += notes

@@ -94,8 +94,9 @@ class EmbeddedServer:
     stopped on exit. ``base_url`` is its OpenAI-compatible root (``http://127.0.0.1:PORT/v1``),
     ``pid`` the child process. Raises LLMError when the server fails to start."""
 
-    def __init__(self, *, context_size: int = 16384, threads: int | None = None) -> None:
+    def __init__(self, *, context_size: int = 16384, threads: int | None = None, slots: int = 1) -> None:
         self.context_size = context_size
+        self.slots = slots  # requests decoded together (--parallel P), each with a context of context_size
         # PPPROPS_LLM_THREADS lets a grid that runs several searches side by side share the cores
         self.threads = threads or int(os.environ.get("PPPROPS_LLM_THREADS", 0)) or default_threads()
         self.base_url = ""
@@ -108,7 +109,7 @@ class EmbeddedServer:
         return self._proc.pid if self._proc is not None else None
 
     def __enter__(self) -> EmbeddedServer:
-        cmd = _command(model_path(), self.context_size, self.threads)
+        cmd = _command(model_path(), self.context_size, self.threads, self.slots)
         self._log = tempfile.TemporaryFile()  # the child's stderr, read back only if it fails to start
         try:
             self._proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log, text=True)
@@ -150,10 +151,10 @@ class EmbeddedServer:
         self.close()
 
 
-def _command(model: Path, context_size: int, threads: int) -> list[str]:
-    """The server child's command line."""
+def _command(model: Path, context_size: int, threads: int, slots: int = 1) -> list[str]:
+    """The server child's command line (``slots`` > 1: that many requests decoded together)."""
     return [sys.executable, "-m", "ppprops.llm.embedded", "--model", str(model), "--context-size", str(context_size),
-            "--threads", str(threads)]  # fmt: skip
+            "--threads", str(threads), *(["--slots", str(slots)] if slots > 1 else [])]  # fmt: skip
 
 
 def _failure(proc: subprocess.Popen[str], log: IO[bytes]) -> str:
@@ -285,9 +286,10 @@ class WarmServer:
     """
 
     def __init__(self, study_dir: str | os.PathLike[str], *, context_size: int = 16384, threads: int | None = None,
-                 idle_s: float | None = None) -> None:  # fmt: skip
+                 idle_s: float | None = None, slots: int = 1) -> None:  # fmt: skip
         self.study_dir = Path(study_dir)
         self.context_size = context_size
+        self.slots = slots
         self.threads = threads
         self.idle_s = idle_s
         self.base_url = ""
@@ -324,7 +326,8 @@ class WarmServer:
         state = warm_server_state(self.study_dir)
         if state is None or not _ours(state):
             return None
-        if state.get("context_size") == self.context_size and state.get("model") == _expected_model() and _answers(state):
+        if (state.get("context_size") == self.context_size and state.get("slots", 1) == self.slots and state.get("model") == _expected_model()
+                and _answers(state)):
             return state
         _end(state)
         return None
@@ -334,13 +337,14 @@ class WarmServer:
         threads = self.threads or int(os.environ.get("PPPROPS_LLM_THREADS", 0)) or default_threads()
         token = os.urandom(16).hex()
         model = model_path()
-        cmd = [*_command(model, self.context_size, threads), "--warm", str(self.study_dir.resolve()), "--token", token,
+        cmd = [*_command(model, self.context_size, threads, self.slots), "--warm", str(self.study_dir.resolve()), "--token", token,
                "--idle-s", repr(idle)]  # fmt: skip
         pid, url = _spawn_detached(cmd, token)
         now = datetime.now(UTC).isoformat(timespec="seconds")
         before = warm_server_state(self.study_dir) or {}
         starts = [s for s in before.get("starts", []) if isinstance(s, dict)] if isinstance(before.get("starts"), list) else []
-        state = {"pid": pid, "url": url, "token": token, "context_size": self.context_size, "model": str(model), "threads": threads,
+        state = {"pid": pid, "url": url, "token": token, "context_size": self.context_size, "slots": self.slots, "model": str(model),
+                 "threads": threads,
                  "idle_s": idle, "started": now, "starts": [*starts, {"pid": pid, "started": now}][-HISTORY:]}  # fmt: skip
         try:
             write_json_atomic(self.study_dir / STATE_NAME, state, mode=0o600)
@@ -477,6 +481,7 @@ def _serve(argv: list[str] | None = None) -> int:
     p.add_argument("--model", required=True, help="GGUF file")
     p.add_argument("--context-size", type=int, required=True, help="context window in tokens")
     p.add_argument("--threads", type=int, required=True, help="CPU threads for prompt processing and generation")
+    p.add_argument("--slots", type=int, default=1, help="requests decoded together, each with --context-size tokens")
     p.add_argument("--warm", metavar="STUDY_DIR", type=Path, help="serve the study in STUDY_DIR until it is idle, gone or finalized")
     p.add_argument("--token", default="", help="(--warm) the token the study's record holds for this server")
     p.add_argument("--idle-s", type=float, default=DEFAULT_IDLE_S, help="(--warm) seconds without a request before it stops")
@@ -485,7 +490,7 @@ def _serve(argv: list[str] | None = None) -> int:
         if os.fork() > 0:  # nothing but the interpreter runs yet: forking is safe
             os._exit(0)
         _say(f"pid {os.getpid()}")
-    server = _start(a.model, a.context_size, a.threads, metrics=a.warm is not None)
+    server = _start(a.model, a.context_size, a.threads, metrics=a.warm is not None, slots=a.slots)
     _say(READY + str(server.listening_address))
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, sys.stdout.fileno())  # nobody reads the pipe any more: a log line must never block the server
@@ -507,14 +512,16 @@ def _say(line: str) -> None:
         os._exit(1)
 
 
-def _start(model: str, context_size: int, threads: int, *, metrics: bool = False) -> Any:
+def _start(model: str, context_size: int, threads: int, *, metrics: bool = False, slots: int = 1) -> Any:
     import xllamacpp
 
     p = xllamacpp.CommonParams()
     p.model.path = model
     p.model_alias = MODEL_ALIAS
-    p.n_ctx = context_size
-    p.n_parallel = 1
+    # --parallel P: P slots decoded in one batch (continuous batching), each with the whole context
+    # size (llama.cpp splits n_ctx between the slots), so a round's P requests never queue.
+    p.n_ctx = context_size * slots
+    p.n_parallel = slots
     p.cpuparams.n_threads = threads
     p.cpuparams_batch.n_threads = threads
     p.hostnames = ["127.0.0.1"]

@@ -42,6 +42,7 @@ transcript); its report says so and its verdict is never CLEAN.
 """
 from __future__ import annotations
 
+import bisect
 import itertools
 import json
 import math
@@ -287,8 +288,15 @@ class _Auditor:
         return self._rebuilt[form.name]
 
     def _stall_count(self, n: int) -> int:
-        """``stall_count`` of the first ``n`` candidates."""
-        return self._stalls[max(0, min(n, len(self.cands)))]
+        """``stall_count`` of the candidates numbered below ``n`` (the trials settled when a request
+        at trial ``n`` was built: failed trials are no candidates and never counted)."""
+        return self._stalls[bisect.bisect_left([c.index for c in self.cands], n)]
+
+    def _round_start(self, iteration: int) -> int:
+        """The trial number at which the round of LLM iteration ``iteration`` began: with
+        ``--parallel`` P its P requests share the history told before the round."""
+        parallel = max(1, int(getattr(self.config, "parallel", 1)))
+        return self.config.warmup + (iteration // parallel) * parallel
 
     def finding(self, severity: str, kind: str, detail: str, where: str, *, by_design: bool = False) -> None:
         key = (severity, kind, detail)
@@ -574,7 +582,7 @@ class _Auditor:
             self.free(doc[key], f"a {form.name} prompt that is not a string", f"{where}, field {key}")
         verified = bool(shown) and all(c is not None for c in shown)
         entries = [self.rebuilt.entry(c) for c in shown if c is not None] if verified else []
-        stalled = self._stall_count(self.config.warmup + req.iteration) if self.config.explore is not False else 0
+        stalled = self._stall_count(self._round_start(req.iteration)) if self.config.explore is not False else 0
         want = self._request(form, req, entries, stalled)
         expected = self.replay.fields(want)  # what the client's request shape sends for it at this call
         decisions = row.get("decisions")

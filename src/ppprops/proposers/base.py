@@ -46,7 +46,16 @@ class Proposer(Protocol):
     """The ask/tell interface of every search (warm-up sampler, LLM, R2PO, random, CMA-ES).
 
     ``ask`` may raise StopSearch to end the run on purpose; the study (``ppprops.study.Study``)
-    evaluates and records each proposal and tells every proposer every candidate.
+    evaluates and records each proposal and tells every proposer every candidate, in trial order,
+    up to the first trial still out (so a proposer's state is the same in every process).
+
+    With ``--parallel`` P > 1 a proposer may also have (all optional, looked up with ``getattr``):
+    ``rounds = True`` (its P proposals of a round share what it was told when the round began; the
+    study starts a round only when the last one is told: the LLM proposer), ``ask_many(iterations)``
+    (a round's proposals at once, e.g. concurrent requests; default: one ``ask`` each),
+    ``ready(iteration)`` (False while that iteration must wait for trials out: CMA-ES's next
+    generation) and ``failed(trial)`` (a trial of the run failed and will never be told: CMA-ES
+    counts it as the worst member). A failed trial is never told as a candidate.
     """
 
     def ask(self, iteration: int) -> Proposal:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..client.codec import Codec
 from ..errors import MissingExtraError
-from ..values import Candidate
+from ..values import Candidate, Trial
 from .base import Proposal, clip_to_box
 
 Space = Literal["raw", "encoded"]
@@ -50,7 +50,8 @@ class CMAESProposer:
         self._warmup: list[Candidate] = []
         self._es: Any = None  # cma.CMAEvolutionStrategy once started (pycma has no type information)
         self._pop: list[np.ndarray] | None = None
-        self._fit: list[float] = []
+        self._fit: dict[int, float] = {}  # member -> fitness, as told (in any order)
+        self._gen = 0  # the generation being asked and told
 
     def _start(self) -> None:
         import cma
@@ -76,25 +77,47 @@ class CMAESProposer:
             self._start()
         if self._pop is None:
             self._pop = [np.asarray(x, dtype=np.float64) for x in self._es.ask()]
-            self._fit = []
+            self._fit = {}
         return self._pop
 
+    @property
+    def _size(self) -> int:
+        """The population size (pycma's, known once started)."""
+        return len(self._population())
+
+    def ready(self, iteration: int) -> bool:
+        """True when ``iteration``'s population can be asked: every earlier generation is told
+        (with ``--parallel`` P, a round never reaches into the next generation before that)."""
+        return iteration // self._size <= self._gen
+
     def ask(self, iteration: int) -> Proposal:
-        """The next member of the current population, decoded if needed and clipped into the box: shape (D,)."""
-        x = self._population()[len(self._fit)]
+        """Member ``iteration mod popsize`` of the current population, decoded if needed and clipped into the box: shape (D,)."""
+        x = self._population()[iteration % self._size]
         theta = x if self.space == "raw" else self.codec.decode(x)
         theta, clipped = clip_to_box(theta, self.box)
         return Proposal(theta=theta, source=self.source, clipped=clipped)
 
     def tell(self, candidate: Candidate) -> None:
-        """Warm-up candidates seed the start; the population's own returns (negated: CMA-ES minimizes) feed ``tell``."""
+        """Warm-up candidates seed the start; the population's own returns (negated: CMA-ES
+        minimizes) feed ``tell`` once every member is told, in whatever order they came."""
         if candidate.source != self.source:
             self._warmup.append(candidate)
             return
-        pop = self._population()
         # pycma minimises; in the encoded space it only ever sees the scaled return
         ret = candidate.feedback.ret if self.space == "raw" else candidate.feedback_enc.ret
-        self._fit.append(-ret if np.isfinite(ret) else np.inf)
+        self._member(candidate.iteration, -ret if np.isfinite(ret) else np.inf)
+
+    def failed(self, trial: Trial) -> None:
+        """A member whose trial failed counts as the worst (fitness +inf), so the generation goes on."""
+        if trial.source == self.source:
+            self._member(trial.iteration, np.inf)
+
+    def _member(self, iteration: int, fitness: float) -> None:
+        pop = self._population()
+        if iteration // len(pop) != self._gen:
+            return  # a member of a generation already told (a failed trial asked again): too late to count
+        self._fit[iteration % len(pop)] = fitness
         if len(self._fit) == len(pop):
-            self._es.tell(pop, self._fit)
+            self._es.tell(pop, [self._fit[m] for m in range(len(pop))])
             self._pop = None
+            self._gen += 1

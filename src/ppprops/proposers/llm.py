@@ -32,6 +32,7 @@ diagnostics shown as "non-finite".
 from __future__ import annotations
 
 import math
+import threading
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -148,6 +149,7 @@ class LLMProposer:
         self.entries: list[EncodedEntry] = []
         self.best: Candidate | None = None
         self.failures: Counter[str] = Counter()
+        self._count_lock = threading.Lock()  # a round's requests count their failures from their threads
         self.last_latency: float | None = None
         self.last_exchange: Exchange | None = None
         self.stall = StallCounter()  # LLM-phase candidates in a row that did not raise the best shown return
@@ -189,14 +191,36 @@ class LLMProposer:
         """True if ``values`` equal an entry of the shown history as the prompt printed it."""
         return repeats_history(self.ctx, values, self.shown())
 
+    rounds = True  # with --parallel P, the P proposals of a round share one shown history (the study waits for the round)
+
     def ask(self, iteration: int) -> Proposal:
         """One LLM proposal (raw theta, shape (D,), clipped into the box), or a fallback after unusable answers.
 
         Raises LLMRejected when the endpoint refuses for good, and LLMUnavailable past the retries
         when ``on_llm_failure`` is ``stop`` (with ``skip`` a fallback is recorded instead).
         """
-        shown = self.shown()
-        prompt = self.prompt()
+        return self._ask(iteration, self.shown(), self.prompt())
+
+    def ask_many(self, iterations: Sequence[int]) -> list[Proposal]:
+        """A round: one proposal per iteration, all from the history shown now (the top-K when the
+        round starts), as concurrent requests through the one recording client, each with its own
+        sampling seed keyed by the secrets (``Codec.sampling_seed`` of its iteration and attempt).
+        Proposals come back in the order of ``iterations``; the first error of any request is
+        raised once all have ended (every try is recorded either way)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        shown, prompt = self.shown(), self.prompt()
+        if len(iterations) <= 1:
+            return [self._ask(it, shown, prompt) for it in iterations]
+        with ThreadPoolExecutor(max_workers=len(iterations), thread_name_prefix="ppprops-llm") as pool:
+            futures = [pool.submit(self._ask, it, shown, prompt) for it in iterations]
+            errors = [f.exception() for f in futures]
+        first = next((e for e in errors if e is not None), None)
+        if first is not None:
+            raise first
+        return [f.result() for f in futures]
+
+    def _ask(self, iteration: int, shown: list[EncodedEntry], prompt: str) -> Proposal:
         last_error = "no attempt"
         previous: str | None = None
         detail = ""
@@ -209,7 +233,8 @@ class LLMProposer:
             except LLMUnavailable as e:
                 if self.on_llm_failure != "skip" or isinstance(e, LLMRejected):
                     raise
-                self.failures["llm_unavailable"] += 1
+                with self._count_lock:
+                    self.failures["llm_unavailable"] += 1
                 return self._fallback(iteration, f"llm_unavailable ({e.kind})")
             if not ex.ok:  # an LLM must raise instead; an HTTP error is never an answer to correct
                 raise LLMRejected(f"LLM endpoint refused the request: {ex.error}", (ex,))
@@ -230,7 +255,8 @@ class LLMProposer:
                 note = "answer taken from the reasoning text" if result.source == "reasoning" else ""
                 return Proposal(theta=theta, source="llm", clipped=clipped, note=note)
             kind = result.error or "unknown"
-            self.failures[kind] += 1
+            with self._count_lock:
+                self.failures[kind] += 1
             last_error = f"{kind} ({HINTS[kind]})" if kind in HINTS else kind
             previous, detail = ex.content, result.detail
         return self._fallback(iteration, last_error)

@@ -54,6 +54,10 @@ For tests of what a client does around a request rather than with its answer:
 ``burst``
     requests ``first`` to ``last`` (numbered from 1) always get a fault (of ``kinds``), the others
     one at ``fault_rate``: a run of bad answers at a moment the test chooses.
+``latency_s`` / ``concurrency``
+    every completions request takes ``latency_s`` seconds before its answer (a slow model), and at
+    most ``concurrency`` are served at once (None: all), the rest waiting in line, as a server with
+    that many slots does: what a round of ``--parallel`` requests gains is measured against it.
 
 Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
 
@@ -118,6 +122,8 @@ class FaultConfig:
     hold_after: int | None = None  # hold the requests after the first hold_after open until release() or stop
     record: bool = False  # keep every request received, byte for byte, for FaultServer.received()
     burst: tuple[int, int] | None = None  # requests first..last (from 1) always get a fault: a burst of them
+    latency_s: float = 0.0  # every completions request waits this long before its answer
+    concurrency: int | None = None  # at most this many completions requests served at once (None: no limit)
 
     def validate(self) -> None:
         """Check the settings (``FaultServer`` calls it).
@@ -154,6 +160,10 @@ class FaultConfig:
                 json.loads(self.fixed_body)
             except ValueError as e:
                 raise ValueError(f"fixed body must be JSON: {e}") from None
+        if not (self.latency_s >= 0.0):
+            raise ValueError(f"latency must be >= 0 seconds, got {self.latency_s}")
+        if self.concurrency is not None and self.concurrency < 1:
+            raise ValueError(f"concurrency must be >= 1, got {self.concurrency}")
         if self.hold_after is not None and self.hold_after < 0:
             raise ValueError(f"hold after must be >= 0, got {self.hold_after}")
         if self.burst is not None and not (1 <= self.burst[0] <= self.burst[1]):
@@ -176,6 +186,11 @@ class _State:
     received: list[bytes] = field(default_factory=list)  # every request, byte for byte (with record)
     in_flight: int = 0
     most_in_flight: int = 0
+    slots: threading.Semaphore | None = None  # concurrency: the requests served at once
+
+    def __post_init__(self) -> None:
+        if self.config.concurrency is not None:
+            self.slots = threading.Semaphore(self.config.concurrency)
 
     def draw(self) -> tuple[int, str | None, random.Random, str]:
         """Request number, fault kind (None = pass), a generator for this request's values, and
@@ -477,10 +492,17 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self._hang_up()  # the server stopped while the request was held
             return
         model = str(body.get("model") or "fault-synthetic")
+        if st.slots is not None:
+            st.slots.acquire()
         try:
+            if cfg.latency_s > 0:
+                st.stop.wait(cfg.latency_s)
             self._answer(body, raw, model, n, kind, rng, persona, path=path)
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up first (it timed out): nothing to do
+        finally:
+            if st.slots is not None:
+                st.slots.release()
 
     def _answer(self, body: dict[str, Any], raw: bytes, model: str, n: int, kind: str | None, rng: random.Random,
                 persona: str = "plain", *, path: str = "/v1/chat/completions") -> None:
@@ -711,6 +733,8 @@ def main(argv: list[str] | None = None) -> int:
                         "usual) or the server stops (then dropped)")
     p.add_argument("--burst", type=_burst, default=None, metavar="FIRST-LAST",
                    help="requests FIRST to LAST (numbered from 1) always get a fault, the others at --fault-rate")
+    p.add_argument("--latency", type=float, default=0.0, help="seconds every completions request takes before its answer")
+    p.add_argument("--concurrency", type=int, default=None, help="the most completions requests served at once (default: all)")
     p.add_argument("--requests-file", type=str, default=None,
                    help="write every request received (request line, headers, body; UTF-8) here as a JSON list when stopping")
     a = p.parse_args(argv)
@@ -719,6 +743,7 @@ def main(argv: list[str] | None = None) -> int:
         timeout_s=a.timeout_delay, retry_after_s=a.retry_after, max_requests=a.max_requests, max_seconds=a.max_seconds,
         default_dim=a.dim, v1_only=a.v1_only, error_body_code=a.error_body_code, fixed_status=a.fixed_status,
         fixed_body=a.fixed_body, hold_after=a.hold_after, record=a.requests_file is not None, burst=a.burst,
+        latency_s=a.latency, concurrency=a.concurrency,
         personas=tuple(PERSONAS) if a.personas == "all" else tuple(x.strip() for x in a.personas.split(",") if x.strip()),
     )
     try:
