@@ -155,6 +155,10 @@ class StudyOptions(TypedDict, total=False):
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
+        policy: the policy family, for any task: ``"linear"`` (the paper's), ``"mlp:16,16"``, a mapping
+            ``{"kind": "mlp", "hidden": [16], "activation": "tanh"}`` or a ``ppprops.policy.PolicySpec``
+            (default: the task's declared family, linear unless its task file has a ``[policy]`` table).
+        activation: ``"tanh"`` or ``"relu"``, the hidden layers' activation of an mlp policy.
     """
 
     method: str
@@ -162,6 +166,8 @@ class StudyOptions(TypedDict, total=False):
     iterations: int
     seed: int | None
     box: tuple[float, float]
+    policy: Any
+    activation: str | None
     llm: Any
     privacy: Mapping[str, bool | None] | None
     prompt: Any
@@ -231,7 +237,8 @@ def _build(task: TaskLike, options: StudyOptions, own: tuple[str, ...] = ()) -> 
     values.update({k: v for k, v in switches.items() if v is not None})
     if options.get("method_options"):
         values["method_options"] = dict(options["method_options"] or {})
-    t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True)))
+    t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True),
+                                            policy=options.get("policy"), activation=options.get("activation")))
     return build_config(values, task=t), model
 
 

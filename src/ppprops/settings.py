@@ -78,7 +78,7 @@ class Setting:
         if self.owner is LLMConfig:
             return "llm"
         if self.owner is TaskOptions:
-            return None if self.key in ("env", "task_file") else "task_options"
+            return None if self.key in ("env", "task_file", "policy", "activation") else "task_options"
         return self.info.group
 
     @property

@@ -26,6 +26,7 @@ then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -198,7 +199,13 @@ class Study:
     @property
     def pending(self) -> Trial | None:
         """The trial asked for and not yet told, or None."""
-        return self.store.pending_trial()
+        return self._with_policy(self.store.pending_trial())
+
+    def _with_policy(self, trial: Trial | None) -> Trial | None:
+        """A stored trial with the study's policy family (the store keeps theta, n_s and n_a)."""
+        if trial is None or self.task.policy.is_linear:
+            return trial
+        return dataclasses.replace(trial, policy=self.task.policy)
 
     @property
     def status(self) -> tuple[RunStatus, str]:
@@ -232,7 +239,7 @@ class Study:
         cannot go on (the study is then stopped, with the reason, and can be finalized).
         """
         with file_lock(self.run_dir, STUDY_LOCK):
-            pending = self.store.pending_trial()
+            pending = self._with_policy(self.store.pending_trial())
             if pending is not None:
                 return pending
             status, reason = self.store.run_status()
@@ -257,7 +264,7 @@ class Study:
             trial = Trial(number=n, phase=phase.name, iteration=iteration, source=proposal.source,
                           theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
                           seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=time.perf_counter() - t0,
-                          reevaluates=proposal.reevaluates)  # fmt: skip
+                          reevaluates=proposal.reevaluates, policy=self.task.policy)  # fmt: skip
             self.store.add_pending(trial)
             return trial
 
@@ -543,7 +550,9 @@ class Study:
             from .wire.forms import FORMS
 
             config = self.config
-            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec)
+            policy, n_s, n_a = self.task.policy, self.task.n_s, self.task.n_a
+            mlp = {} if policy.is_linear else {"init": policy.init_bounds(n_s, n_a, config.box), "bounds": policy.bounds(n_s, n_a, config.box)}
+            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec, **mlp)
             phases = [Phase("warmup", warmup, config.warmup)]
             if config.iterations > 0:
                 form = self._form() if self.method.uses_llm else FORMS[config.form]
