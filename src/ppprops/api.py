@@ -415,6 +415,8 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
     task = task_from_json(doc["task_spec"]) if doc.get("task_spec") else get_task(str(doc.get("task")))
     if (task.n_s, task.n_a) != (pol.n_s, pol.n_a):
         raise ConfigError(f"policy file {pol.path} has n_s={pol.n_s}, n_a={pol.n_a}; task {task.name} needs {task.n_s}, {task.n_a}")
+    if task.policy != pol.spec:
+        raise ConfigError(f"policy file {pol.path} holds a {pol.spec.label()} policy; its task {task.name} declares {task.policy.label()}")
     from .progress import episode_events
     from .runner import final_returns
 
