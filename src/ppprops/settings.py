@@ -325,7 +325,8 @@ def refuse_prompt_settings(method_name: str, keys: Iterable[str]) -> None:
 
 
 def check_fits_context(config: RunConfig, task: Task) -> None:
-    """Refuse, before any request, an MLP whose one answer cannot fit the embedded model's context.
+    """Refuse, before any request, an MLP whose one answer cannot fit the embedded model's context,
+    and an MLP for R2PO (its critic reads a linear policy's rollout).
 
     A prompted method's answer holds D numbers (``wire.forms.answer_budget``: 24 + 8 D tokens, more
     with the document form's labels) and its prompt at least one history entry of as many; together
@@ -338,6 +339,9 @@ def check_fits_context(config: RunConfig, task: Task) -> None:
     """
     from .wire.forms import answer_budget
 
+    if not task.policy.is_linear and get_method(config.method).phase == "r2po_phase":
+        raise ConfigError(f"--method {config.method} searches the linear policy only (its critic reads a linear rollout): "
+                          f"--policy {task.policy.label().split()[0]} needs --method pp, random or cmaes")
     if task.policy.is_linear or not get_method(config.method).uses_llm or not config.llm.embedded:
         return
     answer = answer_budget(task.D, labels=config.form == "document")
