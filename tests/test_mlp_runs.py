@@ -13,14 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import offline_llm
 from test_deploy import HARNESS, readme_recipe
 
 import ppprops
 from ppprops.cli import main
-from ppprops.seeding import final_eval_seeds
 from ppprops.privacy.audit import audit_run
+from ppprops.seeding import final_eval_seeds
 from ppprops.store import open_store
+
+from support import offline_llm
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 

@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypedDict, Unpack
+from typing import Any, Literal, TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import NDArray
@@ -167,7 +167,7 @@ class StudyOptions(TypedDict, total=False):
     seed: int | None
     box: tuple[float, float]
     policy: Any
-    activation: str | None
+    activation: Literal["tanh", "relu"] | None
     llm: Any
     privacy: Mapping[str, bool | None] | None
     prompt: Any

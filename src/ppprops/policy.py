@@ -196,8 +196,8 @@ class PolicySpec(BaseModel):
     def _per_coordinate(self, n_s: int, n_a: int, boxes: list[tuple[float, float]]) -> tuple[FloatArray, FloatArray]:
         D = self.param_count(n_s, n_a)
         lo, hi = np.empty(D), np.empty(D)
-        for (w, b), (l, h) in zip(self.layer_slices(n_s, n_a), boxes, strict=True):
-            lo[w], hi[w], lo[b], hi[b] = l, h, l, h
+        for (w, b), (low, high) in zip(self.layer_slices(n_s, n_a), boxes, strict=True):
+            lo[w], hi[w], lo[b], hi[b] = low, high, low, high
         return lo, hi
 
     def label(self) -> str:
