@@ -82,6 +82,33 @@ def _report(out: Path) -> None:
             print(f"| {task} | {policy} | {D} | {len(rows)} | {p:.0f} | {a:.0f} | {a / D:.2f} | {s:.1f} |")
 
 
+def _prompt_sizes(out: Path, tasks: list[str], policies: list[str]) -> None:
+    """Prompt size against D with no model: each form's request after the 10-entry warm-up, answered by
+    the offline stand-in (``EchoOptimizer``); the answer's token budget is the form's (``answer_budget``)."""
+    import ppprops
+    from ppprops.llm.settings import LLMConfig
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.store import open_store
+
+    print("| task | policy | D | form | prompt characters | characters per parameter | answer budget (tokens) | budget per parameter |")
+    print("|---|---|---|---|---|---|---|---|")
+    for task in tasks:
+        for policy in policies:
+            for form in ("chat", "document"):
+                run_dir = out / f"prompt-{task}-{policy.replace(':', '')}-{form}"
+                if not run_dir.exists():
+                    ppprops.search(task, method="pp", policy=policy, warmup=10, iterations=1, seed=0, out=run_dir,
+                                   llm=EchoOptimizer(LLMConfig(), spread=0.5), prompt={"form": form},
+                                   evaluation={"final_episodes": 1, "select_top": 0})  # fmt: skip
+                with open_store(run_dir) as store:
+                    call = store.llm_calls()[0]
+                body = json.loads(call["request"])
+                D = len(json.loads((run_dir / "best_policy.json").read_text())["theta"])
+                budget = int(body.get("max_tokens") or 0)
+                print(f"| {task} | {policy} | {D} | {form} | {call['prompt_chars']} | {call['prompt_chars'] / D:.0f} | {budget} | "
+                      f"{budget / D:.1f} |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
@@ -92,8 +119,12 @@ def main() -> int:
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--report", action="store_true", help="only print the tables of the runs under --out")
+    ap.add_argument("--prompt-sizes", action="store_true", help="only measure prompt size against D (no model: the offline stand-in)")
     a = ap.parse_args()
     a.out.mkdir(parents=True, exist_ok=True)
+    if a.prompt_sizes:
+        _prompt_sizes(a.out, a.tasks.split(","), a.policies.split(","))
+        return 0
     if not a.report:
         for task in a.tasks.split(","):
             for method in a.methods.split(","):
