@@ -25,7 +25,7 @@ import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypedDict, Unpack
+from typing import Any, Literal, TypedDict, Unpack
 
 import numpy as np
 from numpy.typing import NDArray
@@ -155,6 +155,10 @@ class StudyOptions(TypedDict, total=False):
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
+        policy: the policy family, for any task: ``"linear"`` (the paper's), ``"mlp:16,16"``, a mapping
+            ``{"kind": "mlp", "hidden": [16], "activation": "tanh"}`` or a ``ppprops.policy.PolicySpec``
+            (default: the task's declared family, linear unless its task file has a ``[policy]`` table).
+        activation: ``"tanh"`` or ``"relu"``, the hidden layers' activation of an mlp policy.
     """
 
     method: str
@@ -162,6 +166,8 @@ class StudyOptions(TypedDict, total=False):
     iterations: int
     seed: int | None
     box: tuple[float, float]
+    policy: Any
+    activation: Literal["tanh", "relu"] | None
     llm: Any
     privacy: Mapping[str, bool | None] | None
     prompt: Any
@@ -231,7 +237,8 @@ def _build(task: TaskLike, options: StudyOptions, own: tuple[str, ...] = ()) -> 
     values.update({k: v for k, v in switches.items() if v is not None})
     if options.get("method_options"):
         values["method_options"] = dict(options["method_options"] or {})
-    t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True)))
+    t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True),
+                                            policy=options.get("policy"), activation=options.get("activation")))
     return build_config(values, task=t), model
 
 
@@ -410,6 +417,8 @@ def evaluate_policy(policy: Pathish | Policy, *, episodes: int = 20, seed: int =
         raise ConfigError(f"policy file {pol.path} has n_s={pol.n_s}, n_a={pol.n_a}; task {task.name} needs {task.n_s}, {task.n_a}")
     if not task.has_env:  # NoEnvError before any progress bar or worker, so the error is the only line
         task.make_env()
+    if task.policy != pol.spec:
+        raise ConfigError(f"policy file {pol.path} holds a {pol.spec.label()} policy; its task {task.name} declares {task.policy.label()}")
     from .progress import episode_events
     from .runner import final_returns
 

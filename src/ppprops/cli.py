@@ -233,7 +233,10 @@ def _add_tell(tell: argparse.ArgumentParser) -> None:
 
 
 def _add_envs(en: argparse.ArgumentParser) -> None:
+    from .settings import add_flags
+
     en.add_argument("--json", action="store_true", help="one JSON list of the tasks on stdout")
+    add_flags(en, groups=None, only=("policy", "activation"), help_suffix="; D is given for it")
 
 
 ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
@@ -407,11 +410,22 @@ def _cmd_envs(a: argparse.Namespace) -> int:
     from .tasks import list_tasks
 
     rows = [t.summary() for t in list_tasks()]
+    given = getattr(a, "policy", None), getattr(a, "activation", None)
+    if given != (None, None):
+        from .policy import LINEAR, parse_policy
+
+        try:
+            policy = parse_policy(given[0] or LINEAR, given[1])
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        for r in rows:
+            r["policy"], r["D"] = policy.label(), policy.param_count(r["n_s"], r["n_a"])
     if a.json:
         print(json.dumps(rows))
     else:
         for r in rows:
-            print(f"{r['name']:<18} {r['env_id']:<20} n_s={r['n_s']:<3} n_a={r['n_a']:<3} D={r['D']:<4} {r['action_type']}")
+            family = "" if r["policy"] == "linear" else f" {r['policy']}"
+            print(f"{r['name']:<18} {r['env_id']:<20} n_s={r['n_s']:<3} n_a={r['n_a']:<3} D={r['D']:<4} {r['action_type']}{family}")
     return 0
 
 

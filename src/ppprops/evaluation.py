@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import ConfigError
-from .policy import LinearPolicy
+from .policy import LinearPolicy, MLPPolicy, make_network
 from .tasks.base import Task
 from .values import Diagnostic, Feedback
 
@@ -88,15 +88,16 @@ class Episode:
     diagnostics: dict[str, Diagnostic]
 
 
-def make_policy(task: Task, theta: NDArray[np.floating], env: Any) -> LinearPolicy:
-    """The linear policy of ``theta`` (shape (D,)) for ``task``, with ``env``'s action bounds for continuous actions.
+def make_policy(task: Task, theta: NDArray[np.floating], env: Any) -> LinearPolicy | MLPPolicy:
+    """The policy of ``theta`` (shape (D,)) for ``task`` in its family (``task.policy``: linear or MLP),
+    with ``env``'s action bounds for continuous actions.
 
-    Raises ConfigError when ``theta`` does not have D = (n_s + 1) n_a values.
+    Raises ConfigError when ``theta`` does not have ``task.D`` values.
     """
     space = env.action_space
     low = getattr(space, "low", None) if not task.discrete else None
     high = getattr(space, "high", None) if not task.discrete else None
-    return LinearPolicy.from_flat(theta, task.n_s, task.n_a, discrete=task.discrete, low=low, high=high)
+    return make_network(theta, task.policy, task.n_s, task.n_a, discrete=task.discrete, low=low, high=high)
 
 
 def step_cap(env: Any) -> int | None:

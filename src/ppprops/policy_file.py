@@ -30,6 +30,14 @@ with ask/tell) writes ``"env": null`` and ``"env_id": null``, and its declared b
 (``action_low`` / ``action_high`` of its task file) as the clip rule's bounds: the file holds the
 policy alone, which the user's own code applies to the robot's observations. ``load_policy`` reads either format version
 (``/1`` files, which name only the task, are completed from ppprops' task registry).
+
+An MLP policy (``ppprops.policy.PolicySpec``) is written as format ``ppprops.mlp_policy/1``: the
+same blocks, with the network instead of ``W`` and ``b``::
+
+      "policy": {"kind": "mlp", "hidden": [16], "activation": "tanh"},
+      "forward": "h_0 = s; h_l = act(h_{l-1} @ W_l + b_l) ...",   # the forward pass, in words (FORWARD_TEXT)
+      "layers": [{"W": [...fan_in rows of fan_out values...], "b": [...fan_out values...]}, ...],  # input to output
+      "theta": [...D values...],                # the same numbers: each layer's W (row-major), then its b
 """
 
 from __future__ import annotations
@@ -46,11 +54,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import ConfigError, PPPropsError
-from .policy import LinearPolicy, param_count
+from .policy import FORWARD_TEXT, LINEAR, LinearPolicy, MLPPolicy, PolicySpec, make_network, param_count, parse_policy
 from .tasks.base import Selection, Task
 
 FORMAT = "ppprops.linear_policy/2"
 FORMAT_V1 = "ppprops.linear_policy/1"
+FORMAT_MLP = "ppprops.mlp_policy/1"
+FORMATS = (FORMAT, FORMAT_V1, FORMAT_MLP)
 _BIG = float(np.finfo(np.float64).max)
 
 
@@ -106,7 +116,7 @@ def policy_document(
     task's declared bounds (a task without env) or, failing those, makes the env to read them
     (``Task.action_bounds``). Discrete actions need no env.
     """
-    pol = LinearPolicy.from_flat(theta, task.n_s, task.n_a, discrete=task.discrete)
+    pol = make_network(theta, task.policy, task.n_s, task.n_a, discrete=task.discrete)
     if task.discrete:
         action: dict[str, Any] = {"type": "discrete", "rule": "argmax", "n": task.n_a}
     else:
@@ -120,8 +130,14 @@ def policy_document(
     adapter = task.observation
     observation = adapter.to_json() if isinstance(adapter, Selection) else {"names": list(adapter.names)}
     env_doc = env_document(task)
+    network: dict[str, Any]
+    if isinstance(pol, LinearPolicy):
+        network = {"W": pol.W.tolist(), "b": pol.b.tolist()}
+    else:
+        network = {"policy": task.policy.to_json(), "forward": FORWARD_TEXT,
+                   "layers": [{"W": W.tolist(), "b": b.tolist()} for W, b in pol.layers]}
     return {
-        "format": FORMAT,
+        "format": FORMAT if isinstance(pol, LinearPolicy) else FORMAT_MLP,
         "task": task.name,
         "env_id": task.env_id if task.has_env else None,
         "env": env_doc,
@@ -130,8 +146,7 @@ def policy_document(
         "n_s": task.n_s,
         "n_a": task.n_a,
         "action_type": task.action_type,
-        "W": pol.W.tolist(),
-        "b": pol.b.tolist(),
+        **network,
         "theta": [float(v) for v in theta],
         "versions": _versions(((env_doc or {}).get("spec") or {}).get("entry_point")),
         "task_spec": task.spec.model_dump(mode="json") if task.spec is not None else None,
@@ -184,8 +199,10 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
         raise PPPropsError(f"policy file {path} cannot be read: {read_error(e)}") from None
     except json.JSONDecodeError as e:
         raise PPPropsError(f"policy file {path} is not JSON ({e.msg} at line {e.lineno})") from None
-    if not isinstance(doc, dict) or doc.get("format") not in (FORMAT, FORMAT_V1):
-        raise PPPropsError(f"policy file {path} is not a {FORMAT} document")
+    if not isinstance(doc, dict) or doc.get("format") not in FORMATS:
+        raise PPPropsError(f"policy file {path} is not a {FORMAT} or {FORMAT_MLP} document")
+    if doc["format"] == FORMAT_MLP:
+        return doc, _read_mlp(doc, path)
     missing = [k for k in ("n_s", "n_a", "W", "b") if k not in doc]
     if missing:
         raise PPPropsError(f"policy file {path} lacks {', '.join(missing)}")
@@ -211,14 +228,59 @@ def read_policy(path: Path) -> tuple[dict[str, Any], np.ndarray]:
     return doc, theta
 
 
+def _read_mlp(doc: dict[str, Any], path: Path) -> NDArray[np.float64]:
+    """The flat theta of an MLP policy file, every block checked (``read_policy``)."""
+    missing = [k for k in ("n_s", "n_a", "policy", "layers", "action_type") if k not in doc]
+    if missing:
+        raise PPPropsError(f"policy file {path} lacks {', '.join(missing)}")
+    try:
+        n_s, n_a = int(doc["n_s"]), int(doc["n_a"])
+    except (TypeError, ValueError):
+        raise PPPropsError(f"policy file {path}: n_s and n_a must be whole numbers, got {doc['n_s']!r}, {doc['n_a']!r}") from None
+    try:
+        spec = parse_policy(doc["policy"])
+    except ValueError as e:
+        raise PPPropsError(f"policy file {path}: {e}") from None
+    if spec.is_linear:
+        raise PPPropsError(f"policy file {path}: a {FORMAT_MLP} file holds an mlp policy, got {doc['policy']!r}")
+    if doc.get("action_type") not in ("discrete", "continuous"):
+        raise PPPropsError(f"policy file {path}: action_type must be \"discrete\" or \"continuous\"")
+    shapes = spec.layer_shapes(n_s, n_a)
+    layers = doc["layers"]
+    if not isinstance(layers, list) or len(layers) != len(shapes):
+        got = len(layers) if isinstance(layers, list) else type(layers).__name__
+        raise ConfigError(f"policy file {path}: policy {spec.label()} has {len(shapes)} layers for n_s={n_s}, n_a={n_a}, got {got}")
+    parts = []
+    for number, (layer, (i, o)) in enumerate(zip(layers, shapes, strict=True), start=1):
+        try:
+            W = np.asarray(layer["W"], dtype=np.float64)
+            b = np.asarray(layer["b"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            raise PPPropsError(f"policy file {path}: layer {number} must be {{\"W\": rows of numbers, \"b\": numbers}}") from None
+        if W.shape != (i, o) or b.shape != (o,):
+            raise ConfigError(f"policy file {path}: layer {number} must have W {i}x{o} and b of length {o} (policy {spec.label()}, "
+                              f"n_s={n_s}, n_a={n_a}), got W {'x'.join(map(str, W.shape))} and b of length {b.size}")  # fmt: skip
+        if not (np.all(np.isfinite(W)) and np.all(np.isfinite(b))):
+            raise ConfigError(f"policy file {path}: layer {number} has a value that is not finite")
+        parts += [W.reshape(-1), b]
+    problem = _format2_problem(doc, n_a)
+    if problem:
+        raise PPPropsError(f"policy file {path}: {problem}")
+    theta = np.concatenate(parts)
+    assert theta.shape == (spec.param_count(n_s, n_a),)
+    return theta
+
+
 class Policy:
-    """A deployable linear policy read from a policy file: call it on raw env observations.
+    """A deployable policy read from a policy file: call it on raw env observations.
 
     ``policy(obs)`` returns the action for one raw observation of the env the file records: an
     ``int`` for discrete actions (the argmax of u), a float64 array of shape (n_a,) clipped to the
     action bounds for continuous ones, where u = s @ W + b (paper Eq. 10, u = W^T s + b) and
     s = ``policy.state(obs)`` (shape (n_s,)). ``make_env()`` makes that env (``gym.make`` of the recorded EnvSpec). Only numpy is
-    needed to act; gymnasium to make the env.
+    needed to act; gymnasium to make the env. An MLP file's policy (``spec``, a ``PolicySpec``) has
+    ``layers`` ((W_l, b_l) pairs, input to output) and no single ``W``, ``b``; ``scores`` is its forward
+    pass (``ppprops.policy.FORWARD_TEXT``).
     """
 
     def __init__(self, doc: dict[str, Any], theta: NDArray[np.float64], *, path: Path | None = None) -> None:
@@ -227,10 +289,9 @@ class Policy:
         self.task: str = str(doc.get("task"))
         self.theta = theta
         self.n_s, self.n_a = int(doc["n_s"]), int(doc["n_a"])
-        self.W = theta[: self.n_s * self.n_a].reshape(self.n_s, self.n_a)
-        self.b = theta[self.n_s * self.n_a :]
+        self.spec: PolicySpec = parse_policy(doc["policy"]) if doc["format"] == FORMAT_MLP else LINEAR
         self.discrete = doc["action_type"] == "discrete"
-        if doc["format"] == FORMAT:
+        if doc["format"] in (FORMAT, FORMAT_MLP):
             self.selection = Selection.from_json(doc["observation"])
             action = doc["action"]
             self.low = None if self.discrete else np.asarray(action["low"], dtype=np.float64)
@@ -246,6 +307,30 @@ class Policy:
                 self.low, self.high = np.asarray(env.action_space.low, np.float64), np.asarray(env.action_space.high, np.float64)
                 env.close()
 
+        self.network: LinearPolicy | MLPPolicy = make_network(theta, self.spec, self.n_s, self.n_a, discrete=self.discrete,
+                                                               low=self.low, high=self.high)  # fmt: skip
+
+    @property
+    def W(self) -> NDArray[np.float64]:
+        """Weights of u = s @ W + b, shape (n_s, n_a). Raises AttributeError for an MLP (``layers``)."""
+        if not isinstance(self.network, LinearPolicy):
+            raise AttributeError(f"policy file {self.path} holds an {self.spec.label()} policy: it has layers, not one W")
+        return self.network.W
+
+    @property
+    def b(self) -> NDArray[np.float64]:
+        """Bias of u = s @ W + b, shape (n_a,). Raises AttributeError for an MLP (``layers``)."""
+        if not isinstance(self.network, LinearPolicy):
+            raise AttributeError(f"policy file {self.path} holds an {self.spec.label()} policy: it has layers, not one b")
+        return self.network.b
+
+    @property
+    def layers(self) -> tuple[tuple[NDArray[np.float64], NDArray[np.float64]], ...]:
+        """(W_l, b_l) of each layer, input to output; ((W, b),) for a linear policy."""
+        if isinstance(self.network, LinearPolicy):
+            return ((self.network.W, self.network.b),)
+        return self.network.layers
+
     @property
     def names(self) -> tuple[str, ...]:
         """One name per state value, in the order of s."""
@@ -256,8 +341,8 @@ class Policy:
         return self.selection(obs)
 
     def scores(self, obs: Any) -> NDArray[np.float64]:
-        """u = s @ W + b, shape (n_a,)."""
-        return self.state(obs) @ self.W + self.b
+        """u = s @ W + b (an MLP: its forward pass), shape (n_a,)."""
+        return self.network.scores(self.state(obs))
 
     def __call__(self, obs: Any) -> int | NDArray[np.float64]:
         """The action for one raw observation: argmax of u (discrete) or u clipped to the action bounds."""
@@ -274,7 +359,7 @@ class Policy:
             ConfigError: the file records no portable env (its factory had no importable name), or
                 its task has no env (a robot outside Python: apply the policy to its observations).
         """
-        if self.document["format"] != FORMAT:
+        if self.document["format"] == FORMAT_V1:
             from .tasks import get_task
 
             return get_task(self.task).make_env()
@@ -296,7 +381,8 @@ class Policy:
 
     def __repr__(self) -> str:
         kind = "discrete" if self.discrete else "continuous"
-        return f"Policy(task={self.task!r}, n_s={self.n_s}, n_a={self.n_a}, {kind})"
+        family = "" if self.spec.is_linear else f", policy={self.spec.label()!r}"
+        return f"Policy(task={self.task!r}, n_s={self.n_s}, n_a={self.n_a}{family}, {kind})"
 
 
 def load_policy(path: str | os.PathLike[str]) -> Policy:

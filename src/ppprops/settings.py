@@ -78,7 +78,7 @@ class Setting:
         if self.owner is LLMConfig:
             return "llm"
         if self.owner is TaskOptions:
-            return None if self.key in ("env", "task_file") else "task_options"
+            return None if self.key in ("env", "task_file", "policy", "activation") else "task_options"
         return self.info.group
 
     @property
@@ -324,6 +324,35 @@ def refuse_prompt_settings(method_name: str, keys: Iterable[str]) -> None:
                           f"it sends no prompt (drop {'it' if one else 'them'})")
 
 
+def check_fits_context(config: RunConfig, task: Task) -> None:
+    """Refuse, before any request, an MLP whose one answer cannot fit the embedded model's context,
+    and an MLP for R2PO (its critic reads a linear policy's rollout).
+
+    A prompted method's answer holds D numbers (``wire.forms.answer_budget``: 24 + 8 D tokens, more
+    with the document form's labels) and its prompt at least one history entry of as many; together
+    they must fit ``--context-size``. Only an MLP is checked (the paper's linear policies fit); a
+    remote endpoint's context is not known before it answers (its context-full answers stop the run
+    with their own line).
+
+    Raises:
+        ConfigError: one line with D, the tokens needed and the limit.
+    """
+    from .wire.forms import answer_budget
+
+    if not task.policy.is_linear and get_method(config.method).phase == "r2po_phase":
+        raise ConfigError(f"--method {config.method} searches the linear policy only (its critic reads a linear rollout): "
+                          f"--policy {task.policy.label().split()[0]} needs --method pp, random or cmaes")
+    if task.policy.is_linear or not get_method(config.method).uses_llm or not config.llm.embedded:
+        return
+    answer = answer_budget(task.D, labels=config.form == "document")
+    needed = 2 * answer
+    limit = config.llm.context_size
+    if needed > limit:
+        raise ConfigError(f"--policy {task.policy.label().split()[0]} is too large for the endpoint's context: D = {task.D} parameters, "
+                          f"so one answer needs about {answer} tokens and the prompt's history at least as many ({needed} in all), "
+                          f"more than the embedded model's context of {limit} tokens (--context-size): use fewer hidden units")  # fmt: skip
+
+
 def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunConfig:
     """The RunConfig of the given settings (by key; those not given take the schema's defaults).
 
@@ -357,5 +386,6 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
     if task is None:
         assert options is not None
         task = load_task(options=options)
+    check_fits_context(config, task)
 
     return dataclasses.replace(config, task=task.name, task_spec=None if is_builtin(task) or task.spec is None else task.spec.model_dump(mode="json"))

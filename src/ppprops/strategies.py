@@ -14,7 +14,7 @@ from __future__ import annotations
 from .client.context import prompt_context
 from .errors import ConfigError
 from .methods import Method
-from .proposers.base import Phase, Proposal, Proposer, SearchSetup
+from .proposers.base import Bounds, Phase, Proposal, Proposer, SearchSetup
 from .proposers.llm import LLMSearch
 from .proposers.uniform import UniformSampler
 from .seeding import Streams
@@ -38,7 +38,7 @@ def search_phase(method: Method, setup: SearchSetup) -> Phase:
 class RandomSearch:
     """Uniform samples that continue the warm-up's stream: sample warmup + i, i.i.d. like the rest."""
 
-    def __init__(self, D: int, box: tuple[float, float], streams: Streams, *, offset: int) -> None:
+    def __init__(self, D: int, box: Bounds, streams: Streams, *, offset: int) -> None:
         self._uniform = UniformSampler(D, box, streams, source="random")
         self.offset = offset
 
@@ -54,7 +54,7 @@ def llm_search(s: SearchSetup) -> LLMSearch:
     """What the run's LLM proposers share: its recording client, codec, prompt context and settings."""
     assert s.llm_client is not None, "a prompted method needs the run's LLM client"
     return LLMSearch(llm=s.llm_client(), codec=s.codec, context=prompt_context(s.task, s.prompt, s.codec), top_k=s.prompt.top_k,
-                     box=s.box, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
+                     box=s.bounds, streams=s.streams, parse_retries=s.parse_retries, on_llm_failure=s.on_llm_failure,
                      temperature=s.llm.temperature, explore=s.prompt.explore)  # fmt: skip
 
 
@@ -73,6 +73,9 @@ def r2po_phase(s: SearchSetup) -> Phase:
     from .proposers.r2po import R2POProposer
     from .rollout import record_rollout
 
+    if not s.task.policy.is_linear:
+        raise ConfigError(f"--method r2po searches the linear policy only (its critic reads a linear rollout): "
+                          f"--policy {s.task.policy.label().split()[0]} needs --method pp, random or cmaes")
     if s.evaluator is None:
         raise ConfigError(f"--method r2po re-runs episodes for its critic: task {s.task.name} has no env to run them in")
     task, evaluator = s.task, s.evaluator
@@ -82,8 +85,9 @@ def r2po_phase(s: SearchSetup) -> Phase:
 
 
 def random_phase(s: SearchSetup) -> Phase:
-    """Random search: the uniform warm-up stream, continued for the LLM's budget."""
-    proposer: Proposer = RandomSearch(s.task.D, s.box, s.streams, offset=s.warmup)
+    """Random search: the uniform warm-up stream, continued for the LLM's budget (an MLP's: its scaled
+    initialisation, ``SearchSetup.init_bounds``)."""
+    proposer: Proposer = RandomSearch(s.task.D, s.init_bounds, s.streams, offset=s.warmup)
     return Phase("random", proposer, s.iterations)
 
 
@@ -96,7 +100,7 @@ def cmaes_phase(s: SearchSetup) -> Phase:
     popsize = getattr(s.options, "popsize", None)
     sigma0 = getattr(s.options, "sigma0", 0.3)
     seed = s.streams.int_seed(seeding.OPTIMIZER) if s.streams.keyed else s.streams.seed
-    proposer = CMAESProposer(D=s.task.D, box=s.box, seed=seed, codec=s.codec, popsize=popsize, sigma0=sigma0,
+    proposer = CMAESProposer(D=s.task.D, box=s.bounds, seed=seed, codec=s.codec, popsize=popsize, sigma0=sigma0,
                              space="encoded" if s.prompt.mechanisms.encode_params else "raw")  # fmt: skip
     return Phase("cmaes", proposer, s.iterations)
 

@@ -26,6 +26,7 @@ then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import re
@@ -204,7 +205,13 @@ class Study:
     @property
     def pending(self) -> Trial | None:
         """The first trial asked for and not yet told (the lowest number), or None."""
-        return self.store.pending_trial()
+        return self._with_policy(self.store.pending_trial())
+
+    def _with_policy(self, trial: Trial | None) -> Trial | None:
+        """A stored trial with the study's policy family (the store keeps theta, n_s and n_a)."""
+        if trial is None or self.task.policy.is_linear:
+            return trial
+        return dataclasses.replace(trial, policy=self.task.policy)
 
     @property
     def out(self) -> list[Trial]:
@@ -269,7 +276,7 @@ class Study:
     def _ask_once(self, name: str) -> Trial | str:
         """The trial for worker ``name``, or why it must wait (one line)."""
         with file_lock(self.run_dir, STUDY_LOCK):
-            out = self.store.pending_trials()
+            out = self._pending_trials()
             mine = [t for t in out if t.worker == name]
             if mine:
                 return mine[0]
@@ -327,7 +334,7 @@ class Study:
                 trials.append(Trial(number=number, phase=phase.name, iteration=it, source=proposal.source,
                                     theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
                                     seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=ask_s,
-                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None))  # fmt: skip
+                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None, policy=self.task.policy))  # fmt: skip
             self.store.add_pending_many(trials, limit=self.parallel)
             return trials[0]
 
@@ -753,7 +760,9 @@ class Study:
             from .wire.forms import FORMS
 
             config = self.config
-            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec)
+            policy, n_s, n_a = self.task.policy, self.task.n_s, self.task.n_a
+            mlp = {} if policy.is_linear else {"init": policy.init_bounds(n_s, n_a, config.box), "bounds": policy.bounds(n_s, n_a, config.box)}
+            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec, **mlp)
             phases = [Phase("warmup", warmup, config.warmup)]
             if config.iterations > 0:
                 form = self._form() if self.method.uses_llm else FORMS[config.form]

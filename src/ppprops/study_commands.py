@@ -223,6 +223,8 @@ def _stored_trial(run_dir: Path, worker: str = "") -> Trial | None:
     try:
         with open_store(run_dir) as store, file_lock(run_dir, STUDY_LOCK):
             trial = next((t for t in store.pending_trials() if t.worker == worker), None)
+            if trial is not None and len(trial.theta) != param_count(trial.n_s, trial.n_a):
+                return None  # an MLP's trial: the full path knows its layers (the study's policy family)
             if trial is not None:
                 Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=param_count(trial.n_s, trial.n_a),
                              fingerprint=store.key_fingerprint())  # fmt: skip

@@ -49,6 +49,18 @@ def _fault_counts(cands: list[Any], calls: list[dict[str, Any]]) -> dict[str, An
     }
 
 
+def _policy_key(config: Any) -> dict[str, str]:
+    """``{"policy": "mlp:16 (tanh), D = 81"}`` for a run of an MLP; nothing for the paper's linear policy (as before)."""
+    spec = (config.task_spec or {}).get("policy")
+    if not spec:
+        return {}
+    from .policy import parse_policy
+
+    policy = parse_policy(spec)
+    task = config.make_task()
+    return {"policy": f"{policy.label()}, D = {task.D}"}
+
+
 def run_summary(run_dir: Path) -> dict[str, Any]:
     """The `ppprops show --json` object. Raw values: this stays on the client.
 
@@ -97,6 +109,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
         "failed_trials": [{"trial": t.number, "source": t.source, "worker": t.worker, "reason": why} for t, why in failed],
         "notes": notes,
         "env": config.task,
+        **_policy_key(config),
         "method": config.method,
         "mechanisms": config.mechanisms.to_json(),
         "seed": config.seed,
@@ -178,7 +191,7 @@ def format_summary(s: dict[str, Any]) -> str:
         return format_rl_summary(s)
     lines = [
         f"run      {s['run_id']} ({s['status']})",
-        f"task     {s['env']}   method {s['method']}   seed {s['seed']}",
+        f"task     {s['env']}   method {s['method']}   seed {s['seed']}" + (f"   policy {s['policy']}" if "policy" in s else ""),
     ]
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())

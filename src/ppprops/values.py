@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from .policy import LINEAR, PolicySpec
+
 Diagnostic = float | str  # a diagnostic's value: a number, or a category such as a termination cause
 
 
@@ -123,8 +125,10 @@ class Trial:
         phase: the phase that asked it: ``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``, ...
         iteration: the proposer's own ask number within the phase.
         source: who proposed it: ``warmup``, ``llm``, ``fallback``, ``random``, ``cmaes``, ...
-        theta: the raw parameters to run, shape (D,) with D = (n_s + 1) n_a, inside the box.
-        n_s, n_a: the policy's state and action sizes (``W`` and ``b`` come from ``theta``).
+        theta: the raw parameters to run, shape (D,), inside the box: D = (n_s + 1) n_a for the
+            linear policy; an MLP's layers in order, each layer's weights then its bias (``ppprops.policy``).
+        n_s, n_a: the policy's state and action sizes (``W`` and ``b``, or ``layers``, come from ``theta``).
+        policy: the policy family (``ppprops.policy.PolicySpec``; the linear one by default).
         seeds: the episode seeds to reset a simulator with, one per episode asked for; a robot
             that cannot be seeded ignores them (its episodes' initial states are its own).
         clipped: coordinates that had to be clipped into the box.
@@ -148,16 +152,35 @@ class Trial:
     ask_s: float | None = None
     reevaluates: int | None = None
     worker: str | None = None
+    policy: PolicySpec = LINEAR
 
     @property
     def W(self) -> np.ndarray:
-        """The weights of u = W^T s + b (paper Eq. 10), shape (n_s, n_a) (layout: ``ppprops.policy``)."""
+        """The weights of u = W^T s + b (paper Eq. 10), shape (n_s, n_a) (layout: ``ppprops.policy``).
+
+        Raises:
+            AttributeError: an MLP trial (it has ``layers``).
+        """
+        self._linear("W")
         return np.asarray(self.theta[: self.n_s * self.n_a], dtype=np.float64).reshape(self.n_s, self.n_a)
 
     @property
     def b(self) -> np.ndarray:
-        """The bias of u = W^T s + b, shape (n_a,)."""
+        """The bias of u = W^T s + b, shape (n_a,). Raises AttributeError for an MLP trial (``layers``)."""
+        self._linear("b")
         return np.asarray(self.theta[self.n_s * self.n_a:], dtype=np.float64)
+
+    def _linear(self, name: str) -> None:
+        if not self.policy.is_linear:
+            raise AttributeError(f"trial {self.number} is an {self.policy.label()} policy: it has layers ((W_l, b_l) pairs), not one {name}")
+
+    @property
+    def layers(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+        """(W_l, b_l) of each layer, input to output: W_l of shape (fan_in, fan_out), b_l of shape (fan_out,).
+        One pair, (W, b), for the linear policy. The forward pass: ``ppprops.policy.FORWARD_TEXT``."""
+        theta = np.asarray(self.theta, dtype=np.float64)
+        return tuple((theta[w].reshape(i, o), theta[b]) for (w, b), (i, o)
+                     in zip(self.policy.layer_slices(self.n_s, self.n_a), self.policy.layer_shapes(self.n_s, self.n_a), strict=True))  # fmt: skip
 
     @property
     def episodes(self) -> int:
@@ -165,15 +188,23 @@ class Trial:
         return len(self.seeds)
 
     def to_json(self) -> dict[str, Any]:
-        """What ``ppprops ask`` prints: every field, ``theta`` flat and as ``W`` (rows of n_a) and ``b``."""
+        """What ``ppprops ask`` prints: every field, ``theta`` flat and as ``W`` (rows of n_a) and ``b``;
+        an MLP trial gives ``layers`` (each ``{"W": rows, "b": values}``), its ``policy`` and the ``forward`` pass instead."""
+        from .policy import FORWARD_TEXT
+
+        shape: dict[str, Any]
+        if self.policy.is_linear:
+            shape = {"W": [[float(v) for v in row] for row in self.W], "b": [float(v) for v in self.b]}
+        else:
+            shape = {"policy": self.policy.to_json(), "forward": FORWARD_TEXT,
+                     "layers": [{"W": W.tolist(), "b": b.tolist()} for W, b in self.layers]}
         return {
             "trial": self.number,
             "phase": self.phase,
             "iteration": self.iteration,
             "source": self.source,
             "theta": [float(v) for v in self.theta],
-            "W": [[float(v) for v in row] for row in self.W],
-            "b": [float(v) for v in self.b],
+            **shape,
             "n_s": self.n_s,
             "n_a": self.n_a,
             "episodes": self.episodes,

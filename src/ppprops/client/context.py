@@ -99,4 +99,7 @@ def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> Prompt
         reward_encoding=reward_words,
         warmup_range=warmup_box(settings.box) if (m.encoded_warmup and m.encode_params) else None,
         describe_task=m.describe_task,
+        hidden=task.policy.hidden,
+        activation="" if task.policy.is_linear else task.policy.activation,
+        layer_ranges=None if m.encode_params or task.policy.is_linear else tuple(task.policy.layer_boxes(task.n_s, task.n_a, settings.box)),
     )

@@ -145,8 +145,8 @@ def warmup_range(v: View) -> Estimate:
     if n < 2:
         return Estimate("warmup-range", "a", None, "fewer than two warm-up entries")
     X = np.array([e.params for e in v.warmup])
-    lo, hi = v.box
-    if np.isclose(lo, -hi):
+    lo, hi = v.init_box  # the public box, or an MLP's scaled initialisation per layer
+    if np.all(np.isclose(lo, -hi)):
         a = np.max(np.abs(X), axis=0) * (n + 1) / n / hi
     else:
         a = (X.max(axis=0) - X.min(axis=0)) * (n + 1) / (n - 1) / (hi - lo)
@@ -171,11 +171,11 @@ def clip_edge(v: View) -> Estimate:
     Answers outside the box are clipped and re-encoded to exactly a_j times the bound, so the edge
     repeats to the last digit across policies that differ elsewhere (at least half their coordinates).
     """
-    lo, hi = v.box
+    lo, hi = (np.broadcast_to(np.asarray(b, dtype=np.float64), (v.D,)) for b in v.layer_box)  # an MLP: per layer
     X = np.array([e.params for e in v.entries]) if v.entries else np.zeros((0, v.D))
     a = np.full(v.D, np.nan)
     for j in range(v.D if len(X) else 0):
-        for sign, bound in ((1.0, hi), (-1.0, lo)):
+        for sign, bound in ((1.0, hi[j]), (-1.0, lo[j])):
             if sign * bound <= 0:
                 continue
             col = sign * X[:, j]
@@ -235,7 +235,7 @@ def fallback_spread(v: View) -> Estimate:
         shown_before += by_call.get(k, [])
     if not offsets:
         return Estimate("fallback-spread", "a", None, "no fallback candidate in the history")
-    lo, hi = v.box
+    lo, hi = v.layer_box  # an MLP's fallback noise is 5% of each layer box's width
     sigma = FALLBACK_SIGMA * (hi - lo)
     X = np.array(offsets)
     seed, how = find_run_seed(v)

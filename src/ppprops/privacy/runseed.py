@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import re
+from typing import Any
 
 import numpy as np
 
@@ -43,8 +44,9 @@ def _seed_field_table() -> dict[int, int]:
 
 
 @functools.cache
-def _warmup_draws(D: int, lo: float, hi: float) -> np.ndarray:
+def _warmup_draws(D: int, lo: Any, hi: Any) -> np.ndarray:
     """The first BLIND_SAMPLES warm-up draws of every run seed searched blind, shape (seeds, samples, D)."""
+    lo, hi = (np.asarray(b, dtype=np.float64) if isinstance(b, tuple) else b for b in (lo, hi))  # an MLP's per-coordinate bounds
     return np.array([[seeding.rng(s, seeding.WARMUP, m).uniform(lo, hi, size=D) for m in range(BLIND_SAMPLES)]
                      for s in range(SEED_SEARCH_BLIND)])
 
@@ -75,7 +77,7 @@ def _find_run_seed(v: View) -> tuple[int | None, str]:
         return s, (f"run seed {s} found by looking up the encoded warm-up among the draws of run seeds "
                    f"0..{SEED_SEARCH_BLIND - 1}")
     # the paper's raw warm-up prints a_j times the draws: signs first, then one scale per coordinate
-    lo, hi = v.box
+    lo, hi = (tuple(b.tolist()) if isinstance(b, np.ndarray) else b for b in v.init_box)  # an MLP's: per layer (cached: hashable)
     raw = _warmup_draws(v.D, lo, hi)
     signs = np.sign(raw)
     ok = np.ones(SEED_SEARCH_BLIND, dtype=bool)
@@ -189,7 +191,7 @@ def replay_scale(v: View, seed: int) -> tuple[np.ndarray | None, str]:
     it rescales every matched draw onto its entry within the printed precision (2% slack). An encoded warm-up gives
     a = 1: its draws are what is shown.
     """
-    lo, hi = v.box
+    lo, hi = v.init_box
     W = np.array([e.params for e in v.warmup])
     tol = np.array([e.tols for e in v.warmup])
     raw = np.array([seeding.rng(seed, seeding.WARMUP, m).uniform(lo, hi, size=v.D) for m in range(WARMUP_REPLAY)])

@@ -211,11 +211,29 @@ class VectorSim(Simulator):
         n_s, n_a = self.task.n_s, self.task.n_a
         if self.indices is not None:
             s = s[:, list(self.indices)]
+        if not self.task.policy.is_linear:
+            return self._act(self._mlp(thetas, s))
         W = thetas[:, : n_s * n_a].reshape(-1, n_s, n_a)
         u = s[:, 0, None] * W[:, 0, :]
         for i in range(1, n_s):  # the order of LinearPolicy.scores (s @ W), then + b
             u = u + s[:, i, None] * W[:, i, :]
         u = u + thetas[:, n_s * n_a:]
+        return self._act(u)
+
+    def _mlp(self, thetas: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The MLP's forward pass (``ppprops.policy.FORWARD_TEXT``) for N parameter vectors and states at once: u, shape (N, n_a)."""
+        from ..policy import activate
+
+        policy, n_s, n_a = self.task.policy, self.task.n_s, self.task.n_a
+        shapes = policy.layer_shapes(n_s, n_a)
+        h = s
+        for number, ((w, b), (i, o)) in enumerate(zip(policy.layer_slices(n_s, n_a), shapes, strict=True), start=1):
+            h = np.einsum("ni,nio->no", h, thetas[:, w].reshape(-1, i, o)) + thetas[:, b]
+            if number < len(shapes):
+                h = activate(h, policy.activation)
+        return h
+
+    def _act(self, u: NDArray[np.float64]) -> NDArray[Any]:
         if self.task.discrete:
             return np.argmax(u, axis=1)
         assert self.low is not None and self.high is not None

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,6 +44,24 @@ class View:
     # the task's public declaration (env id, observation, recorder), so simulator attacks can build
     # its env when that env is public; None when only the name is known
     task: Task | None = field(default=None, compare=False)
+
+    @property
+    def layer_box(self) -> tuple[Any, Any]:
+        """Where the client keeps each parameter (public): ``box`` for the linear policy; an MLP's
+        per-layer boxes (``PolicySpec.bounds``, two arrays of shape (D,)), which its prompt describes."""
+        t = self.task
+        if t is None or t.policy.is_linear or t.D != self.D:
+            return self.box
+        return t.policy.bounds(t.n_s, t.n_a, self.box)
+
+    @property
+    def init_box(self) -> tuple[Any, Any]:
+        """Where the raw warm-up draws each parameter (public): ``box`` for the linear policy; an MLP's
+        scaled initialisation per layer (``PolicySpec.init_bounds``, two arrays of shape (D,))."""
+        t = self.task
+        if t is None or t.policy.is_linear or t.D != self.D:
+            return self.box
+        return t.policy.init_bounds(t.n_s, t.n_a, self.box)
 
 
 @dataclass(frozen=True)

@@ -68,8 +68,12 @@ class Proposer(Protocol):
         ...
 
 
-def clip_to_box(theta: np.ndarray, box: tuple[float, float]) -> tuple[np.ndarray, int]:
-    """``theta`` (shape (D,)) clipped into ``box`` = (low, high), and how many coordinates were outside."""
+Bounds = tuple[float, float] | tuple[np.ndarray, np.ndarray]  # one (low, high) for every parameter, or one per parameter
+
+
+def clip_to_box(theta: np.ndarray, box: Bounds) -> tuple[np.ndarray, int]:
+    """``theta`` (shape (D,)) clipped into ``box`` = (low, high) (two numbers, or two arrays of shape
+    (D,): an MLP's layer boxes), and how many coordinates were outside."""
     lo, hi = box
     clipped = int(np.count_nonzero((theta < lo) | (theta > hi)))
     return np.clip(theta, lo, hi), clipped
@@ -94,7 +98,7 @@ class SearchSetup:
 
     ``task`` (D, the public task facts), ``codec`` (the only producer of encoded values),
     ``streams`` (the run's keyed random streams), ``box`` (the public raw range of every
-    parameter), ``warmup`` and ``iterations`` (the budget before and of the search phase),
+    parameter; ``bounds`` narrows it per layer for an MLP), ``warmup`` and ``iterations`` (the budget before and of the search phase),
     ``prompt`` (how prompts are written, the resolved form included), ``llm`` (the endpoint's
     settings: context window, token budget, temperature), ``options`` (the method's own options,
     ``Method.parse_options``: a pydantic model or None), ``on_llm_failure`` and
@@ -118,3 +122,17 @@ class SearchSetup:
     llm_client: Callable[[], RecordingLLM] | None = None
     evaluator: Evaluator | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def bounds(self) -> Bounds:
+        """Where the proposers keep theta: ``box`` itself for the linear policy (the paper's), the
+        per-layer boxes of an MLP (``PolicySpec.bounds``: two arrays of shape (D,)) otherwise."""
+        policy = self.task.policy
+        return self.box if policy.is_linear else policy.bounds(self.task.n_s, self.task.n_a, self.box)
+
+    @property
+    def init_bounds(self) -> Bounds:
+        """Where the warm-up draws (and random search continues it): ``box`` for the linear policy,
+        the scaled initialisation of an MLP's layers (``PolicySpec.init_bounds``) otherwise."""
+        policy = self.task.policy
+        return self.box if policy.is_linear else policy.init_bounds(self.task.n_s, self.task.n_a, self.box)

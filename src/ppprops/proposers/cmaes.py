@@ -21,7 +21,7 @@ import numpy as np
 from ..client.codec import Codec
 from ..errors import MissingExtraError
 from ..values import Candidate, Trial
-from .base import Proposal, clip_to_box
+from .base import Bounds, Proposal, clip_to_box
 
 Space = Literal["raw", "encoded"]
 
@@ -34,7 +34,7 @@ class CMAESProposer:
     Raises MissingExtraError (extra ``baselines``) when pycma is not installed.
     """
 
-    def __init__(self, *, D: int, box: tuple[float, float], seed: int, codec: Codec, space: Space = "raw",
+    def __init__(self, *, D: int, box: Bounds, seed: int, codec: Codec, space: Space = "raw",
                  popsize: int | None = None, sigma0: float = 0.3, source: str = "cmaes") -> None:
         """``seed`` seeds pycma's sampling; ``popsize`` (None: pycma's 4 + 3 ln D) and ``sigma0``
         (initial step, share of the box width; the encoded space scales its unit step by
@@ -64,8 +64,14 @@ class CMAESProposer:
         if self.popsize:
             opts["popsize"] = self.popsize
         if self.space == "raw":
-            opts["bounds"] = [lo, hi]
-            self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), self.sigma0 * (hi - lo), opts)
+            width = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+            if width.ndim:  # an MLP's layer boxes: one step per coordinate, sigma0 x its layer box's width
+                opts["bounds"] = [np.asarray(lo).tolist(), np.asarray(hi).tolist()]
+                opts["CMA_stds"] = (width / width.max()).tolist()
+                self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), self.sigma0 * float(width.max()), opts)
+            else:
+                opts["bounds"] = [lo, hi]
+                self._es = cma.CMAEvolutionStrategy(np.asarray(best.params), self.sigma0 * (hi - lo), opts)
         else:
             spread = np.std([c.params_enc for c in self._warmup], axis=0)
             spread = np.where(spread > 0, spread, 1.0)

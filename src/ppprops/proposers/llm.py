@@ -47,7 +47,7 @@ from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, top_k
 from ..wire.forms import CHAT, PromptForm
 from ..wire.turns import repeats_history
-from .base import Proposal, clip_to_box
+from .base import Bounds, Proposal, clip_to_box
 
 if TYPE_CHECKING:
     from ..llm.recording import RecordingLLM
@@ -110,7 +110,7 @@ class LLMSearch:
     codec: Codec
     context: PromptContext
     top_k: int
-    box: tuple[float, float]
+    box: Bounds  # the box, or an MLP's layer boxes per coordinate
     streams: seeding.Streams
     parse_retries: int = 2
     on_llm_failure: str = "stop"

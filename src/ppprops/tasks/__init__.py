@@ -229,7 +229,30 @@ def load_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[
         whose constructor raises, a ``KEY.*`` that only ``check_task`` can expand).
     """
     found = _source(source, task_file, options)
-    return found if isinstance(found, Task) else build_task(resolve(found))
+    return _with_policy(found if isinstance(found, Task) else build_task(resolve(found)), options)
+
+
+def _with_policy(task: Task, options: TaskOptions | None) -> Task:
+    """``task`` searching the policy family ``options`` choose (``--policy`` / ``--activation``), a paper
+    task too; ``task`` itself when they choose none or the one it declares.
+
+    Raises:
+        ConfigError: ``--activation`` without an mlp, or a Task made by hand (no declaration to change).
+    """
+    if options is None or (options.policy is None and options.activation is None):
+        return task
+    from ..policy import parse_policy
+    from .spec import with_policy
+
+    try:
+        policy = parse_policy(options.policy if options.policy is not None else task.policy, options.activation)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if policy == task.policy:
+        return task
+    if task.spec is None:
+        raise ConfigError(f"task {task.name} is a Task made by hand: give its policy family in its declaration (TaskSpec.policy)")
+    return build_task(with_policy(task.spec, policy))
 
 
 def check_task(source: TaskSource | None = None, *, task_file: str | os.PathLike[str] | None = None, options: TaskOptions | None = None,
@@ -252,6 +275,14 @@ def check_task(source: TaskSource | None = None, *, task_file: str | os.PathLike
         if found.spec is None:
             raise ConfigError(f"task {found.name} is a Task made by hand, with no declaration to check")
         found = found.spec
+    if options is not None and (options.policy is not None or options.activation is not None):
+        from ..policy import LINEAR, parse_policy
+        from .spec import with_policy
+
+        try:
+            found = with_policy(found, parse_policy(options.policy or found.policy or LINEAR, options.activation))
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     return check_spec(found, seed=seed, max_steps=max_steps)
 
 

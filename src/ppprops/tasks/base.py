@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import ConfigError
-from ..policy import param_count
+from ..policy import LINEAR, PolicySpec
 from ..values import Diagnostic
 
 ActionType = Literal["continuous", "discrete"]
@@ -163,6 +163,7 @@ class Task:
     prompt_name: str | None = None
     action_low: tuple[float, ...] | None = None  # declared bounds (a task without env); else the env's action space
     action_high: tuple[float, ...] | None = None
+    policy: PolicySpec = LINEAR  # the policy family searched (``ppprops.policy``): the paper's linear one by default
 
     @property
     def has_env(self) -> bool:
@@ -171,8 +172,9 @@ class Task:
 
     @property
     def D(self) -> int:
-        """D = (n_s + 1) n_a, the number of policy parameters (theta in R^D, paper Sec. II-A; layout of Eq. 10)."""
-        return param_count(self.n_s, self.n_a)
+        """D, the number of policy parameters (theta in R^D, paper Sec. II-A): (n_s + 1) n_a for the linear
+        policy (layout of Eq. 10), the sum of the layers' (fan_in + 1) fan_out for an MLP (``PolicySpec``)."""
+        return self.policy.param_count(self.n_s, self.n_a)
 
     @property
     def discrete(self) -> bool:
@@ -234,6 +236,7 @@ class Task:
             "n_s": self.n_s,
             "n_a": self.n_a,
             "D": self.D,
+            "policy": self.policy.label(),
             "action_type": self.action_type,
             "components": list(self.components),
             "diagnostics": list(self.diagnostics),

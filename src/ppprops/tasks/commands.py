@@ -45,6 +45,15 @@ def _positive(text: str) -> int:
     return n
 
 
+def _policy(text: str) -> Any:
+    from ..policy import parse_policy
+
+    try:
+        return parse_policy(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def _seed(text: str) -> int:
     try:
         n = int(text)
@@ -75,6 +84,9 @@ def add_task_commands(sub: argparse._SubParsersAction, parser_class: type[argpar
                     help="an info key summed as a reward component (repeatable); KEY.* lists every entry of a dict")  # fmt: skip
     ck.add_argument("--diagnostic", dest="diagnostics", action="append", default=[], metavar="KEY",
                     help="an info key reported as a diagnostic (repeatable)")  # fmt: skip
+    ck.add_argument("--policy", type=_policy, default=None, metavar="linear|mlp:H1,H2",
+                    help="policy family, as for `ppprops run`: the report says its D")  # fmt: skip
+    ck.add_argument("--activation", choices=("tanh", "relu"), default=None, help="activation of an mlp policy")
     ck.add_argument("--seed", type=_seed, default=0, help="seed of the episode's reset (default 0)")
     ck.add_argument("--max-steps", type=_positive, default=PROBE_STEPS,
                     help=f"longest episode checked; an env with no time limit must end within it (default {PROBE_STEPS})")  # fmt: skip
@@ -88,15 +100,25 @@ def cmd_task(a: argparse.Namespace) -> int:
         ConfigError: no task or two, or what stops the check before the episode (``check_task``).
     """
     from . import check_task
-    from .options import TASK_OPTIONS, TaskOptions
+    from .options import POLICY_OPTIONS, TASK_OPTIONS, TaskOptions
 
     given = [x for x in (a.file, a.env, a.task_file) if x is not None]
     if len(given) != 1:
         raise ConfigError("task check needs one task: a task file, --env ID or --task-file FILE")
     file = a.file if a.file is not None else a.task_file
-    options = TaskOptions(env=a.env, task_file=file, **{name: getattr(a, name) for name in TASK_OPTIONS})  # the flags' dests
+    options = TaskOptions(env=a.env, task_file=file, **{name: getattr(a, name) for name in (*TASK_OPTIONS, *POLICY_OPTIONS)})  # the flags' dests
     result = check_task(options=options, seed=a.seed, max_steps=a.max_steps)
-    print(json.dumps(result.to_json()) if a.json else "\n".join(result.lines()))
+    task = result.checked
+    if a.json:
+        out = result.to_json()
+        if task is not None:
+            out.update(policy=task.policy.to_json(), D=task.D)
+        print(json.dumps(out))
+    else:
+        lines = result.lines()
+        if task is not None and not task.policy.is_linear:  # a linear task's report is as before
+            lines.append(f"  policy {task.policy.label()}: D = {task.D} parameters ({task.n_s} observations, {task.n_a} actions)")
+        print("\n".join(lines))
     return 0 if result.ok else 1
 
 

@@ -9,14 +9,20 @@ from __future__ import annotations
 
 from dataclasses import fields
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, Literal
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 from pydantic.dataclasses import dataclass
 
+from ..policy import PolicySpec, parse_policy
 from ..schema import SCHEMA, Flag, Int, JsonObject, Names, one_line_errors
 
-__all__ = ["TASK_OPTIONS", "TaskOptions"]
+__all__ = ["POLICY_OPTIONS", "TASK_OPTIONS", "TaskOptions"]
+
+
+def _policy(value: Any) -> PolicySpec | None:
+    """``--policy``'s value (``linear``, ``mlp:16,16``), a mapping or a PolicySpec; ValueError with one line."""
+    return None if value is None else parse_policy(value)
 
 
 @one_line_errors
@@ -49,6 +55,13 @@ class TaskOptions:
     diagnostics: Annotated[tuple[str, ...], Flag(
         "an info key to report as a diagnostic (its last value; repeatable)", name="diagnostic", metavar="KEY",
         repeatable=True, api_name="diagnostics")] = ()
+    # The policy family (ppprops.policy.PolicySpec): applies to every task, the paper's too (it is not a
+    # TASK_OPTIONS entry of has_options); None keeps the task's declared family (linear unless its file says).
+    policy: Annotated[PolicySpec | None, BeforeValidator(_policy), Flag(
+        "policy family: linear (the paper's u = W^T s + b) or mlp:H1[,H2,...], hidden layers of these widths "
+        "(docs/policies.md)", metavar="linear|mlp:H1,H2", default_text="the task's; linear")] = None
+    activation: Annotated[Literal["tanh", "relu"] | None, Flag(
+        "activation of an mlp policy's hidden layers", default_text="tanh")] = None
 
     @property
     def has_options(self) -> bool:
@@ -58,4 +71,6 @@ class TaskOptions:
 
 
 # The options of a task that is not a paper task: the fields of TaskOptions but the two naming the task.
-TASK_OPTIONS: tuple[str, ...] = tuple(f.name for f in fields(TaskOptions) if f.name not in ("env", "task_file"))
+TASK_OPTIONS: tuple[str, ...] = tuple(f.name for f in fields(TaskOptions) if f.name not in ("env", "task_file", "policy", "activation"))
+# The options that choose the policy family: for every task (``tasks.load_task`` applies them last).
+POLICY_OPTIONS: tuple[str, ...] = ("policy", "activation")

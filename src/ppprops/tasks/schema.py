@@ -120,6 +120,7 @@ class TaskFile(_Table):
     recorder: Text | None = Field(default=None, description="module:name of a recorder")
     setup: Text | None = Field(default=None, description="module:function of a setup check")
     privacy: PrivacyFacts = Field(default_factory=PrivacyFacts, description="a table")
+    policy: dict[str, Any] | None = Field(default=None, description="a table (kind = \"linear\" or \"mlp\", hidden = [16], activation)")
 
     @field_validator("components", "diagnostics", mode="before")
     @classmethod

@@ -66,6 +66,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..errors import ConfigError, UnknownTaskError
+from ..policy import LINEAR, PolicySpec, parse_policy
 from .base import NoEnv, Selection, Task, TaskText
 from .envs import EnvRecipe, Prepare, check_json_kwargs, entry_point_of, import_module, import_root, load_attr
 from .facts import PrivacyFacts
@@ -161,7 +162,8 @@ class TaskSpec(BaseModel):
     task with an env those are None: the env's action space bounds the actions. ``actions``
     describes each policy output; ``action_type`` is ``"discrete"`` (argmax) or ``"continuous"``
     (clipped to the action bounds). ``prompt_name`` is the name a prompt may show the provider
-    (None: not set). ``privacy`` holds the declared privacy facts (``tasks.facts``).
+    (None: not set). ``privacy`` holds the declared privacy facts (``tasks.facts``). ``policy`` is
+    the policy family searched (``ppprops.policy.PolicySpec``; None: the linear policy).
     """
 
     model_config = _SPEC
@@ -184,6 +186,8 @@ class TaskSpec(BaseModel):
     action_high: tuple[float, ...] | None = Field(default=None, exclude_if=_unset)
     prompt_name: str | None = Field(default=None, exclude_if=_unset)
     privacy: PrivacyFacts | None = Field(default_factory=PrivacyFacts, exclude_if=_no_facts)
+    # the policy family (None: the paper's linear policy; stored only when set, so a linear declaration is stored as before)
+    policy: PolicySpec | None = Field(default=None, exclude_if=_unset)
     # every count known: checked against the env's spaces, or declared (paper task, no env); not stored
     complete: bool = Field(default=False, exclude=True)
 
@@ -344,10 +348,27 @@ def spec_from_table(raw: Mapping[str, Any], *, where: str, paths: tuple[str, ...
         action_high=None if bounds is None else bounds[1],
         prompt_name=f.prompt_name,
         privacy=f.privacy,
+        policy=_policy(f.policy, where),
     )
     if builtin:
         _check_complete(spec, where)
     return spec
+
+
+def _policy(table: Mapping[str, Any] | None, where: str) -> PolicySpec | None:
+    """A task file's ``[policy]`` table as a policy family (None for none or the linear one)."""
+    if table is None:
+        return None
+    try:
+        spec = parse_policy(table)
+    except ValueError as e:
+        raise TaskFileError(f"{where}: {e}") from None
+    return None if spec.is_linear else spec
+
+
+def with_policy(spec: TaskSpec, policy: PolicySpec) -> TaskSpec:
+    """``spec`` searching the policy family ``policy`` (the linear one stores no ``policy`` key)."""
+    return spec.model_copy(update={"policy": None if policy.is_linear else policy})
 
 
 def _observed(f: TaskFile) -> tuple[tuple[str, ...], tuple[str, ...], tuple[int, ...] | None]:
@@ -683,6 +704,7 @@ def build_task(spec: TaskSpec) -> Task:
         prompt_name=spec.prompt_name,
         action_low=spec.action_low,
         action_high=spec.action_high,
+        policy=spec.policy or LINEAR,
     )
 
 
@@ -712,4 +734,4 @@ def task_from_json(d: Mapping[str, Any]) -> Task:
 
 
 __all__ = ["FORMAT", "Declared", "ObservationSpec", "OneHot", "TaskFileError", "TaskSpec", "build_task", "read_task_file", "finish_spec",
-           "refuse_wildcards", "resolve", "resolve_spaces", "spec_for_env", "spec_from_table", "task_from_json"]  # fmt: skip
+           "refuse_wildcards", "resolve", "resolve_spaces", "spec_for_env", "spec_from_table", "task_from_json", "with_policy"]  # fmt: skip

@@ -56,6 +56,11 @@ class PromptContext:
     # ProPS+ (True): the task section describes the environment, the state and action meanings,
     # the reward text and hints. ProPS (False): it says only how the policy maps states to actions.
     describe_task: bool = True
+    # The policy's structure (public): the hidden layers' widths of an MLP (() for the paper's linear
+    # policy), their activation, and, shown only for unencoded parameters, each layer's (low, high).
+    hidden: tuple[int, ...] = ()
+    activation: str = ""
+    layer_ranges: tuple[tuple[float, float], ...] | None = None
 
     @property
     def n_s(self) -> int:
@@ -68,6 +73,13 @@ class PromptContext:
         return len(self.actions)
 
     @property
+    def sizes(self) -> tuple[int, ...]:
+        """The layer widths from input to output: (n_s, *hidden, n_a)."""
+        return (self.n_s, *self.hidden, self.n_a)
+
+    @property
     def D(self) -> int:
-        """D = (n_s + 1) n_a, the number of parameters asked for."""
-        return (self.n_s + 1) * self.n_a
+        """The number of parameters asked for: (n_s + 1) n_a for the linear policy, the sum of the
+        layers' (fan_in + 1) fan_out for an MLP (``ppprops.policy.PolicySpec``'s order)."""
+        s = self.sizes
+        return sum((i + 1) * o for i, o in zip(s[:-1], s[1:], strict=True))

@@ -1,4 +1,5 @@
-"""Words for the flat parameter layout; must match ``ppprops.policy`` (tested)."""
+"""Words for the flat parameter layout; must match ``ppprops.policy`` (tested): the linear policy's
+(``describe``) and an MLP's, layer by layer (``describe_layers``)."""
 
 from __future__ import annotations
 
@@ -22,3 +23,23 @@ def describe(n_s: int, n_a: int) -> str:
         f"so W[i][j] = params[i*{n_a} + j] links state i to action j; params[{n_s * n_a}..{D - 1}] are the "
         f"{n_a} biases b[j] = params[{n_s * n_a} + j]. Action j's output is u[j] = sum_i s[i]*W[i][j] + b[j]."
     )
+
+
+def layer_offsets(sizes: tuple[int, ...]) -> list[int]:
+    """Where each layer's weights start in the flat vector, for widths ``sizes`` = (n_s, *hidden, n_a)."""
+    out, at = [], 0
+    for i, o in zip(sizes[:-1], sizes[1:], strict=True):
+        out.append(at)
+        at += (i + 1) * o
+    return out
+
+
+def describe_layers(sizes: tuple[int, ...]) -> str:
+    """An MLP's layout in words: each layer's weight matrix (row by row) then its biases, input to output."""
+    parts = []
+    for number, ((i, o), at) in enumerate(zip(zip(sizes[:-1], sizes[1:], strict=True), layer_offsets(sizes), strict=True), start=1):
+        w_end, b_end = at + i * o, at + (i + 1) * o
+        parts.append(f"params[{at}..{w_end - 1}] form the {i}x{o} matrix W{number} row by row "
+                     f"(W{number}[i][j] = params[{at} + i*{o} + j]), params[{w_end}..{b_end - 1}] are the {o} biases b{number}")
+    D = sum((i + 1) * o for i, o in zip(sizes[:-1], sizes[1:], strict=True))
+    return f"params has {D} entries, layer by layer: " + "; ".join(parts) + "."

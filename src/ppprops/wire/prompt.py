@@ -49,10 +49,27 @@ _PARAM_TEMPLATES = {"scale": "parameters_encoded", "affine": "parameters_offset"
 _REWARD_NOTES = {"scale": "scale_note", "affine": "scale_note_offset", "warp": "scale_note_warped"}
 
 
+def mlp_structure(ctx: PromptContext) -> str:
+    """An MLP's structure in words (``policy_mlp``): its layers, activation, output and flat layout."""
+    sizes = ctx.sizes
+    steps, prev = [], "s"
+    for number, o in enumerate(sizes[1:-1], start=1):
+        steps.append(f"h{number}[j] = {ctx.activation}(sum_i {prev}[i]*W{number}[i][j] + b{number}[j]) for its {o} hidden units")
+        prev = f"h{number}"
+    L = len(sizes) - 1
+    steps.append(f"the output u[j] = sum_i {prev}[i]*W{L}[i][j] + b{L}[j]")
+    return render("policy_mlp", n_layers=L, forward="; ".join(steps) + ".", layout=layout.describe_layers(sizes))
+
+
 def parameters_section(ctx: PromptContext) -> str:
     """The policy-structure section: the flat layout of params (D = (n_s + 1) n_a) and the box, encoded
     (theta~ = A theta, paper Sec. II-B: no range is stated) or raw. ValueError for an unknown encoding.
+
+    An MLP (``ctx.hidden``) is described by its own piece (``mlp_structure``) in place of the linear
+    policy's first line, followed by the same encoding text; unencoded, each layer's range is stated.
     """
+    if ctx.hidden:
+        return _mlp_parameters(ctx)
     desc = layout.describe(ctx.n_s, ctx.n_a)
     if ctx.encoded_params:
         if ctx.param_encoding not in _PARAM_TEMPLATES:
@@ -66,6 +83,26 @@ def parameters_section(ctx: PromptContext) -> str:
         raise ValueError("unencoded parameters need a public range")
     low, high = ctx.param_range
     return render("parameters_raw", layout=desc, low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+
+
+def _mlp_parameters(ctx: PromptContext) -> str:
+    """``parameters_section`` of an MLP: its structure, then the encoding's text after the linear
+    policy's line (the templates' first line), or each layer's range for raw parameters."""
+    head = mlp_structure(ctx)
+    if ctx.encoded_params:
+        if ctx.param_encoding not in _PARAM_TEMPLATES:
+            raise ValueError(f"unknown parameter encoding {ctx.param_encoding!r}")
+        rest = render(_PARAM_TEMPLATES[ctx.param_encoding], layout="").split("\n", 1)
+        text = head + ("\n" + rest[1] if len(rest) > 1 else "")
+        if ctx.warmup_range is not None:
+            low, high = ctx.warmup_range
+            text += "\n" + render("warmup_note", low=fmt_value(low, ctx.decimals), high=fmt_value(high, ctx.decimals))
+        return text
+    if ctx.layer_ranges is None:
+        raise ValueError("unencoded parameters need a public range per layer")
+    ranges = ", ".join(f"layer {n} (W{n}, b{n}) in [{fmt_value(lo, ctx.decimals)}, {fmt_value(hi, ctx.decimals)}]"
+                       for n, (lo, hi) in enumerate(ctx.layer_ranges, start=1))
+    return head + "\n" + render("layer_ranges", ranges=ranges)
 
 
 def feedback_section(ctx: PromptContext) -> str:
