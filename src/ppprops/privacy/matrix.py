@@ -23,7 +23,7 @@ from ..rundir import open_run, policy_path
 from ..tasks.base import Task
 from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
-from .audit import audit_run, search_config
+from .audit import audit_run, run_grid_factor, search_config
 from .exposure import EXPOSED_WITHIN, shown_candidate
 from .requests import load_requests
 from .simfit import SimLimits
@@ -88,7 +88,7 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
         calls = run.store.llm_calls()
     m = config.mechanisms
     true_c = secrets.c if m.scale_rewards else 1.0
-    true_a = np.asarray(secrets.a) if m.encode_params else np.ones(task.D)
+    true_a = run_grid_factor(config, secrets) * np.asarray(secrets.a) if m.encode_params else np.ones(task.D)  # g a_j on the grid
     out = RunAnalysis(
         run_dir=str(run_dir), task=task.name, method=config.method, seed=config.seed, warmup=config.warmup,
         iterations=config.iterations, best_return=max((c.ret for c in cands), default=math.nan),

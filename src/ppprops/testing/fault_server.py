@@ -32,7 +32,7 @@ any path but ``/v1/chat/completions`` and ``/v1/completions``, as Ollama does.
 
 The vector length D is read from the request: the JSON schema's ``minItems``, the llama.cpp
 grammar's repetition count (or the labels of the document form's continuation grammar), the
-prompt's "with D numbers" / "exactly D ... numbers", or the last history entry of a document.
+prompt's "with D numbers" (or integers) / "exactly D ... numbers", or the last history entry of a document.
 Decisions come from one seeded generator in arrival order, so a serial client sees the same
 fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
 ``max_seconds`` seconds. ``GET /stats`` returns the counts, among them the most completions
@@ -228,7 +228,7 @@ class _State:
 
 _SCHEMA_DIM = re.compile(r"\{(\d+)\}")
 _GRAMMAR_LABEL = re.compile(r'"(?:,)?(\d+):"')
-_PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?numbers")
+_PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?(?:numbers|integers)")
 
 
 def requested_dim(body: dict[str, Any], default: int | None = None) -> int | None:

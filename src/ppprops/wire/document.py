@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from .encoded import EncodedEntry, PromptContext
-from .numbers import fmt
+from .numbers import DECIMAL, fmt
 from .prompt import params_text, render
 
 # The open block asks for best + TARGET_LIFT * min(best - worst, |best|) of the shown returns.
@@ -127,8 +127,9 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
     are fixed text; the model writes only the values).
 
     With ``history`` (the shown entries) and ``ctx``, the grammar fits the encoded scale of each
-    coordinate: a value is written as the prompt writes numbers (``ctx.param_digits``
-    significant digits, at most ``ctx.decimals`` decimals), with at most as many integer digits
+    coordinate: a value is written as the prompt writes numbers (in ``ctx.numbers``, the number
+    format: integers on the grid, else ``ctx.param_digits`` significant digits with at most
+    ``ctx.decimals`` decimals), with at most as many integer digits
     as the widest value the prompt prints at that coordinate. So a proposal can go up to ten
     times past the shown values, but not write a coordinate whose values are in the tens with
     three integer digits, nor spend tokens on digits the history never shows. It is built only
@@ -140,7 +141,7 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
     rules: dict[str, str] = {}
     if not history or ctx is None:
         names = ["num"] * D
-        rules["num"] = 'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?'
+        rules["num"] = "num ::= " + (ctx.numbers if ctx is not None else DECIMAL).number_rule()
     else:
         lst = _as_list(ctx)
         widest = [1] * D
@@ -163,11 +164,12 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
 
 def _magnitude(k: int, ctx: PromptContext) -> str:
     """GBNF for a number with ``k`` integer digits (0: below 1) as the list form prints it."""
-    fixed = ctx.param_digits <= 0
+    digits, decimals = ctx.param_sig_digits, ctx.param_decimals  # the number format's (wire.numbers)
+    fixed = digits <= 0
     if k == 0:
-        dec, ints = ctx.decimals, '"0"'
+        dec, ints = decimals, '"0"'
     else:
-        dec = ctx.decimals if fixed else max(0, min(ctx.decimals, ctx.param_digits - k))
+        dec = decimals if fixed else max(0, min(decimals, digits - k))
         ints = " ".join(["[1-9]"] + ["[0-9]"] * (k - 1))
     frac = f' ("." {" ".join(["[0-9]"] + ["[0-9]?"] * (dec - 1))})?' if dec > 0 else ""
     return ints + frac

@@ -86,7 +86,7 @@ def feedback_section(ctx: PromptContext) -> str:
 def interaction_section(ctx: PromptContext) -> str:
     """The interaction section: how many past policies the history shows (top-K or all) and the answer format (D numbers)."""
     size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
-    return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
+    return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1, numbers=ctx.numbers.words)
 
 
 # Shared with ``wire.transcript``, which reads entries back out of recorded prompts.
@@ -105,13 +105,14 @@ def _choice(table: dict[str, str], value: str, what: str) -> str:
 
 
 def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
-    """The list form is the compact default: no space after a comma and ``param_digits``
+    """Parameters as the context's number format writes them (``ctx.numbers``: integers on the
+    grid). The list form is the compact default: no space after a comma and ``param_digits``
     significant digits (one token per character saved with Gemma's tokenizer). The ProPS form
     repeats ``params[i]: `` before every value at fixed decimals. benchmarks/RESULTS.md compares
     the two in characters, tokens and search results."""
-    d = ctx.decimals
+    d = ctx.param_decimals  # the number format's (wire.numbers): 0 on the grid
     if _choice(PARAMS_STYLES, ctx.params_style, "params style") == PARAMS_STYLES["list"]:
-        return fmt_vector(params, d, digits=ctx.param_digits, sep=",")
+        return fmt_vector(params, d, digits=ctx.param_sig_digits, sep=",")
     return ", ".join(f"params[{i}]: {fmt(v, d)}" for i, v in enumerate(params))
 
 
