@@ -165,10 +165,12 @@ def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **ove
         cands = store.candidates()
     finally:
         store.close()
+    if "number_format" in overrides:  # the codec follows the format (the grid's factor), not only the printing
+        cfg = replace(cfg, number_format=overrides["number_format"])
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg.encoding)
     k = cfg.top_k if top_k is None else top_k
-    ctx = replace(prompt_context(task, cfg.prompt, codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
+    ctx = replace(prompt_context(task, cfg.prompt_settings(form), codec), history_limit=k, **{"param_digits": cfg.digits(form), **overrides})
     run = LLMSearch(llm=None, codec=codec, context=ctx, top_k=k, box=cfg.box, streams=Streams(cfg.seed))  # type: ignore[arg-type]
     return LLMProposer(run, form=FORMS[form]), cands
 

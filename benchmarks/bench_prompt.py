@@ -23,12 +23,15 @@ TASK = "Ant-Ultra"
 PAPER_K10_CHARS = 22_000  # the paper's final prompt, D=88, K=10 (ProPS form, gpt-oss-20b)
 TARGET_TOKENS = 4_000  # the final Ant-Ultra K=10 prompt, in Gemma tokens, in every form
 HISTORY_MARK = "5. Here is the history:\n"
-# (key, prompt form, parameter style, number format or None for the form's default, label)
-VARIANTS: tuple[tuple[str, str, str, str | None, str], ...] = (
-    ("document", "document", "list", None, "document (embedded default)"),
-    ("list", "chat", "list", None, "chat, list (default elsewhere)"),
-    ("indexed", "chat", "indexed", None, "chat, ProPS `params[i]: v`"),
+# (key, prompt form, parameter style, number format, label); the decimal format is what every run sent before the grid
+VARIANTS: tuple[tuple[str, str, str, str, str], ...] = (
+    ("document-decimal", "document", "list", "decimal", "document, decimal (before)"),
+    ("document", "document", "list", "grid", "document, grid (embedded default)"),
+    ("list-decimal", "chat", "list", "decimal", "chat, decimal (before)"),
+    ("list", "chat", "list", "grid", "chat, grid (default elsewhere)"),
+    ("indexed", "chat", "indexed", "decimal", "chat, ProPS `params[i]: v`, decimal"),
 )
+UNBOUNDED = ("document", "list")  # the variants also shown with the whole history (K=all)
 
 
 def history_part(prompt: str, form: str) -> str:
@@ -64,11 +67,9 @@ def run(ctx: Context) -> Section:
     with embedded() as client:
         for k in (10, 0):
             for key, form, style, fmt, label in VARIANTS:
-                if k == 0 and fmt is not None:
+                if k == 0 and key not in UNBOUNDED:
                     continue
-                over: dict[str, Any] = {"params_style": style}
-                if fmt is not None:
-                    over["number_format"] = fmt
+                over: dict[str, Any] = {"params_style": style, "number_format": fmt}
                 text = prompt_after(run_dir, top_k=k, form=form, **over)
                 hist = history_part(text, form)
                 n = min(k, entries) if k else entries
@@ -85,7 +86,8 @@ def run(ctx: Context) -> Section:
                              f"{ans['gemma'] / D:.2f} / {ans['o200k'] / D:.2f}" if ans else "-"])
     k10 = {key: data[f"K10_{key}"] for key, *_ in VARIANTS}
     doc, chat = k10["document"], k10["list"]
-    met = all(v["gemma"] <= TARGET_TOKENS for key, v in k10.items() if key != "indexed")
+    met = doc["gemma"] <= TARGET_TOKENS and chat["gemma"] <= TARGET_TOKENS
+    before = {"document": k10["document-decimal"], "chat": k10["list-decimal"]}
     data["target_tokens"], data["met"] = TARGET_TOKENS, met
     fixed = chat["gemma"] - chat["history"]["gemma"]
     body = [
@@ -101,6 +103,10 @@ def run(ctx: Context) -> Section:
         f"{pct_less(doc['chars'], PAPER_K10_CHARS):.1f}% fewer characters than the paper's {PAPER_K10_CHARS:,}).",
         f"- K=10, chat form: **{chat['gemma']:,} Gemma tokens** ({chat['o200k']:,} o200k); its fixed sections and feedback "
         f"lines take {fixed:,} Gemma tokens.",
+        f"- Against the decimal format (what every run sent before the grid): document {before['document']['gemma']:,} -> "
+        f"{doc['gemma']:,} Gemma tokens ({pct_less(doc['gemma'], before['document']['gemma']):.0f}% fewer), chat "
+        f"{before['chat']['gemma']:,} -> {chat['gemma']:,} ({pct_less(chat['gemma'], before['chat']['gemma']):.0f}% fewer); "
+        f"o200k document {before['document']['o200k']:,} -> {doc['o200k']:,}, chat {before['chat']['o200k']:,} -> {chat['o200k']:,}.",
         f"- Target at most {TARGET_TOKENS:,} Gemma tokens in every form (K=10): {'met' if met else 'NOT met'}.",
     ]
     ctx.cache["prompt_data"] = data

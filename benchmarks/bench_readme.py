@@ -21,7 +21,7 @@ from _common import Context, Section, llm_calls, table, timings
 from ppprops.llm.embedded import default_threads
 from ppprops.store import open_store
 
-TARGET_S = 180.0  # at most 3 minutes on 2 idle cores
+TARGET_S = 90.0  # at most 90 s on 2 idle cores
 IDLE_LOAD = 0.5  # 1-minute load average below which the cores count as idle
 COMMAND = ["ppprops", "run", "--env", "CartPole", "--method", "pp"]
 

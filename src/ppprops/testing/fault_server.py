@@ -243,8 +243,9 @@ def requested_dim(body: dict[str, Any], default: int | None = None) -> int | Non
     grammar = body.get("grammar")
     if isinstance(grammar, str):
         labels = _GRAMMAR_LABEL.findall(grammar)
-        if labels:
-            return max(int(x) for x in labels) + 1
+        if labels:  # one item per value: labelled ones, and with row labels the bare '","' ones between them
+            root = grammar.split("\n", 1)[0]
+            return len(labels) + root.count('"," ')
         m = _SCHEMA_DIM.search(grammar)
         return int(m.group(1)) + 1 if m else 1
     prompt = body.get("prompt")

@@ -44,8 +44,12 @@ class NumberFormat:
     as every run stored before the grid existed was written. ``grid``: integers, no decimal point;
     the client puts the encoded values on an integer grid with a secret global factor
     (``client.codec.Codec``: about ``[-GRID_SPAN, GRID_SPAN]`` across the box), so a value is one to
-    three digits and rounding it moves it by at most half a grid step. Returns, reward components
-    and diagnostics are written in ``decimals`` decimals in every format.
+    three digits and rounding it moves it by at most half a grid step; the document form labels
+    only the first value of each row of W and of the biases (``row_labels``: ``[0:v,v,...,8:v,...]``),
+    the decimal format every value; the chat form's fixed prose is terser (``terse``: the
+    paper's five sections, with the same content, in fewer words). Returns, reward components and
+    diagnostics are written in ``decimals`` decimals in every format. A run stores its format, so
+    the audit rebuilds each request in the words and numbers it was sent in.
 
     The print (``wire.prompt.params_text``), the answer grammars (``wire.forms.params_grammar``,
     ``wire.document.continuation_grammar``), the repeat check (``wire.turns.repeats_history``,
@@ -56,6 +60,11 @@ class NumberFormat:
     name: str
     integers: bool
     words: str  # what the interaction section calls the numbers of an answer
+    # the document form labels one value per row of W (and the first bias), not every value (wire.document.labelled)
+    row_labels: bool = False
+    # the chat form's fixed prose in fewer words (the ``*_terse`` templates, ``wire.prompt.wording``); the decimal
+    # format keeps the words every run stored before the grid was sent, so the audit rebuilds those exactly
+    terse: bool = False
 
     def digits(self, digits: int) -> int:
         """Significant digits of a parameter: ``digits`` (``--param-digits``), or 0 (fixed decimals) on the grid."""
@@ -74,7 +83,7 @@ class NumberFormat:
 
 
 DECIMAL = NumberFormat("decimal", integers=False, words="numbers")
-GRID = NumberFormat("grid", integers=True, words="integers")
+GRID = NumberFormat("grid", integers=True, words="integers", row_labels=True, terse=True)
 # By name, as a run's config stores it (``--number-format``); runs stored before formats existed are ``decimal``.
 NUMBER_FORMATS: dict[str, NumberFormat] = {f.name: f for f in (GRID, DECIMAL)}
 GRID_SPAN = 999  # the grid's nominal half-width: the largest encoded value the box maps to (client.codec)
