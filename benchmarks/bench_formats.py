@@ -19,7 +19,7 @@ from ppprops.summary import run_summary
 
 TASKS = ("CartPole", "Acrobot", "Pendulum-v1")
 SEEDS = (0,)
-ITERATIONS = 15
+ITERATIONS = 10
 FORMATS = (("decimal", "decimal (before)"), ("grid", "grid (now)"))
 
 
