@@ -6,8 +6,9 @@ no selection stage, so the history holds exactly those 59 and no candidate twice
 would be sent next is built by ``ppprops.wire`` in the document form (the embedded model's
 default) and in the paper's chat form, in each number format (``wire.forms.NUMBER_FORMATS``),
 with K=10 and unbounded (and, for comparison, the chat form with ProPS ``params[i]: v`` pairs),
-and counted in characters, in tokens of the embedded model's tokenizer (llama.cpp ``/tokenize``)
-and in tokens of two cloud tokenizers (tiktoken's o200k and cl100k, read offline from the BPE
+and counted in characters, in tokens of the embedded model's tokenizer (``_gemma``: llama.cpp's
+algorithm on the GGUF's own vocabulary, so no model starts; it gives llama.cpp ``/tokenize``'s
+counts exactly) and in tokens of two cloud tokenizers (tiktoken's o200k and cl100k, read offline from the BPE
 files of the ``bpe-openai`` package: the ``bench`` extra). The answer's tokens per parameter are
 counted on the answer the form's grammar would hold if the model wrote the best shown policy
 again (its printed values, in the form's answer frame).
@@ -17,7 +18,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from _common import Context, Section, cloud_tokenizers, config, count_tokens, embedded, pct_less, prompt_after, run_search, table
+from _common import Context, Section, cloud_tokenizers, config, pct_less, prompt_after, run_search, table
+from _gemma import gemma_tokenizer
 
 TASK = "Ant-Ultra"
 PAPER_K10_CHARS = 22_000  # the paper's final prompt, D=88, K=10 (ProPS form, gpt-oss-20b)
@@ -53,8 +55,8 @@ def best_answer(prompt: str, form: str) -> str:
     return '{"params": [' + values.replace(",", ", ") + "]}"
 
 
-def counts(client: Any, cloud: dict[str, Any], text: str) -> dict[str, int]:
-    return {"chars": len(text), "gemma": count_tokens(client, text), **{k: len(enc.encode(text)) for k, enc in cloud.items()}}
+def counts(gemma: Any, cloud: dict[str, Any], text: str) -> dict[str, int]:
+    return {"chars": len(text), "gemma": gemma.count(text), **{k: len(enc.encode(text)) for k, enc in cloud.items()}}
 
 
 def run(ctx: Context) -> Section:
@@ -63,9 +65,9 @@ def run(ctx: Context) -> Section:
     run_dir = run_search(config(TASK, warmup=entries, iterations=0, seed=0, select_top=0), ctx.dir("prompt") / "ant-history")
     D = 88
     cloud = cloud_tokenizers()
+    client = gemma_tokenizer()
     rows, data = [], {}
-    with embedded() as client:
-        for k in (10, 0):
+    for k in (10, 0):
             for key, form, style, fmt, label in VARIANTS:
                 if k == 0 and key not in UNBOUNDED:
                     continue
@@ -93,7 +95,9 @@ def run(ctx: Context) -> Section:
     body = [
         f"Final prompt after {entries} evaluated Ant-Ultra policies (D={D}, pp preset), built by the prompt builder "
         "from a real run's encoded history (no selection stage: each candidate once); tokens: the embedded Gemma 3 270M "
-        "tokenizer's (llama.cpp /tokenize) and the cloud tokenizers o200k and cl100k (tiktoken, BPE files of `bpe-openai`). "
+        "tokenizer's (llama.cpp's algorithm on the GGUF's vocabulary, benchmarks/_gemma.py; on the six prompts of the decimal "
+        "format's table measured before the grid it gave llama.cpp /tokenize's counts exactly) and the cloud tokenizers o200k "
+        "and cl100k (tiktoken, BPE files of `bpe-openai`). "
         "Answer tokens per parameter: the best shown policy written again in the form's answer frame (Gemma / o200k).",
         "",
         table(["history", "prompt form", "entries shown", "prompt chars", "Gemma tokens", "o200k", "cl100k",

@@ -47,6 +47,7 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
     ``repeat=(i, j)``: candidate j is candidate i's policy again, with the same return but an episode
     that ended another way (as when the LLM proposes a policy a second time)."""
     task = get_task("CartPole")
+    settings.setdefault("number_format", "decimal")  # the notations planted below are the decimal format's (the grid's: the test at the end)
     cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3, **settings)
     run_dir = root / (name or method)
     if cfg.encoding.mechanisms.hardened:  # fixed secrets: a fresh draw could land a meaningless fit within 1% by chance
