@@ -15,9 +15,11 @@ import pytest
 from ppprops.cli import main
 from ppprops.client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 from ppprops.privacy.attacks import run_attacks
+from ppprops.privacy.audit import run_grid_factor, search_config
 from ppprops.privacy.matrix import analyse_run, privacy_report
 from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simfit import SimLimits
+from ppprops.rundir import open_run
 from ppprops.runner import start
 from ppprops.tasks import get_task
 
@@ -46,12 +48,14 @@ def simulate(root: Path, task: str, method: str, seed: int, iterations: int = 10
 
 def _errors(run: Path, task: str, method: str, seed: int) -> dict[str, float]:
     s = seeded_secrets(method, task, seed)
+    with open_run(run) as r:  # on the grid, what decoding needs (and attacks estimate) is g a_j
+        g = run_grid_factor(search_config(r.stored, run), s)
     out = {}
     for e in run_attacks(load_requests(run), task, (-6.0, 6.0), simulate=False):
         if not e.applicable:
             continue
         v = np.asarray(e.value, dtype=np.float64)
-        true = s.c if e.target == "c" else s.a
+        true = s.c if e.target == "c" else g * s.a
         err = np.abs(v / true - 1)
         out[e.attack] = float(np.nanmedian(err))
     return out
