@@ -166,7 +166,8 @@ def _proposer(run_dir: Path, top_k: int | None = None, form: str = "chat", **ove
     finally:
         store.close()
     if "number_format" in overrides:  # the codec follows the format (the grid's factor), not only the printing
-        cfg = replace(cfg, number_format=overrides["number_format"])
+        fmt = overrides["number_format"]  # a benchmark's variant of the grid ("grid-...") keeps the grid's codec
+        cfg = replace(cfg, number_format="grid" if fmt.startswith("grid") else fmt)
     task = cfg.make_task()
     codec = codec_for(secrets, task, cfg.encoding)
     k = cfg.top_k if top_k is None else top_k

@@ -201,3 +201,23 @@ def test_formats_resolve_per_preset_and_stored_runs_keep_the_decimal_format() ->
     assert RunConfig.from_json(old).numbers == "decimal" and not RunConfig.from_json(old).encoding.grid
     assert GRID.integers and not DECIMAL.integers
     assert EncodingSettings(resolve("pp"), BOX).grid is False  # a codec is on the grid only when asked
+
+
+def test_row_labels_print_parse_constrain_and_audit_back_the_same_values(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A format with one label per row of W (``row_labels``; benchmark 11 measures it before a built-in format uses it)."""
+    from ppprops.testing.fault_server import requested_dim
+    from ppprops.wire import numbers
+
+    rows = replace(GRID, name="grid-rows", row_labels=True)
+    monkeypatch.setitem(numbers.NUMBER_FORMATS, rows.name, rows)
+    ctx = replace(ctx_for("Acrobot", "pp", "document", "grid")[4], number_format=rows.name)  # n_a = 3, D = 21
+    values = tuple(float(v) for v in range(-10, 11))
+    doc = build_document(ctx, [EncodedEntry(0, values, 2.0)])
+    line = doc.split("params: [")[1].split("]")[0]
+    assert line.startswith("0:-10,-9,-8,3:-7,-6,-5,6:-4,") and line.count(":") == 7  # one label per row of 3
+    assert DOCUMENT.entries(doc)[0].params == tuple(str(int(v)) for v in values)  # the audit reads every value back
+    grammar = continuation_grammar(21, [EncodedEntry(0, values, 2.0)], ctx)
+    assert grammar.split("\n")[0].count('"," ') == 14 and requested_dim({"grammar": grammar}) == 21
+    answer = line.replace("-10", "-11") + "]"
+    assert DOCUMENT.read(answer, 21).values == (-11.0, *values[1:])
+    assert DOCUMENT.read("0:1,2,3,4:4" + ",5" * 17 + "]", 21).error == "labels"  # a label out of place is refused

@@ -92,18 +92,18 @@ def document_sampling(stalled: int, temperature: float | None = None) -> dict[st
 
 def labelled(ctx: PromptContext, params: Sequence[float]) -> str:
     """Parameters as one list whose values carry their index, ``[0:1.21,1:-0.3,...]``, each value
-    in the list form of ``wire.prompt.params_text``; in a format with row labels (the grid) only
-    the first value of each row is labelled, ``[0:12,-3,5,3:40,...]`` (``is_labelled``). The labels
-    let the small model copy a value from the same coordinate of an entry above (without them it
-    lost its place in lists of 21 numbers and wrote junk; with one per row it kept it:
-    benchmarks/RESULTS.md)."""
+    in the list form of ``wire.prompt.params_text``; in a format with row labels
+    (``NumberFormat.row_labels``; no built-in format sets it yet) only the first value of each row
+    is labelled, ``[0:12,-3,5,3:40,...]`` (``is_labelled``). The labels let the small model copy a
+    value from the same coordinate of an entry above (without them it lost its place in lists of 21
+    numbers and wrote junk; benchmarks/RESULTS.md; benchmark 11 measures one label per row)."""
     values = params_text(_as_list(ctx), tuple(params)).strip("[]").split(",")
     return "[" + ",".join(f"{i}{LABEL}{v}" if is_labelled(ctx, i) else v for i, v in enumerate(values)) + "]"
 
 
 def is_labelled(ctx: PromptContext | None, j: int) -> bool:
-    """Whether value ``j`` carries its index: every value, or in a format with ``row_labels`` (the
-    grid) the first of each row of ``n_a`` values (a row of W, then the biases)."""
+    """Whether value ``j`` carries its index: every value, or in a format with ``row_labels`` the
+    first of each row of ``n_a`` values (a row of W, then the biases)."""
     if ctx is None or not ctx.numbers.row_labels:
         return True
     return j % max(1, ctx.n_a) == 0
