@@ -31,7 +31,7 @@ from ppprops.wire import numbers
 from ppprops.wire.forms import DOCUMENT
 
 SAMPLES = 4  # continuations per (task, labels); iterations 0..3 use the schedule's 0.6, 1.0, 0.6, 1.0
-EVERY = replace(numbers.GRID, name="grid-every-value", row_labels=False)  # the grid with a label on every value
+ROWS = replace(numbers.GRID, name="grid-rows", row_labels=True)  # the grid with one label per row of W
 
 
 def _history(ctx: Context, task: str) -> Any:
@@ -54,14 +54,14 @@ def _scores(values: list[float], shown: list[tuple[float, ...]]) -> tuple[float,
 
 
 def run(ctx: Context) -> Section:
-    numbers.NUMBER_FORMATS[EVERY.name] = EVERY
+    numbers.NUMBER_FORMATS[ROWS.name] = ROWS
     rows, data = [], {}
     samples = 2 if ctx.quick else SAMPLES
     try:
         with embedded() as client:
             for task in ("Acrobot", "Ant-Ultra"):
                 run_dir = _history(ctx, task)
-                for fmt, label in ((EVERY.name, "every value"), ("grid", "one per row")):
+                for fmt, label in (("grid", "every value"), (ROWS.name, "one per row")):
                     prop, cands = _proposer(run_dir, 10, "document", number_format="grid")  # the grid's codec
                     prop.ctx = replace(prop.ctx, number_format=fmt)  # and its labels
                     for c in cands:
@@ -90,7 +90,7 @@ def run(ctx: Context) -> Section:
                     rows.append([task, pctx.D, label, f"{len(ok)}/{len(per)}", f"{agg['in_column']:.0%}", f"{agg['shifted']:.0%}",
                                  f"{agg['copied']:.0%}", f"{agg['corr']:.2f} / {agg['corr_shifted']:.2f}", f"{agg['tokens_per_param']:.2f}"])
     finally:
-        numbers.NUMBER_FORMATS.pop(EVERY.name, None)
+        numbers.NUMBER_FORMATS.pop(ROWS.name, None)
     body = [
         f"The final document (K=10) of a real history, continued {samples} times per row by the embedded model through the "
         "document form's request (its grammar; temperatures 0.6, 1.0, ...); grid format, labels on every value vs one per row.",
