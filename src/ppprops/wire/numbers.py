@@ -83,7 +83,7 @@ class NumberFormat:
 
 
 DECIMAL = NumberFormat("decimal", integers=False, words="numbers")
-# row_labels stays off until benchmark 11 shows the embedded model keeps its place with one label per row
+# row_labels stays off: with one label per row the embedded model kept its place less well on Ant-Ultra (benchmark 11)
 GRID = NumberFormat("grid", integers=True, words="integers", terse=True)
 # By name, as a run's config stores it (``--number-format``); runs stored before formats existed are ``decimal``.
 NUMBER_FORMATS: dict[str, NumberFormat] = {f.name: f for f in (GRID, DECIMAL)}
