@@ -34,19 +34,23 @@ from pathlib import Path
 
 import bench_cache
 import bench_eval
+import bench_formats
 import bench_history
+import bench_labels
 import bench_overhead
 import bench_prompt
 import bench_quality
 import bench_readme
 import bench_startup
+import bench_threads
 from _common import Context, Section, commit, machine, table
 
 # Order matters: later benchmarks replay runs that earlier ones recorded (see Context.cache).
-SUITE = (("quality", bench_quality), ("prompt", bench_prompt), ("history", bench_history), ("cache", bench_cache),
-         ("overhead", bench_overhead), ("eval", bench_eval), ("readme", bench_readme), ("startup", bench_startup))
+SUITE = (("quality", bench_quality), ("prompt", bench_prompt), ("labels", bench_labels), ("history", bench_history), ("cache", bench_cache),
+         ("overhead", bench_overhead), ("eval", bench_eval), ("readme", bench_readme), ("startup", bench_startup),
+         ("threads", bench_threads), ("formats", bench_formats))
 HERE = Path(__file__).resolve().parent
-SECTION_ORDER = ["6", "7", "1", "2", "3", "4", "5", "9"]  # RESULTS.md order: the search itself first, as SUITE runs them
+SECTION_ORDER = ["6", "12", "7", "1", "11", "2", "3", "4", "5", "9", "10"]  # RESULTS.md order: the search itself first, as SUITE runs them
 
 
 STATUS = {True: "met", False: "**not met**", None: "(no target)"}

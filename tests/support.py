@@ -15,12 +15,13 @@ from ppprops.methods import resolve
 
 def make_config(task: str = "CartPole", method: str = "pp", **kw: object) -> RunConfig:
     llm = kw.pop("llm", LLMConfig())
+    mechanisms = kw.pop("mechanisms", resolve(method))  # a test may switch a hardening on: resolve(method, pace_requests=True)
     # the paper's chat prompt unless a test asks for the document form (tests/test_document_form.py
     # covers that one): these helpers build and read chat messages
     # no selection stage unless a test asks for one (tests/test_study.py covers it): the search alone
     base = dict(warmup=3, iterations=3, top_k=10, episodes=1, final_episodes=3, seed=0, prompt_form="chat", select_top=0)
     base.update(kw)
-    return RunConfig(task=task, method=method, mechanisms=resolve(method), llm=llm, **base)  # type: ignore[arg-type]
+    return RunConfig(task=task, method=method, mechanisms=mechanisms, llm=llm, **base)  # type: ignore[arg-type]
 
 
 def doc_block(doc: str, first_line: str) -> str:

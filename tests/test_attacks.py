@@ -14,10 +14,13 @@ import pytest
 
 from ppprops.cli import main
 from ppprops.client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
+from ppprops.methods import resolve
 from ppprops.privacy.attacks import run_attacks
+from ppprops.privacy.audit import run_grid_factor, search_config
 from ppprops.privacy.matrix import analyse_run, privacy_report
 from ppprops.privacy.requests import load_requests
 from ppprops.privacy.simfit import SimLimits
+from ppprops.rundir import open_run
 from ppprops.runner import start
 from ppprops.tasks import get_task
 
@@ -38,20 +41,25 @@ def seeded_secrets(method: str, task: str, seed: int) -> Secrets:
 
 def simulate(root: Path, task: str, method: str, seed: int, iterations: int = 10) -> Path:
     out = root / f"{task}__{method}__{seed}"
+    # pp-hardened paced: the request times of an in-process run follow its episodes' steps (the timing
+    # channel, tests/test_timing_channel.py), and these tests are about what the transcript itself says
+    config = make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed,
+                         mechanisms=resolve(method, pace_requests=method == "pp-hardened"))
     with offline_llm():
-        start(make_config(task, method, warmup=10, iterations=iterations, final_episodes=0, seed=seed), out,
-              secrets=seeded_secrets(method, task, seed))
+        start(config, out, secrets=seeded_secrets(method, task, seed))
     return out
 
 
 def _errors(run: Path, task: str, method: str, seed: int) -> dict[str, float]:
     s = seeded_secrets(method, task, seed)
+    with open_run(run) as r:  # on the grid, what decoding needs (and attacks estimate) is g a_j
+        g = run_grid_factor(search_config(r.stored, run), s)
     out = {}
     for e in run_attacks(load_requests(run), task, (-6.0, 6.0), simulate=False):
         if not e.applicable:
             continue
         v = np.asarray(e.value, dtype=np.float64)
-        true = s.c if e.target == "c" else s.a
+        true = s.c if e.target == "c" else g * s.a
         err = np.abs(v / true - 1)
         out[e.attack] = float(np.nanmedian(err))
     return out

@@ -8,6 +8,7 @@ offline stand-in for the LLM, and test_privacy_wire.py audits runs with the embe
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,7 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
     ``repeat=(i, j)``: candidate j is candidate i's policy again, with the same return but an episode
     that ended another way (as when the LLM proposes a policy a second time)."""
     task = get_task("CartPole")
+    settings.setdefault("number_format", "decimal")  # the notations planted below are the decimal format's (the grid's: the test at the end)
     cfg = make_config("CartPole", method, warmup=6, iterations=6, final_episodes=0, seed=3, **settings)
     run_dir = root / (name or method)
     if cfg.encoding.mechanisms.hardened:  # fixed secrets: a fresh draw could land a meaningless fit within 1% by chance
@@ -309,3 +311,29 @@ def test_a_policy_evaluated_twice_is_matched_by_every_printed_field(tmp_path: Pa
     assert not report.unverified and not [f for f in report.leaks if not f.by_design], report.format()
     plant(run, "termination=out_of_bounds", "termination=pole_flew")  # a field neither candidate has is still caught
     assert audit_run(run).unverified
+
+
+@pytest.mark.parametrize("form", ["document", "chat"])
+@pytest.mark.parametrize("fmt", ["grid", "decimal"])
+def test_runs_in_each_number_format_audit_without_leaks_and_hardened_clean(tmp_path: Path, fmt: str, form: str) -> None:
+    """A run in each number format (the grid's integers and the decimal format it replaced) and
+    prompt form, through the runner with the offline stand-in: the audit reads every entry back in
+    the run's own format (stored with its config), so nothing is unverified and nothing raw sent;
+    pp-hardened is CLEAN."""
+    for method in ("pp", "pp-hardened"):
+        task = get_task("Acrobot")
+        cfg = make_config("Acrobot", method, warmup=6, iterations=5, final_episodes=0, number_format=fmt, prompt_form=form)
+        secrets = generate_secrets(f"fmt-{method}", task, cfg.encoding, rng=np.random.default_rng(21))
+        run = tmp_path / f"{method}-{fmt}-{form}"
+        with offline_llm():
+            start(cfg, run, secrets=secrets)
+        r = audit_run(run)
+        assert r.requests >= 5 and not r.leaks and not r.unverified, r.format()
+        assert r.checked["params"] >= 5 * 6  # every shown entry's parameters were matched in the run's format
+        body = find_call(run)["body"]
+        text = body["prompt"] if form == "document" else body["messages"][0]["content"]
+        printed = re.findall(r"params: \[([^\]]*)\]", text)[0].split(",")
+        values = [p.split(":")[-1] for p in printed]
+        assert all(re.fullmatch(r"-?\d+", v) for v in values) == (fmt == "grid"), values
+        if method == "pp-hardened":
+            assert r.exit_code() == 0 and r.verdict().startswith("CLEAN"), r.format()

@@ -35,6 +35,8 @@ RUN = ["run", "--env", "CartPole", "--quiet", "--select-top", "0"]
         (RUN + ["--warmup", "0"], "--warmup must be >= 1"),
         (RUN + ["--iterations", "-3"], "--iterations must be >= 0"),
         (RUN + ["--box", "6,-6"], "--box must be two finite numbers LOW < HIGH"),
+        (RUN + ["--method", "vanilla", "--number-format", "grid"], "--number-format grid needs encoded parameters; vanilla sends them raw"),
+        (RUN + ["--number-format", "hex"], "invalid choice: 'hex'"),
         (RUN + ["--box", "a,b"], "expected LOW,HIGH"),
         (RUN + ["--method", "secret"], "invalid choice"),
         (RUN + ["--temperature", "9"], "--temperature must be in [0, 2]"),

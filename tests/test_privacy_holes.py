@@ -17,6 +17,7 @@ from test_audit import _last_request, build_run, shown_vector
 
 from ppprops import seeding
 from ppprops.cli import main
+from ppprops.client.codec import grid_factor, grid_scale
 from ppprops.client.hardening import generate_secrets
 from ppprops.config import RunConfig
 from ppprops.experiments.grid import derive_secrets
@@ -182,7 +183,7 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
 
     run = tmp_path / "fb"
     secrets = seeded_secrets("pp", "CartPole", 3)
-    config = make_config("CartPole", "pp", warmup=6, iterations=16, final_episodes=0, seed=0, parse_retries=0)
+    config = make_config("CartPole", "pp", warmup=6, iterations=16, final_episodes=0, seed=0, parse_retries=0, number_format="grid")
     start(config, run, secrets=secrets, llm=_Unusable(config.llm))
     store = open_store(run)
     cands = store.candidates()
@@ -194,11 +195,13 @@ def test_fallbacks_are_drawn_in_the_encoded_space_so_their_spread_states_no_secr
     a = np.asarray(est.value, dtype=float)
     known = np.isfinite(a)
     # the noise is keyed by the secrets (no replay from the run seed) and drawn at a public width in the
-    # encoded space: its spread measures that width, a_j about 1, whatever the true a_j is
+    # encoded space: its spread measures that width, a_j about G (the grid's public scale), whatever the true a_j is
+    G = grid_scale((-6.0, 6.0), warp_params=False)
+    true = grid_factor(secrets, (-6.0, 6.0), warp_params=False) * secrets.a  # the effective scale g a_j
     assert known.sum() >= 5 and "spread of" in est.detail, (a, est.detail)
-    assert np.median(np.abs(np.log(a[known]))) < 0.35, a  # about the public width
-    assert np.median(np.abs(np.log(secrets.a[known]))) > 0.5  # the true scales are far from 1
-    assert np.median(np.abs(np.log(a[known] / secrets.a[known]))) > 0.5  # so the estimate is not them
+    assert np.median(np.abs(np.log(a[known] / G))) < 0.35, a  # about the public width
+    assert np.median(np.abs(np.log(true[known] / G))) > 0.5  # the true scales are far from G
+    assert np.median(np.abs(np.log(a[known] / true[known]))) > 0.5  # so the estimate is not them
 
 
 # -- the new attacks on pp and pp-hardened --------------------------------------------------------------

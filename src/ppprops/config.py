@@ -120,6 +120,13 @@ class RunConfig:
     prompt_form: Annotated[Literal["auto", "chat", "document"], Flag(
         "chat: the paper's instruction prompt; document: the history as a document for a base model to continue "
         "(completions endpoint); auto: document for the embedded model, chat otherwise", group="prompt", api_name="form")] = "auto"
+    # How encoded parameters are written (wire.numbers.NUMBER_FORMATS): grid, integers on a secret global grid
+    # (client.codec); decimal, significant digits (the default). auto: grid when parameters are encoded, decimal otherwise.
+    # Runs stored before formats existed are decimal (from_json).
+    number_format: Annotated[Literal["auto", "grid", "decimal"], Flag(
+        "how encoded parameters are written: grid (integers on a secret global grid, fewest tokens) or decimal "
+        "(significant digits, the paper's; the default until the grid's search quality is measured); auto: grid when "
+        "parameters are encoded", group="prompt")] = "decimal"
     # The task's whole declaration (ppprops.tasks.spec.TaskSpec.model_dump(mode="json")): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
@@ -145,7 +152,16 @@ class RunConfig:
             if not get_method(self.method).parallel:
                 raise ConfigError(f"--method {self.method} asks one candidate at a time (each of its steps waits for the "
                                   f"last one's result): use --parallel 1")
+        if self.number_format == "grid" and not self.mechanisms.encode_params:
+            raise ConfigError(f"--number-format grid needs encoded parameters; {self.method} sends them raw (use decimal or auto)")
         return self
+
+    @property
+    def numbers(self) -> str:
+        """The number format of this run's parameters (``auto`` resolved): grid when they are encoded, else decimal."""
+        if self.number_format == "auto":
+            return "grid" if self.mechanisms.encode_params else "decimal"
+        return self.number_format
 
     def selection(self, has_env: bool = True) -> tuple[int, int]:
         """(candidates re-evaluated, episodes each) of the selection stage: ``select_top`` (None: 5
@@ -163,12 +179,12 @@ class RunConfig:
         ``client.context.prompt_context`` and the proposers take instead of the whole config."""
         return PromptSettings(mechanisms=self.mechanisms, box=self.box, decimals=self.decimals, params_style=self.prompt_params,
                               param_digits=self.digits(form), layout=self.prompt_layout, top_k=self.top_k, form=form,
-                              explore=self.explore is not False)
+                              explore=self.explore is not False, number_format=self.numbers)
 
     @property
     def encoding(self) -> EncodingSettings:
         """The settings the secrets and the codec depend on (``client.hardening``)."""
-        return EncodingSettings(mechanisms=self.mechanisms, box=self.box, episodes=self.episodes)
+        return EncodingSettings(mechanisms=self.mechanisms, box=self.box, episodes=self.episodes, grid=self.numbers == "grid")
 
     def digits(self, form: str | None = None) -> int:
         """Significant digits of a parameter in the prompt of ``form`` (default: this run's form)."""
@@ -218,6 +234,7 @@ class RunConfig:
             if key in d:
                 d[key] = tuple(d[key])
         d.setdefault("prompt_form", "chat")  # runs stored before the document form existed chatted
+        d.setdefault("number_format", "decimal")  # runs stored before the grid existed wrote decimals
         try:
             return cls(**d)
         except TypeError as e:  # an unknown key

@@ -302,7 +302,7 @@ def task_options(values: Mapping[str, Any]) -> TaskOptions:
 
 # run settings that shape the prompt or the LLM's answers: nothing to do for a method that sends no prompt
 PROMPT_SETTINGS = ("top_k", "decimals", "parse_retries", "on_llm_failure", "prompt_params", "param_digits", "explore",
-                   "prompt_layout", "prompt_form")
+                   "prompt_layout", "prompt_form", "number_format")
 
 
 def refuse_prompt_settings(method_name: str, keys: Iterable[str]) -> None:

@@ -216,7 +216,12 @@ class Study:
     @property
     def out(self) -> list[Trial]:
         """Every trial asked for and not yet told, by number, each with the worker holding it (``Trial.worker``)."""
-        return self.store.pending_trials()
+        return self._pending_trials()
+
+    def _pending_trials(self) -> list[Trial]:
+        """The stored pending trials, by number, with the study's policy family (``_with_policy``)."""
+        return [t if self.task.policy.is_linear else dataclasses.replace(t, policy=self.task.policy)
+                for t in self.store.pending_trials()]
 
     @property
     def status(self) -> tuple[RunStatus, str]:

@@ -43,8 +43,9 @@ class Stubborn:
 
 
 def _run(tmp_path: Path, explore: bool = True) -> tuple[Path, Stubborn]:
-    config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2), prompt_form="document",
-                     select_top=0, explore=explore)
+    # the decimal format: the stubborn model's answers (-0.49, -0.48, ...) are new each time at two decimals
+    config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2, number_format="decimal"),
+                     prompt_form="document", select_top=0, explore=explore)
     chat = Stubborn(config.llm)
     start(config, tmp_path / "r", llm=chat)
     return tmp_path / "r", chat

@@ -25,6 +25,7 @@ SECTIONS = ["1. The task description:", "2. The policy parameters:", "3. The fee
 
 def _setup(method: str, task: str = "CartPole", **kw: object):  # type: ignore[no-untyped-def]
     t = get_task(task)
+    kw.setdefault("number_format", "decimal")  # the decimal format's writing (the grid's: test_number_formats.py)
     cfg = make_config(task, method, **kw)
     rng = np.random.default_rng(3)
     secrets = Secrets(run_id="r", a=np.exp(rng.uniform(np.log(0.1), np.log(10), t.D)), c=3.7193)

@@ -17,6 +17,15 @@ The paper's maps (Sec. II-B, II-C) are theta~ = A theta and r~ = c r. The harden
   add up to one map (the additivity attack);
 - hidden components: one reward component (the task's residual) is never shown, so the return is
   not the sum of what is shown.
+- the grid (the ``grid`` number format, ``wire.numbers``): every encoded parameter is also
+  multiplied by one secret global factor g = G u, so the prompt writes it as an integer. G (public,
+  ``public_scale``) maps the largest encoded value the box allows under the secrets' prior
+  (a_j <= 10, or 3 when warped) to GRID_SPAN = 999; u is keyed by the secrets, log-uniform on
+  [1/2, 1], so no value leaves [-999, 999] under ``pp`` and g is not a function of anything public.
+  The factor is global, not one per coordinate: a grid per coordinate would make each step a_j's;
+  a global one only rescales A (theta~ = g A theta), and g is no more recoverable than A's overall
+  scale. Public widths in the encoded space (the encoded warm-up box, the fallback noise) are
+  multiplied by G, never by g;
 Every map is increasing in each coordinate, so larger encoded values still mean larger raw ones.
 The request's sampling seed is derived from the key as well, never from the run seed alone.
 """
@@ -33,9 +42,30 @@ from numpy.typing import NDArray
 
 from ..values import Feedback
 from ..wire.encoded import EncodedEntry
-from .secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
+from ..wire.numbers import GRID_SPAN
+from .secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
 
 ENCODED_LIMIT = 1.0e6  # public clamp of warped encoded parameters (answers beyond it decode as if at it)
+GRID_U_LOG = (math.log(0.5), 0.0)  # ln u of the grid factor g = G u: log-uniform, keyed by the secrets
+
+
+def grid_scale(box: tuple[float, float] | None, warp_params: bool) -> float:
+    """G, the public nominal grid factor: GRID_SPAN over the largest encoded magnitude the public box
+    allows under the secrets' prior (half the box width times the largest a_j, 10, or 3 when the
+    parameters are warped). Public: a function of the box and the preset only."""
+    half = (box[1] - box[0]) / 2.0 if box is not None else 6.0
+    a_hi = round(math.exp(HARDENED_A_LOG[1] if warp_params else LOG_HIGH), 9)  # 3 or 10, exactly
+    return GRID_SPAN / (half * a_hi)
+
+
+def grid_factor(secrets: Secrets, box: tuple[float, float] | None, warp_params: bool) -> float:
+    """g = G u, the secret global grid factor of a run on the grid: G = ``grid_scale(box, warp_params)``
+    (public), u log-uniform on [1/2, 1] from an HMAC of every secret (``secrets.subkey("grid")``), so
+    ``resume`` derives the same g and no public value (run seed, D, box) gives it. The effective
+    scale of coordinate j, what decoding needs, is g a_j (the audit scores attacks against it)."""
+    digest = hmac.new(secrets.subkey("grid"), b"u", hashlib.sha256).digest()
+    lo, hi = GRID_U_LOG
+    return grid_scale(box, warp_params) * math.exp(lo + (hi - lo) * int.from_bytes(digest[:8], "big") / 2.0**64)
 
 
 class Codec:
@@ -56,13 +86,15 @@ class Codec:
         resolution: Mapping[str, float] | None = None,
         episodes: int = 1,
         reward_scale: float = 1000.0,
+        grid: bool = False,
     ) -> None:
         """``secrets``: the run's key (``a`` of shape (D,) sets D). ``box``: the public (low, high) of
         every raw parameter, needed by ``warp_params``. ``resolution``: public step of each reward
         quantity per episode ("return" or a component name; integer returns: 1), dithered under
         ``warp_rewards``; a mean over ``episodes`` episodes has step 1/episodes of it.
-        ``reward_scale``: bound of the component offsets s_k. Raises ValueError when
-        ``warp_params`` (with ``encode_params``) is on and ``box`` is None."""
+        ``reward_scale``: bound of the component offsets s_k. ``grid`` (with ``encode_params``): the
+        secret global grid factor g of the module docstring multiplies every encoded parameter.
+        Raises ValueError when ``warp_params`` (with ``encode_params``) is on and ``box`` is None."""
         D = len(secrets.a)
         self._a = np.asarray(secrets.a, dtype=np.float64) if encode_params else np.ones(D)
         self._c = float(secrets.c) if scale_rewards else 1.0
@@ -82,6 +114,9 @@ class Codec:
         self._seed_key = secrets.subkey("sampling-seed")
         self._reward_key = secrets.subkey("rewards")
         self._maps: dict[str, tuple[float, float, float]] = {}
+        self.grid = grid and encode_params
+        self.public_scale = grid_scale(box, self.warp_params) if self.grid else 1.0  # G (public)
+        self._g = grid_factor(secrets, box, self.warp_params) if self.grid else 1.0  # g = G u (secret)
         if self.warp_params:
             if box is None:
                 raise ValueError("warped parameters need the public box")
@@ -90,7 +125,7 @@ class Codec:
 
     def __repr__(self) -> str:
         return (f"Codec(encode_params={self.encode_params}, scale_rewards={self.scale_rewards}, offsets={self.offsets}, "
-                f"warp_params={self.warp_params}, warp_rewards={self.warp_rewards})")
+                f"warp_params={self.warp_params}, warp_rewards={self.warp_rewards}, grid={self.grid})")
 
     # -- the box-to-line map T and its inverse (warped parameters) ---------------------------
     def _t(self, theta: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -105,7 +140,8 @@ class Codec:
 
     # -- parameters -----------------------------------------------------------------------
     def encode(self, theta: NDArray[np.floating]) -> NDArray[np.float64]:
-        """theta~ = A theta (paper Eq. 5, Sec. II-B), clipped to +-ENCODED_LIMIT when warped.
+        """theta~ = A theta (paper Eq. 5, Sec. II-B), clipped to +-ENCODED_LIMIT when warped, times
+        the grid factor g on the grid.
 
         With secret offsets m (``pp-hardened``) it is A (theta - m), and with the parameter warp T
         as well A (T(theta) - T(m)) (docs/threat-model.md). ``theta``: raw parameters, shape (D,).
@@ -118,8 +154,8 @@ class Codec:
         if x.shape != self._a.shape:
             raise ValueError(f"theta has shape {x.shape}; the codec encodes vectors of shape {self._a.shape}")
         if self.warp_params:
-            return np.clip(self._a * (self._t(x) - self._m_t), -ENCODED_LIMIT, ENCODED_LIMIT)
-        return self._a * (x - self._m)
+            return self._g * np.clip(self._a * (self._t(x) - self._m_t), -ENCODED_LIMIT, ENCODED_LIMIT)
+        return self._g * (self._a * (x - self._m))
 
     def decode(self, theta_enc: NDArray[np.floating]) -> NDArray[np.float64]:
         """theta = A^-1 theta~ (paper Eq. 6), the inverse of ``encode``: shape (D,) in, shape (D,) float64 out.
@@ -127,7 +163,7 @@ class Codec:
         Under ``warp_params`` every real vector decodes into the open box (the LLM's answer cannot
         leave it); otherwise the caller clips the result into the box.
         """
-        x = np.asarray(theta_enc, dtype=np.float64)
+        x = np.asarray(theta_enc, dtype=np.float64) / self._g
         if self.warp_params:
             return self._t_inv(np.clip(x, -ENCODED_LIMIT, ENCODED_LIMIT) / self._a + self._m_t)
         return x / self._a + self._m

@@ -35,6 +35,7 @@ class PromptSettings:
     top_k: int = 10
     form: str = "chat"
     explore: bool = True  # the document form's exploration when stuck (wire.document.STALL_AFTER)
+    number_format: str = "decimal"  # how encoded parameters are written (wire.numbers.NUMBER_FORMATS)
 
 
 def encoding_words(codec: Codec) -> tuple[str, str]:
@@ -44,9 +45,10 @@ def encoding_words(codec: Codec) -> tuple[str, str]:
     return params, rewards
 
 
-def warmup_box(box: tuple[float, float]) -> tuple[float, float]:
-    """The public encoded box an encoded warm-up draws from: the public ``box``'s width, centred on 0."""
-    half = (box[1] - box[0]) / 2.0
+def warmup_box(box: tuple[float, float], scale: float = 1.0) -> tuple[float, float]:
+    """The public encoded box an encoded warm-up draws from: the public ``box``'s width, centred on 0,
+    times ``scale`` (the codec's public grid scale G on the grid, else 1: ``Codec.public_scale``)."""
+    half = scale * (box[1] - box[0]) / 2.0
     return (-half, half)
 
 
@@ -97,9 +99,10 @@ def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> Prompt
         history_limit=settings.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,
-        warmup_range=warmup_box(settings.box) if (m.encoded_warmup and m.encode_params) else None,
+        warmup_range=warmup_box(settings.box, codec.public_scale) if (m.encoded_warmup and m.encode_params) else None,
         describe_task=m.describe_task,
         hidden=task.policy.hidden,
         activation="" if task.policy.is_linear else task.policy.activation,
         layer_ranges=None if m.encode_params or task.policy.is_linear else tuple(task.policy.layer_boxes(task.n_s, task.n_a, settings.box)),
+        number_format=settings.number_format,
     )

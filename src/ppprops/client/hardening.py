@@ -32,6 +32,7 @@ class EncodingSettings:
     mechanisms: Mechanisms
     box: tuple[float, float]
     episodes: int = 1
+    grid: bool = False  # encoded parameters on the integer grid of a secret global factor (the grid number format)
 
 
 def return_determining(task: Task) -> frozenset[str]:
@@ -116,4 +117,5 @@ def codec_for(secrets: Secrets, task: Task, config: EncodingSettings) -> Codec:
         resolution=facts_for(task).resolution or {},
         episodes=config.episodes,
         reward_scale=reward_scale(task),
+        grid=config.grid,
     )

@@ -72,15 +72,39 @@ def model_path() -> Path:
         return Path(gguf.assemble(target, overwrite=True))
 
 
+def busy_cores(interval: float = 0.25, stat: str = "/proc/stat") -> float | None:
+    """Cores busy now: the non-idle share of all CPU time over ``interval`` seconds (``/proc/stat``),
+    times the cores; None where that file cannot be read (then callers fall back on the load average)."""
+
+    def sample() -> tuple[int, int]:
+        with open(stat, encoding="ascii") as f:
+            fields = [int(x) for x in f.readline().split()[1:9]]
+        return sum(fields), fields[3] + fields[4]  # total, idle + iowait
+
+    try:
+        total0, idle0 = sample()
+        time.sleep(interval)
+        total1, idle1 = sample()
+    except (OSError, ValueError, IndexError):
+        return None
+    if total1 <= total0:
+        return None
+    return (os.cpu_count() or 1) * (1.0 - (idle1 - idle0) / (total1 - total0))
+
+
 def default_threads(cores: int | None = None, load: float | None = None) -> int:
     """llama.cpp threads for the cores that are free now: ``cores - round(load)``, at least 1.
 
-    ``load`` is the 1-minute load average (``os.getloadavg``). More threads than free cores is
-    much slower, not a little: llama.cpp's threads wait for each other at every step, so one
-    that is descheduled stalls the rest (measured on 2 cores at load 11: decoding 10 tokens/s
-    with one thread, 1-2 with two; dependencies.md). On idle cores every core is used.
+    ``load``: the cores busy now (``busy_cores``, a quarter-second sample), else the 1-minute load
+    average (``os.getloadavg``), which lags: a process that ended a minute ago, or an editor's
+    brief bursts, kept a whole core idle for a run. More threads than free cores is much slower,
+    not a little: llama.cpp's threads wait for each other at every step (benchmark 10, 2 cores:
+    beside one busy process, 2 threads decoded 11.7 tokens/s and 1 thread 18.8; on idle cores 2
+    threads decoded 31.8 and 1 thread 19.1). On idle cores every core is used.
     """
     cores = cores if cores is not None else max(1, os.cpu_count() or 1)
+    if load is None:
+        load = busy_cores()
     if load is None:
         try:
             load = os.getloadavg()[0]

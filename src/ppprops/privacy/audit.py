@@ -856,7 +856,7 @@ class _Auditor:
         if self.simulate:
             self.report.sim_bound = self.limits.describe()
         found = assess(self.requests, self.task, self.config.box, self.mech, self.cands, self.secrets, limits=self.limits,
-                       simulate=self.simulate)
+                       simulate=self.simulate, grid=run_grid_factor(self.config, self.secrets))
         for x in found.exposures:
             if x.target == "c":
                 secret = "c"
@@ -990,6 +990,16 @@ def _num(v: object) -> float:
         return float(v)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return math.nan
+
+
+def run_grid_factor(config: RunConfig, secrets: Secrets | None) -> float:
+    """The secret grid factor g of a run on the grid (``client.codec.grid_factor``), 1 off the grid or
+    without its key file: attacks on a are scored against the effective scale g a_j."""
+    if secrets is None or config.numbers != "grid":
+        return 1.0
+    from ..client.codec import grid_factor
+
+    return grid_factor(secrets, config.box, config.mechanisms.warp_params)
 
 
 def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:

@@ -82,10 +82,13 @@ class Assessment:
     near_misses: list[str] = field(default_factory=list)  # "attack: what within x%", for errors in (1%, 2%]
 
 
-def true_secrets(mech: Mechanisms, cands: Sequence[Candidate], secrets: Secrets | None) -> tuple[float | None, np.ndarray | None]:
-    """(c, a) to score against: the key file's, else the store's ratios when the maps are pure scales."""
+def true_secrets(mech: Mechanisms, cands: Sequence[Candidate], secrets: Secrets | None,
+                 grid: float = 1.0) -> tuple[float | None, np.ndarray | None]:
+    """(c, a) to score against: the key file's, else the store's ratios when the maps are pure scales.
+    ``grid``: the run's secret grid factor g (1 off the grid); a is then the effective scale g a_j,
+    what decoding a shown value needs (``client.codec.grid_factor``)."""
     if secrets is not None:
-        return float(secrets.c), np.asarray(secrets.a, dtype=np.float64)
+        return float(secrets.c), grid * np.asarray(secrets.a, dtype=np.float64)
     pure = not (mech.secret_offsets or mech.warp_params or mech.warp_rewards)
     if not pure or not cands:
         return None, None
@@ -143,11 +146,12 @@ def raw_exposures(est: Estimate, cands: Sequence[Candidate], box: tuple[float, f
 
 def assess(requests: Sequence[Request], task: str | Task, box: tuple[float, float], mech: Mechanisms,
            cands: Sequence[Candidate], secrets: Secrets | None, *, limits: SimLimits | None = None,
-           simulate: bool = True) -> Assessment:
+           simulate: bool = True, grid: float = 1.0) -> Assessment:
     """Run every attack on the transcript (``attacks.run_attacks``, simulator attacks bounded by
-    ``limits``) and score it: see ``Assessment``."""
+    ``limits``) and score it: see ``Assessment``. ``grid``: the run's grid factor g (1 off the
+    grid): estimates of a are scored against g a_j."""
     out = Assessment()
-    true_c, true_a = true_secrets(mech, cands, secrets)
+    true_c, true_a = true_secrets(mech, cands, secrets, grid)
     if true_c is None and true_a is None:
         out.note = "secrets not scored: no key file and the maps are not pure scales (raw values are still scored)"
     out.estimates = run_attacks(requests, task, box, limits=limits, simulate=simulate)

@@ -18,12 +18,13 @@ from typing import Any
 
 import numpy as np
 
+from ..client.codec import grid_scale
 from ..errors import ConfigError
 from ..rundir import open_run, policy_path
 from ..tasks.base import Task
 from . import simfit
 from .attacks import ATTACKS, TARGET, run_attacks
-from .audit import audit_run, search_config
+from .audit import audit_run, run_grid_factor, search_config
 from .exposure import EXPOSED_WITHIN, shown_candidate
 from .requests import load_requests
 from .simfit import SimLimits
@@ -88,7 +89,9 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
         calls = run.store.llm_calls()
     m = config.mechanisms
     true_c = secrets.c if m.scale_rewards else 1.0
-    true_a = np.asarray(secrets.a) if m.encode_params else np.ones(task.D)
+    true_a = run_grid_factor(config, secrets) * np.asarray(secrets.a) if m.encode_params else np.ones(task.D)  # g a_j on the grid
+    # the prior guess of a_j: 1, times the geometric mean of the grid factor's public range [G/2, G] on the grid
+    prior_a = PRIOR * (grid_scale(config.box, m.warp_params) / math.sqrt(2.0) if config.numbers == "grid" and m.encode_params else 1.0)
     out = RunAnalysis(
         run_dir=str(run_dir), task=task.name, method=config.method, seed=config.seed, warmup=config.warmup,
         iterations=config.iterations, best_return=max((c.ret for c in cands), default=math.nan),
@@ -116,7 +119,7 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
             arr = np.full(task.D, np.nan) if est.value is None else np.asarray(est.value, dtype=np.float64)
             known = np.isfinite(arr) & (arr > 0)
             # scored on the coordinates the attack estimated; with none, the attacker has only the prior
-            coords = _rel(arr[known], true_a[known]) if known.any() else _rel(PRIOR, true_a)
+            coords = _rel(arr[known], true_a[known]) if known.any() else _rel(prior_a, true_a)
             out.coord_errors[est.attack] = [float(x) for x in np.atleast_1d(coords)]
             out.errors[est.attack] = float(np.median(coords))
             out.coverage[est.attack] = float(known.mean())
@@ -128,7 +131,7 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
     if RAW_ROW in out.errors:
         out.within[RAW_ROW] = out.errors[RAW_ROW] <= EXPOSED_WITHIN
     out.errors["prior (c)"] = float(_rel(PRIOR, true_c))
-    out.coord_errors["prior (a)"] = [float(x) for x in _rel(np.full(task.D, PRIOR), true_a)]
+    out.coord_errors["prior (a)"] = [float(x) for x in _rel(np.full(task.D, prior_a), true_a)]
     out.errors["prior (a)"] = float(np.median(out.coord_errors["prior (a)"]))
     return out
 

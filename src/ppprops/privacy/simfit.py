@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .. import seeding
+from ..client.codec import grid_scale
 from ..client.secrets import HARDENED_A_LOG, HARDENED_P_LOG, LOG_HIGH, LOG_LOW
 from ..wire.forms import CHAT, FORMS
 from .simulator import Budget, OverBudget, Simulator, simulator_for
@@ -267,6 +268,7 @@ class Space:
     scheme: Scheme
     D: int
     box: tuple[float, float]
+    grid: bool = False  # the transcript is on the grid: a_j is the effective g a_j, g in [G/2, G] (client.codec)
 
     @property
     def offsets(self) -> bool:
@@ -281,6 +283,9 @@ class Space:
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The prior's support: ln a_j within the scheme's range; m_j within the central half of the box."""
         la = HARDENED_A_LOG if self.scheme.params == "warp" else (LOG_LOW, LOG_HIGH)
+        if self.grid:  # the secret grid factor g = G u, u in [1/2, 1], widens the support of the effective scale
+            G = grid_scale(self.box, self.scheme.params == "warp")
+            la = (la[0] + math.log(G / 2), la[1] + math.log(G))
         lo, hi = self.box
         mid, quarter = (lo + hi) / 2, (hi - lo) / 4
         low = [la[0]] * self.D + ([mid - quarter] * self.D if self.offsets else [])
@@ -576,7 +581,7 @@ def search(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes:
     total = sim.budget.steps
     for k, scheme in enumerate(schemes):  # the budget is shared out between the schemes tried
         sim.budget.steps = sim.budget.used + (total - sim.budget.used) // (len(schemes) - k)
-        space = Space(scheme, v.D, v.box)
+        space = Space(scheme, v.D, v.box, grid=v.grid)
         trace = traces.setdefault(scheme, []) if not exact else None
         run = _objective(space, d, sim, seeds, episodes, prior, trace)
         low, high = space.bounds()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -12,6 +13,8 @@ from ..tasks.facts import PrivacyFacts
 from .knowledge import facts_for
 from .requests import Request
 from .tokens import token_value
+
+_INTEGER = re.compile(r"-?\d+")
 
 if TYPE_CHECKING:
     from ..tasks.base import Task
@@ -44,6 +47,9 @@ class View:
     # the task's public declaration (env id, observation, recorder), so simulator attacks can build
     # its env when that env is public; None when only the name is known
     task: Task | None = field(default=None, compare=False)
+    # every printed parameter is an integer: the grid number format (wire.numbers), whose secret global
+    # factor g in [G/2, G] (G public: client.codec.grid_scale) multiplies every a_j
+    grid: bool = False
 
     @property
     def layer_box(self) -> tuple[Any, Any]:
@@ -123,8 +129,9 @@ def view_of(requests: Sequence[Request], task: str | Task, box: tuple[float, flo
             if k == 0:
                 first.append(seen[key])
     entries = tuple(s for s in seen.values() if len(s.params) == D)
+    grid = bool(entries) and all(_INTEGER.fullmatch(t) for r in requests for e in r.entries for t in e.params)
     return View(tuple(requests), entries, tuple(s for s in first if len(s.params) == D), facts_for(task), box, D,
-                task=None if isinstance(task, str) else task)
+                task=None if isinstance(task, str) else task, grid=grid)
 
 
 

@@ -276,7 +276,7 @@ class LLMProposer:
                 theta, clipped = clip_to_box(theta, self.box)
                 return Proposal(theta=theta, source="fallback", clipped=clipped, note=f"after {reason}")
             return Proposal(theta=rng.uniform(lo, hi, size=self.D), source="fallback", note=f"after {reason}")
-        noise = rng.normal(0.0, FALLBACK_SIGMA * (hi - lo), size=self.D)
+        noise = rng.normal(0.0, FALLBACK_SIGMA * (hi - lo) * self.codec.public_scale, size=self.D)  # G on the grid, else 1
         with np.errstate(over="ignore"):
             theta = self.codec.decode(self.best.params_enc + noise)
         theta, clipped = clip_to_box(theta, self.box)

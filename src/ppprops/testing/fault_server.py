@@ -32,7 +32,7 @@ any path but ``/v1/chat/completions`` and ``/v1/completions``, as Ollama does.
 
 The vector length D is read from the request: the JSON schema's ``minItems``, the llama.cpp
 grammar's repetition count (or the labels of the document form's continuation grammar), the
-prompt's "with D numbers" / "exactly D ... numbers", or the last history entry of a document.
+prompt's "with D numbers" (or integers) / "exactly D ... numbers", or the last history entry of a document.
 Decisions come from one seeded generator in arrival order, so a serial client sees the same
 fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
 ``max_seconds`` seconds. ``GET /stats`` returns the counts, among them the most completions
@@ -243,7 +243,7 @@ class _State:
 
 _SCHEMA_DIM = re.compile(r"\{(\d+)\}")
 _GRAMMAR_LABEL = re.compile(r'"(?:,)?(\d+):"')
-_PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?numbers")
+_PROMPT_DIM = re.compile(r"(?:with|exactly|holding exactly) (\d+) (?:finite )?(?:numbers|integers)")
 
 
 def requested_dim(body: dict[str, Any], default: int | None = None) -> int | None:
@@ -258,8 +258,9 @@ def requested_dim(body: dict[str, Any], default: int | None = None) -> int | Non
     grammar = body.get("grammar")
     if isinstance(grammar, str):
         labels = _GRAMMAR_LABEL.findall(grammar)
-        if labels:
-            return max(int(x) for x in labels) + 1
+        if labels:  # one item per value: labelled ones, and with row labels the bare '","' ones between them
+            root = grammar.split("\n", 1)[0]
+            return len(labels) + root.count('"," ')
         m = _SCHEMA_DIM.search(grammar)
         return int(m.group(1)) + 1 if m else 1
     prompt = body.get("prompt")

@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from .encoded import EncodedEntry, PromptContext
-from .numbers import fmt
+from .numbers import DECIMAL, fmt
 from .prompt import params_text, render
 
 # The open block asks for best + TARGET_LIFT * min(best - worst, |best|) of the shown returns.
@@ -92,11 +92,21 @@ def document_sampling(stalled: int, temperature: float | None = None) -> dict[st
 
 def labelled(ctx: PromptContext, params: Sequence[float]) -> str:
     """Parameters as one list whose values carry their index, ``[0:1.21,1:-0.3,...]``, each value
-    in the list form of ``wire.prompt.params_text``. The labels let the small model copy a value
-    from the same coordinate of an entry above (without them it lost its place in lists of 21
-    numbers and wrote junk; benchmarks/RESULTS.md)."""
+    in the list form of ``wire.prompt.params_text``; in a format with row labels
+    (``NumberFormat.row_labels``; no built-in format sets it yet) only the first value of each row
+    is labelled, ``[0:12,-3,5,3:40,...]`` (``is_labelled``). The labels let the small model copy a
+    value from the same coordinate of an entry above (without them it lost its place in lists of 21
+    numbers and wrote junk; benchmarks/RESULTS.md; benchmark 11 measures one label per row)."""
     values = params_text(_as_list(ctx), tuple(params)).strip("[]").split(",")
-    return "[" + ",".join(f"{i}{LABEL}{v}" for i, v in enumerate(values)) + "]"
+    return "[" + ",".join(f"{i}{LABEL}{v}" if is_labelled(ctx, i) else v for i, v in enumerate(values)) + "]"
+
+
+def is_labelled(ctx: PromptContext | None, j: int) -> bool:
+    """Whether value ``j`` carries its index: every value, or in a format with ``row_labels`` the
+    first of each row of ``n_a`` values (a row of W, then the biases)."""
+    if ctx is None or not ctx.numbers.row_labels:
+        return True
+    return j % max(1, ctx.n_a) == 0
 
 
 def document_entry(ctx: PromptContext, e: EncodedEntry) -> str:
@@ -127,8 +137,9 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
     are fixed text; the model writes only the values).
 
     With ``history`` (the shown entries) and ``ctx``, the grammar fits the encoded scale of each
-    coordinate: a value is written as the prompt writes numbers (``ctx.param_digits``
-    significant digits, at most ``ctx.decimals`` decimals), with at most as many integer digits
+    coordinate: a value is written as the prompt writes numbers (in ``ctx.numbers``, the number
+    format: integers on the grid, else ``ctx.param_digits`` significant digits with at most
+    ``ctx.decimals`` decimals), with at most as many integer digits
     as the widest value the prompt prints at that coordinate. So a proposal can go up to ten
     times past the shown values, but not write a coordinate whose values are in the tens with
     three integer digits, nor spend tokens on digits the history never shows. It is built only
@@ -140,7 +151,7 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
     rules: dict[str, str] = {}
     if not history or ctx is None:
         names = ["num"] * D
-        rules["num"] = 'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?'
+        rules["num"] = "num ::= " + (ctx.numbers if ctx is not None else DECIMAL).number_rule()
     else:
         lst = _as_list(ctx)
         widest = [1] * D
@@ -156,18 +167,19 @@ def continuation_grammar(D: int, history: Sequence[EncodedEntry] = (), ctx: Prom
                 alts = [_magnitude(k, ctx) for k in range(w + 1)]
                 rules[name] = f'{name} ::= "-"? ({" | ".join(alts)})'
             names.append(name)
-    items = [f'"{"," if j else ""}{j}{LABEL}" {n}' for j, n in enumerate(names)]
+    items = [f'"{"," if j else ""}{j}{LABEL}" {n}' if is_labelled(ctx, j) else f'"," {n}' for j, n in enumerate(names)]
     root = "root ::= " + " ".join(items) + ' "]"'
     return "\n".join([root, *rules.values()]) + "\n"
 
 
 def _magnitude(k: int, ctx: PromptContext) -> str:
     """GBNF for a number with ``k`` integer digits (0: below 1) as the list form prints it."""
-    fixed = ctx.param_digits <= 0
+    digits, decimals = ctx.param_sig_digits, ctx.param_decimals  # the number format's (wire.numbers)
+    fixed = digits <= 0
     if k == 0:
-        dec, ints = ctx.decimals, '"0"'
+        dec, ints = decimals, '"0"'
     else:
-        dec = ctx.decimals if fixed else max(0, min(ctx.decimals, ctx.param_digits - k))
+        dec = decimals if fixed else max(0, min(decimals, digits - k))
         ints = " ".join(["[1-9]"] + ["[0-9]"] * (k - 1))
     frac = f' ("." {" ".join(["[0-9]"] + ["[0-9]?"] * (dec - 1))})?' if dec > 0 else ""
     return ints + frac

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .numbers import NumberFormat, number_format
+
 
 @dataclass(frozen=True)
 class EncodedEntry:
@@ -61,6 +63,25 @@ class PromptContext:
     hidden: tuple[int, ...] = ()
     activation: str = ""
     layer_ranges: tuple[tuple[float, float], ...] | None = None
+
+    # How encoded parameters are written (wire.numbers.NUMBER_FORMATS): "grid", integers on the client's
+    # secret grid, or "decimal", significant digits (every run stored before the grid existed).
+    number_format: str = "decimal"
+
+    @property
+    def numbers(self) -> NumberFormat:
+        """The number format of the parameters (``wire.numbers.number_format``; ValueError for an unknown name)."""
+        return number_format(self.number_format)
+
+    @property
+    def param_decimals(self) -> int:
+        """Decimals of a printed parameter in this context's number format."""
+        return self.numbers.decimals(self.decimals)
+
+    @property
+    def param_sig_digits(self) -> int:
+        """Significant digits of a printed parameter in this context's number format (0: fixed decimals)."""
+        return self.numbers.digits(self.param_digits)
 
     @property
     def n_s(self) -> int:

@@ -33,6 +33,7 @@ from .document import (
 )
 from .encoded import EncodedEntry, PromptContext
 from .names import CHAT_FORM, CRITIC_FORM, DOCUMENT_FORM
+from .numbers import DECIMAL, NumberFormat
 from .parse import ParseResult, read_answer, read_continuation
 from .prompt import build_prompt, history_entry, template
 from .transcript import ShownEntry, history_entries, open_target
@@ -47,18 +48,21 @@ CHAT_TEMPERATURE = 1.0  # the chat form's sampling temperature when --temperatur
 REPEAT_PENALTY = 1.3
 
 
-def params_schema(D: int) -> dict[str, Any]:
-    """The JSON schema of a chat answer: an object with ``params``, an array of exactly ``D`` numbers."""
+def params_schema(D: int, numbers: NumberFormat = DECIMAL) -> dict[str, Any]:
+    """The JSON schema of a chat answer: an object with ``params``, an array of exactly ``D`` numbers
+    (integers in the grid format)."""
+    item = "integer" if numbers.integers else "number"
     return {
         "type": "object",
-        "properties": {"params": {"type": "array", "items": {"type": "number"}, "minItems": D, "maxItems": D}},
+        "properties": {"params": {"type": "array", "items": {"type": item}, "minItems": D, "maxItems": D}},
         "required": ["params"],
         "additionalProperties": False,
     }
 
 
-def params_grammar(D: int) -> str:
-    """GBNF for ``{"params": [n, ...]}`` with exactly D plain decimals and no free whitespace.
+def params_grammar(D: int, numbers: NumberFormat = DECIMAL) -> str:
+    """GBNF for ``{"params": [n, ...]}`` with exactly D numbers of the format ``numbers`` (plain
+    decimals, or integers on the grid: ``wire.numbers.NumberFormat.number_rule``) and no free whitespace.
 
     llama.cpp's JSON-schema grammar lets small models pad with whitespace until the token limit;
     this one cannot, which keeps answers short and always parseable.
@@ -67,7 +71,7 @@ def params_grammar(D: int) -> str:
     return (
         f'root ::= "{{\\"params\\": [" num{rest} "]}}"\n'
         'ws ::= " "?\n'
-        'num ::= "-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?\n'
+        f"num ::= {numbers.number_rule()}\n"
     )
 
 
@@ -182,8 +186,8 @@ class PromptForm:
             messages, decisions = correction_messages(prompt, previous, detail, ctx.D), {"correction": detail}
         return FormRequest(self.name, self.endpoint, ctx.D, iteration, attempt, messages=tuple(messages),
                            sampling={"temperature": CHAT_TEMPERATURE if temperature is None else temperature},
-                           answer_tokens=answer_budget(ctx.D), explains=True, json_schema=params_schema(ctx.D),
-                           grammar=params_grammar(ctx.D), decisions=decisions)
+                           answer_tokens=answer_budget(ctx.D), explains=True, json_schema=params_schema(ctx.D, ctx.numbers),
+                           grammar=params_grammar(ctx.D, ctx.numbers), decisions=decisions)
 
     def judge(self, content: str | None, reasoning: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
               finish_reason: str | None = None) -> ParseResult:

@@ -24,6 +24,15 @@ def render(name: str, **values: object) -> str:
     return template(name).substitute(**values)
 
 
+TERSE = ("feedback_detailed", "feedback_scalar", "interaction", "scale_note")  # templates with a ``*_terse`` wording
+
+
+def wording(ctx: PromptContext, name: str) -> str:
+    """The template of ``name`` in the context's number format: its ``*_terse`` wording in a terse
+    format (the grid, ``wire.numbers.NumberFormat.terse``) where one exists, else ``name``."""
+    return f"{name}_terse" if ctx.numbers.terse and name in TERSE else name
+
+
 
 def task_section(ctx: PromptContext) -> str:
     """The task description (ProPS+), or with ``describe_task`` off only the policy's structure (ProPS)."""
@@ -70,7 +79,7 @@ def parameters_section(ctx: PromptContext) -> str:
     """
     if ctx.hidden:
         return _mlp_parameters(ctx)
-    desc = layout.describe(ctx.n_s, ctx.n_a)
+    desc = layout.describe(ctx.n_s, ctx.n_a, terse=ctx.numbers.terse)
     if ctx.encoded_params:
         if ctx.param_encoding not in _PARAM_TEMPLATES:
             raise ValueError(f"unknown parameter encoding {ctx.param_encoding!r}")
@@ -111,19 +120,19 @@ def feedback_section(ctx: PromptContext) -> str:
     """
     if ctx.scaled_rewards and ctx.reward_encoding not in _REWARD_NOTES:
         raise ValueError(f"unknown reward encoding {ctx.reward_encoding!r}")
-    scale = render(_REWARD_NOTES[ctx.reward_encoding]) if ctx.scaled_rewards else ""
+    scale = render(wording(ctx, _REWARD_NOTES[ctx.reward_encoding])) if ctx.scaled_rewards else ""
     optimum = render("optimum_note", optimum=fmt(ctx.optimum, ctx.decimals)) if ctx.optimum is not None else ""
     if not ctx.detailed_feedback:
-        return render("feedback_scalar", scale_note=scale, optimum_note=optimum)
+        return render(wording(ctx, "feedback_scalar"), scale_note=scale, optimum_note=optimum)
     notes = [f"- component {k}: {v}" for k, v in ctx.component_notes]
     notes += [f"- diagnostic {k}: {v}" for k, v in ctx.diagnostic_notes]
-    return render("feedback_detailed", scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
+    return render(wording(ctx, "feedback_detailed"), scale_note=scale, optimum_note=optimum, notes="\n".join(notes)).rstrip()
 
 
 def interaction_section(ctx: PromptContext) -> str:
     """The interaction section: how many past policies the history shows (top-K or all) and the answer format (D numbers)."""
     size = "every policy evaluated so far" if ctx.history_limit == 0 else f"at most the {ctx.history_limit} best policies so far"
-    return render("interaction", history_size=size, D=ctx.D, last=ctx.D - 1)
+    return render(wording(ctx, "interaction"), history_size=size, D=ctx.D, last=ctx.D - 1, numbers=ctx.numbers.words)
 
 
 # Shared with ``wire.transcript``, which reads entries back out of recorded prompts.
@@ -142,13 +151,14 @@ def _choice(table: dict[str, str], value: str, what: str) -> str:
 
 
 def params_text(ctx: PromptContext, params: tuple[float, ...]) -> str:
-    """The list form is the compact default: no space after a comma and ``param_digits``
+    """Parameters as the context's number format writes them (``ctx.numbers``: integers on the
+    grid). The list form is the compact default: no space after a comma and ``param_digits``
     significant digits (one token per character saved with Gemma's tokenizer). The ProPS form
     repeats ``params[i]: `` before every value at fixed decimals. benchmarks/RESULTS.md compares
     the two in characters, tokens and search results."""
-    d = ctx.decimals
+    d = ctx.param_decimals  # the number format's (wire.numbers): 0 on the grid
     if _choice(PARAMS_STYLES, ctx.params_style, "params style") == PARAMS_STYLES["list"]:
-        return fmt_vector(params, d, digits=ctx.param_digits, sep=",")
+        return fmt_vector(params, d, digits=ctx.param_sig_digits, sep=",")
     return ", ".join(f"params[{i}]: {fmt(v, d)}" for i, v in enumerate(params))
 
 

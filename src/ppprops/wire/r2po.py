@@ -38,7 +38,7 @@ def build_critic_prompt(ctx: PromptContext, ev: Evidence) -> str:
         "r2po_critic",
         task=task_section(ctx),
         parameters=parameters_section(ctx),
-        params=fmt_vector(ev.params, d),
+        params=fmt_vector(ev.params, ctx.param_decimals, digits=ctx.param_sig_digits),
         episodes=ev.episodes,
         mean=fmt(mean, d),
         std=fmt(std, d),

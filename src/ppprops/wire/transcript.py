@@ -83,15 +83,17 @@ def _indexed_params(text: str) -> tuple[str, ...]:
 
 
 def _labelled_params(text: str) -> tuple[str, ...]:
-    """Values of a labelled list ``0:v,1:v,...`` (the document form). Labels that do not count
-    0, 1, 2, ... give an entry whose parameters cannot be read (unverified, never skipped)."""
+    """Values of a labelled list ``0:v,1:v,...`` (the document form; with row labels only some
+    values carry one: ``0:v,v,2:v,v``). A first value without a label, or a label that is not its
+    value's position, gives an entry whose parameters cannot be read (unverified, never skipped);
+    the audit also compares each entry with the form's own rendering, which fixes where labels go."""
     items = [v.strip() for v in text.split(",") if v.strip()]
     out = []
     for i, item in enumerate(items):
         label, sep, value = item.partition(":")
-        if not sep or label.strip() != str(i):
+        if (not sep and i == 0) or (sep and label.strip() != str(i)):
             return (UNREADABLE,)
-        out.append(value.strip())
+        out.append(value.strip() if sep else item)
     return tuple(out)
 
 
