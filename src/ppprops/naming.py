@@ -1,4 +1,5 @@
-"""Names of runs: ids and default directories, one pattern for both (CleanRL's ``env__exp__seed__time``).
+"""Names of runs and workers: run ids and default directories, one pattern for both (CleanRL's
+``env__exp__seed__time``), and the plain names a study's workers go by.
 
 A run started without ``--out`` lives in ``runs/<run id>``, so the id the summary prints is the
 directory's name. Ids are ``<task>__<method>__<seed>__<YYYYmmdd-HHMMSS>-<4 hex digits>``: the
@@ -15,6 +16,10 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from .errors import ConfigError
+
+WORKER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
 
 def safe_name(text: str) -> str:
     """``text`` with every character but letters, digits and ``_.+-`` replaced by ``_`` (a file name)."""
@@ -29,3 +34,12 @@ def new_run_id(task: str, method: str, seed: int) -> str:
 def default_run_dir(config: Any, root: Path = Path("runs")) -> Path:
     """``root / new_run_id(...)`` for a run config (anything with ``task``, ``method`` and ``seed``)."""
     return Path(root) / new_run_id(str(config.task), str(config.method), int(config.seed))
+
+
+def check_worker(name: str) -> str:
+    """``name`` if it is a plain worker name (a letter or digit, then up to 63 letters, digits,
+    ``.``, ``_`` or ``-``), else ConfigError."""
+    if not isinstance(name, str) or not WORKER_NAME.fullmatch(name):
+        raise ConfigError(f"worker name {name!r} is not a plain name: use letters, digits, '.', '_' and '-' "
+                          "(up to 64, starting with a letter or digit), e.g. robot-2")
+    return name

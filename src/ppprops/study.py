@@ -29,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import re
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
@@ -52,6 +51,7 @@ from .fileio import write_json_atomic
 from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
 from .loop import locate, pooled_returns, search_candidates, select_best
 from .methods import Method, get_method
+from .naming import check_worker
 from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
 from .status import RunStatus
 from .store import RunStore
@@ -339,7 +339,8 @@ class Study:
                 trials.append(Trial(number=number, phase=phase.name, iteration=it, source=proposal.source,
                                     theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
                                     seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=ask_s,
-                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None, policy=self.task.policy))  # fmt: skip
+                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None,
+                                    policy=None if self.task.policy.is_linear else self.task.policy))  # fmt: skip
             self.store.add_pending_many(trials, limit=self.parallel)
             return trials[0]
 
@@ -850,18 +851,6 @@ class Study:
                                   "endpoint); this one serves chat only: use --prompt-form chat or auto")
             return CHAT
         return form
-
-
-WORKER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-
-
-def check_worker(name: str) -> str:
-    """``name`` if it is a plain worker name (a letter or digit, then up to 63 letters, digits,
-    ``.``, ``_`` or ``-``), else ConfigError."""
-    if not isinstance(name, str) or not WORKER_NAME.fullmatch(name):
-        raise ConfigError(f"worker name {name!r} is not a plain name: use letters, digits, '.', '_' and '-' "
-                          "(up to 64, starting with a letter or digit), e.g. robot-2")
-    return name
 
 
 class TrialsOut(ConfigError):

@@ -151,7 +151,7 @@ def cmd_ask(a: argparse.Namespace) -> int:
     ``EXIT_WAIT`` (4) with one line when ``--parallel`` trials are out and ``--wait`` is not given.
     """
     _import_numpy()
-    from .study import check_worker
+    from .naming import check_worker
 
     worker = None if a.worker is None else check_worker(a.worker)
     trial = _stored_trial(a.dir, worker or "")
@@ -214,7 +214,6 @@ def _stored_trial(run_dir: Path, worker: str = "") -> Trial | None:
     """
     from .client.secrets import Secrets
     from .locks import STUDY_LOCK, file_lock
-    from .policy import param_count
     from .rundir import KEY_NAME
     from .store import DB_NAME, open_store
 
@@ -223,10 +222,13 @@ def _stored_trial(run_dir: Path, worker: str = "") -> Trial | None:
     try:
         with open_store(run_dir) as store, file_lock(run_dir, STUDY_LOCK):
             trial = next((t for t in store.pending_trials() if t.worker == worker), None)
-            if trial is not None and len(trial.theta) != param_count(trial.n_s, trial.n_a):
+            if trial is None:
+                return None
+            family = ((store.config().get("task_spec") or {}).get("policy") or {}).get("kind", "linear")
+            linear_D = (trial.n_s + 1) * trial.n_a  # the linear policy's D (Eq. 10)
+            if family != "linear" or len(trial.theta) != linear_D:
                 return None  # an MLP's trial: the full path knows its layers (the study's policy family)
-            if trial is not None:
-                Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=param_count(trial.n_s, trial.n_a),
+            Secrets.load(Path(run_dir) / KEY_NAME, run_id=store.run_id(), D=linear_D,
                              fingerprint=store.key_fingerprint())  # fmt: skip
             return trial
     except Exception:  # whatever it is, the full path meets it too and says it as it always has

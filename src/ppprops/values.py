@@ -8,11 +8,12 @@ Everything here is client-side: it holds raw parameters and raw returns.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .policy import LINEAR, PolicySpec
+if TYPE_CHECKING:  # the policy module brings pydantic; a stored trial is read without it (``ppprops ask``)
+    from .policy import PolicySpec
 
 Diagnostic = float | str  # a diagnostic's value: a number, or a category such as a termination cause
 
@@ -128,7 +129,7 @@ class Trial:
         theta: the raw parameters to run, shape (D,), inside the box: D = (n_s + 1) n_a for the
             linear policy; an MLP's layers in order, each layer's weights then its bias (``ppprops.policy``).
         n_s, n_a: the policy's state and action sizes (``W`` and ``b``, or ``layers``, come from ``theta``).
-        policy: the policy family (``ppprops.policy.PolicySpec``; the linear one by default).
+        policy: the policy family (``ppprops.policy.PolicySpec``); None: the paper's linear policy.
         seeds: the episode seeds to reset a simulator with, one per episode asked for; a robot
             that cannot be seeded ignores them (its episodes' initial states are its own).
         clipped: coordinates that had to be clipped into the box.
@@ -152,7 +153,17 @@ class Trial:
     ask_s: float | None = None
     reevaluates: int | None = None
     worker: str | None = None
-    policy: PolicySpec = LINEAR
+    policy: PolicySpec | None = None
+
+    @property
+    def is_linear(self) -> bool:
+        """True for the paper's linear policy u = W^T s + b (``policy`` None or linear)."""
+        return self.policy is None or self.policy.is_linear
+
+    def _family(self) -> PolicySpec:
+        from .policy import LINEAR
+
+        return LINEAR if self.policy is None else self.policy
 
     @property
     def W(self) -> np.ndarray:
@@ -171,8 +182,8 @@ class Trial:
         return np.asarray(self.theta[self.n_s * self.n_a:], dtype=np.float64)
 
     def _linear(self, name: str) -> None:
-        if not self.policy.is_linear:
-            raise AttributeError(f"trial {self.number} is an {self.policy.label()} policy: it has layers ((W_l, b_l) pairs), not one {name}")
+        if not self.is_linear:
+            raise AttributeError(f"trial {self.number} is an {self._family().label()} policy: it has layers ((W_l, b_l) pairs), not one {name}")
 
     @property
     def layers(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
@@ -180,7 +191,7 @@ class Trial:
         One pair, (W, b), for the linear policy. The forward pass: ``ppprops.policy.FORWARD_TEXT``."""
         theta = np.asarray(self.theta, dtype=np.float64)
         return tuple((theta[w].reshape(i, o), theta[b]) for (w, b), (i, o)
-                     in zip(self.policy.layer_slices(self.n_s, self.n_a), self.policy.layer_shapes(self.n_s, self.n_a), strict=True))  # fmt: skip
+                     in zip(self._family().layer_slices(self.n_s, self.n_a), self._family().layer_shapes(self.n_s, self.n_a), strict=True))  # fmt: skip
 
     @property
     def episodes(self) -> int:
@@ -190,13 +201,13 @@ class Trial:
     def to_json(self) -> dict[str, Any]:
         """What ``ppprops ask`` prints: every field, ``theta`` flat and as ``W`` (rows of n_a) and ``b``;
         an MLP trial gives ``layers`` (each ``{"W": rows, "b": values}``), its ``policy`` and the ``forward`` pass instead."""
-        from .policy import FORWARD_TEXT
-
         shape: dict[str, Any]
-        if self.policy.is_linear:
+        if self.is_linear:
             shape = {"W": [[float(v) for v in row] for row in self.W], "b": [float(v) for v in self.b]}
         else:
-            shape = {"policy": self.policy.to_json(), "forward": FORWARD_TEXT,
+            from .policy import FORWARD_TEXT
+
+            shape = {"policy": self._family().to_json(), "forward": FORWARD_TEXT,
                      "layers": [{"W": W.tolist(), "b": b.tolist()} for W, b in self.layers]}
         return {
             "trial": self.number,
