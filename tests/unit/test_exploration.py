@@ -9,6 +9,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from ppprops.client.secrets import Secrets
 from ppprops.llm.client import RequestShape
 from ppprops.llm.protocol import Exchange
 from ppprops.privacy.audit import audit_run
@@ -47,7 +50,8 @@ def _run(tmp_path: Path, explore: bool = True) -> tuple[Path, Stubborn]:
     config = replace(make_config("CartPole", "pp", warmup=3, iterations=8, final_episodes=0, seed=2, number_format="decimal"),
                      prompt_form="document", select_top=0, explore=explore)
     chat = Stubborn(config.llm)
-    start(config, tmp_path / "r", llm=chat)
+    # fixed secrets: with some fresh ones the stubborn answers keep raising the best return and the search never stalls
+    start(config, tmp_path / "r", llm=chat, secrets=Secrets.generate("stuck", 10, rng=np.random.default_rng(1)))  # CartPole: D = 10
     return tmp_path / "r", chat
 
 

@@ -148,6 +148,9 @@ def test_a_call_recorded_before_calls_named_their_form_gets_the_one_its_body_sho
 
 
 def test_a_run_whose_retries_carry_the_repeat_penalty_is_accounted_for_by_the_audit(tmp_path: Path) -> None:
+    import numpy as np
+
+    from ppprops.client.secrets import Secrets
     from ppprops.privacy.audit import audit_run
     from ppprops.privacy.simulate import EchoOptimizer
     from ppprops.runner import start
@@ -165,7 +168,8 @@ def test_a_run_whose_retries_carry_the_repeat_penalty_is_accounted_for_by_the_au
             return ex
 
     config = make_config("CartPole", "pp", warmup=3, iterations=2, final_episodes=0, prompt_form="document")
-    start(config, tmp_path / "r", llm=Copycat(config.llm))
+    # fixed secrets, so the run (and the stand-in's answers, which depend on them) is the same every time
+    start(config, tmp_path / "r", llm=Copycat(config.llm), secrets=Secrets.generate("copycat", 10, rng=np.random.default_rng(0)))
     calls = recorded_calls(tmp_path / "r")
     assert [(c["attempt"], c["parse_error"], c["body"].get("repeat_penalty")) for c in calls] == [
         (0, "repeats_history", None), (1, None, REPEAT_PENALTY)] * 2
