@@ -205,13 +205,13 @@ class Study:
     @property
     def pending(self) -> Trial | None:
         """The first trial asked for and not yet told (the lowest number), or None."""
-        return self._with_policy(self.store.pending_trial())
+        trial = self.store.pending_trial()
+        return None if trial is None else self._with_policy(trial)
 
-    def _with_policy(self, trial: Trial | None) -> Trial | None:
-        """A stored trial with the study's policy family (the store keeps theta, n_s and n_a)."""
-        if trial is None or self.task.policy.is_linear:
-            return trial
-        return dataclasses.replace(trial, policy=self.task.policy)
+    def _with_policy(self, trial: Trial) -> Trial:
+        """A stored trial with the study's policy family (the store keeps theta, n_s and n_a; a
+        trial's ``policy`` is None for the paper's linear policy)."""
+        return trial if self.task.policy.is_linear else dataclasses.replace(trial, policy=self.task.policy)
 
     @property
     def out(self) -> list[Trial]:
@@ -220,8 +220,7 @@ class Study:
 
     def _pending_trials(self) -> list[Trial]:
         """The stored pending trials, by number, with the study's policy family (``_with_policy``)."""
-        return [t if self.task.policy.is_linear else dataclasses.replace(t, policy=self.task.policy)
-                for t in self.store.pending_trials()]
+        return [self._with_policy(t) for t in self.store.pending_trials()]
 
     @property
     def status(self) -> tuple[RunStatus, str]:

@@ -75,8 +75,8 @@ class NumberFormat:
         return 0 if self.integers else decimals
 
     def number_rule(self) -> str:
-        """The GBNF right-hand side of one answer number: an optional sign, up to three integer
-        digits and, in the decimal format, up to three decimals."""
+        """The GBNF right-hand side of one answer number: an optional sign, then up to four integer
+        digits on the grid, or up to three integer digits and up to three decimals in the decimal format."""
         if self.integers:
             return '"-"? [0-9] [0-9]? [0-9]? [0-9]?'
         return '"-"? [0-9] [0-9]? [0-9]? ("." [0-9] [0-9]? [0-9]?)?'
