@@ -137,6 +137,9 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
     assert main(["privacy-report", "--runs", str(root), "--pace-requests"]) == 2  # a setting of new runs only
     assert capsys.readouterr().err == ("ppprops: error: --pace-requests is a setting of new runs; the runs under --runs were made as "
                                        "they were\n")
+    assert main(["privacy-report", "--runs", str(root), "--number-format", "grid"]) == 2
+    assert capsys.readouterr().err == ("ppprops: error: --number-format is a setting of new runs; the runs under --runs were made as "
+                                       "they were\n")
 
 
 def test_privacy_report_runs_a_users_task_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -144,9 +147,13 @@ def test_privacy_report_runs_a_users_task_file(tmp_path: Path, capsys: pytest.Ca
     task_file = Path(__file__).resolve().parents[1] / "examples" / "own_robot" / "point_robot.toml"
     out = tmp_path / "own"
     assert main(["privacy-report", "--offline", "--task-file", str(task_file), "--seeds", "1", "--warmup", "3",
-                 "--iterations", "2", "--final-episodes", "1", "--out", str(out), "--json"]) == 0  # fmt: skip
+                 "--iterations", "2", "--final-episodes", "1", "--out", str(out), "--number-format", "grid", "--json"]) == 0  # fmt: skip
     analyses = json.loads(capsys.readouterr().out)
     assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["PointRobot__pp-hardened__0", "PointRobot__pp__0"]
+    for d in out.iterdir():
+        if d.is_dir():  # both schemes wrote the grid the flag asked for
+            with open_run(d) as run:
+                assert run.config.number_format == "grid"
     assert len(analyses) == 2
     for a in analyses:
         assert a["not_run"]["sim-exact"] == "the env of task PointRobot is private (its dynamics cannot be simulated by the provider)"

@@ -50,6 +50,8 @@ def add_privacy_commands(sub: argparse._SubParsersAction, parser_class: type[arg
                     help="new runs talk to an offline stand-in optimizer instead of the embedded model (fast; for many draws)")
     pr.add_argument("--pace-requests", action="store_true",
                     help="new runs pace their LLM requests (the pace_requests switch, both schemes): the timing channel closed")
+    pr.add_argument("--number-format", choices=("decimal", "grid"), default=None,
+                    help="how new runs write encoded parameters (both schemes; default: the run default, decimal)")
     pr.add_argument("--json", action="store_true", help="print one JSON list of per-run analyses")
     _sim_options(pr)
 
@@ -106,8 +108,9 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
     from ..rundir import DB_NAME, KEY_NAME, find_runs
     from .matrix import privacy_report, run_matrix, write_report
 
-    if a.runs is not None and a.pace_requests:
-        raise ConfigError("--pace-requests is a setting of new runs; the runs under --runs were made as they were")
+    if a.runs is not None and (a.pace_requests or a.number_format):
+        flag = "--pace-requests" if a.pace_requests else "--number-format"
+        raise ConfigError(f"{flag} is a setting of new runs; the runs under --runs were made as they were")
     if a.runs is not None:
         dirs = find_runs(a.runs, recursive=True, with_key=True)
         if not dirs:
@@ -126,7 +129,8 @@ def cmd_privacy_report(a: argparse.Namespace) -> int:
         out = a.out or Path("runs") / f"privacy-report-{time.strftime('%Y%m%d-%H%M%S')}"
         dirs = run_matrix(out, envs=envs, seeds=range(a.seeds), warmup=a.warmup, iterations=a.iterations,
                           final_episodes=a.final_episodes, log=lambda s: print(s, file=sys.stderr), offline=a.offline,
-                          switches={"pace_requests": True} if a.pace_requests else None)
+                          settings={**({"pace_requests": True} if a.pace_requests else {}),
+                                    **({"number_format": a.number_format} if a.number_format else {})})
     text, analyses = privacy_report(dirs, _limits(a), log=lambda s: print(s, file=sys.stderr), simulate=not a.no_simulate)
     write_report(out, text, analyses, "ppprops " + " ".join(shlex.quote(x) for x in sys.argv[1:]))
     print(json.dumps([x.to_json() for x in analyses]) if a.json else text)

@@ -149,13 +149,14 @@ def _model_of(calls: Sequence[dict[str, Any]]) -> str:
 def run_matrix(
     out: Path, *, envs: Sequence[str | Task], seeds: Sequence[int], schemes: Sequence[str] = SCHEMES, warmup: int = 10,
     iterations: int = 10, final_episodes: int = 20, log: Callable[[str], None] = print, offline: bool = False,
-    switches: Mapping[str, bool] | None = None,
+    settings: Mapping[str, Any] | None = None,
 ) -> list[Path]:
     """One run per (task, scheme, seed) with the embedded model (or the offline stand-in), in
     ``out/<task>__<scheme>__<seed>``; finished runs are kept, so a stopped matrix continues.
 
-    ``envs``: task names, or Tasks (a user's task file, as ``load_task`` reads it); ``switches``:
-    mechanism switches over each scheme's preset (``{"pace_requests": True}``). Returns the run
+    ``envs``: task names, or Tasks (a user's task file, as ``load_task`` reads it); ``settings``:
+    run settings over each scheme's preset, by their setting names (``{"pace_requests": True}``,
+    ``{"number_format": "grid"}``). Returns the run
     directories. Raises ConfigError for an unfinished run in the way, UnknownTaskError for a name
     that names no task.
     """
@@ -177,7 +178,7 @@ def run_matrix(
                     raise ConfigError(f"{d} holds an unfinished run; finish it with 'ppprops resume {d}' or remove it")
                 t0 = time.time()
                 cfg = build_config({"method": scheme, "warmup": warmup, "iterations": iterations,
-                                    "final_episodes": final_episodes, "seed": seed, **(switches or {})}, task=task)  # fmt: skip
+                                    "final_episodes": final_episodes, "seed": seed, **(settings or {})}, task=task)  # fmt: skip
                 start(cfg, d, llm=EchoOptimizer(cfg.llm) if offline else None)
                 log(f"{d}: done in {time.time() - t0:.0f} s")
     return dirs
