@@ -28,6 +28,7 @@ from ppprops.privacy import simfit
 from ppprops.privacy.audit import audit_run, renders, token_value
 from ppprops.runner import create_run, start
 from ppprops.store import Candidate, open_store
+from ppprops.summary import format_summary, run_summary
 from ppprops.tasks import get_task
 from ppprops.wire import build_prompt, top_k
 from ppprops.wire.numbers import fmt, fmt_sig, fmt_vector
@@ -335,5 +336,8 @@ def test_runs_in_each_number_format_audit_without_leaks_and_hardened_clean(tmp_p
         printed = re.findall(r"params: \[([^\]]*)\]", text)[0].split(",")
         values = [p.split(":")[-1] for p in printed]
         assert all(re.fullmatch(r"-?\d+", v) for v in values) == (fmt == "grid"), values
+        summary = run_summary(run)  # show names the grid on its task line (decimal, the paper's format, goes unnamed)
+        assert summary["number_format"] == fmt
+        assert ("numbers grid" in format_summary(summary).splitlines()[1]) == (fmt == "grid")
         if method == "pp-hardened":
             assert r.exit_code() == 0 and r.verdict().startswith("CLEAN"), r.format()

@@ -35,7 +35,10 @@ RUN = ["run", "--env", "CartPole", "--quiet", "--select-top", "0"]
         (RUN + ["--warmup", "0"], "--warmup must be >= 1"),
         (RUN + ["--iterations", "-3"], "--iterations must be >= 0"),
         (RUN + ["--box", "6,-6"], "--box must be two finite numbers LOW < HIGH"),
-        (RUN + ["--method", "vanilla", "--number-format", "grid"], "--number-format grid needs encoded parameters; vanilla sends them raw"),
+        (RUN + ["--method", "vanilla", "--number-format", "grid"],
+         "--number-format grid needs encoded parameters; --method vanilla sends them raw (use decimal or auto)"),
+        (RUN + ["--encode-params", "off", "--number-format", "grid"],  # pp encodes: the override is what sends them raw
+         "--number-format grid needs encoded parameters; --encode-params off sends them raw (use decimal or auto)"),
         (RUN + ["--number-format", "hex"], "invalid choice: 'hex'"),
         (RUN + ["--box", "a,b"], "expected LOW,HIGH"),
         (RUN + ["--method", "secret"], "invalid choice"),

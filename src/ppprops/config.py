@@ -125,8 +125,8 @@ class RunConfig:
     # Runs stored before formats existed are decimal (from_json).
     number_format: Annotated[Literal["auto", "grid", "decimal"], Flag(
         "how encoded parameters are written: grid (integers on a secret global grid, fewest tokens) or decimal "
-        "(significant digits, the paper's; the default until the grid's search quality is measured); auto: grid when "
-        "parameters are encoded", group="prompt")] = "decimal"
+        "(significant digits, the paper's); auto: grid when parameters are encoded, decimal when they are sent raw",
+        group="prompt")] = "decimal"
     # The task's whole declaration (ppprops.tasks.spec.TaskSpec.model_dump(mode="json")): env recipe, observation
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
@@ -153,7 +153,10 @@ class RunConfig:
                 raise ConfigError(f"--method {self.method} asks one candidate at a time (each of its steps waits for the "
                                   f"last one's result): use --parallel 1")
         if self.number_format == "grid" and not self.mechanisms.encode_params:
-            raise ConfigError(f"--number-format grid needs encoded parameters; {self.method} sends them raw (use decimal or auto)")
+            from .methods import resolve
+
+            raw = "--encode-params off" if resolve(self.method).encode_params else f"--method {self.method}"
+            raise ConfigError(f"--number-format grid needs encoded parameters; {raw} sends them raw (use decimal or auto)")
         return self
 
     @property

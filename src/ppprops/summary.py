@@ -64,7 +64,7 @@ def _policy_key(config: Any) -> dict[str, str]:
 def run_summary(run_dir: Path) -> dict[str, Any]:
     """The `ppprops show --json` object. Raw values: this stays on the client.
 
-    Keys: run_id, status, env, method, mechanisms, seed, config, endpoint_changes (LLM endpoints
+    Keys: run_id, status, env, number_format (resolved), method, mechanisms, seed, config, endpoint_changes (LLM endpoints
     changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
     too). Raises StoreError for a directory that holds no readable run."""
     with open_run(run_dir) as run:
@@ -110,6 +110,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
         "notes": notes,
         "env": config.task,
         **_policy_key(config),
+        "number_format": config.numbers,  # resolved: what the prompts wrote (auto names no format)
         "method": config.method,
         "mechanisms": config.mechanisms.to_json(),
         "seed": config.seed,
@@ -191,7 +192,8 @@ def format_summary(s: dict[str, Any]) -> str:
         return format_rl_summary(s)
     lines = [
         f"run      {s['run_id']} ({s['status']})",
-        f"task     {s['env']}   method {s['method']}   seed {s['seed']}" + (f"   policy {s['policy']}" if "policy" in s else ""),
+        f"task     {s['env']}   method {s['method']}   seed {s['seed']}" + (f"   policy {s['policy']}" if "policy" in s else "")
+        + ("   numbers grid" if s.get("number_format") == "grid" else ""),  # decimal, the paper's, is not named
     ]
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())

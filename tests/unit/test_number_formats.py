@@ -185,8 +185,10 @@ def test_each_format_prints_parses_and_constrains_its_own_numbers(fmt: str) -> N
 def test_unknown_formats_and_a_grid_without_encoding_are_refused() -> None:
     with pytest.raises(ValueError, match="unknown number format 'hex'"):
         number_format("hex")
-    with pytest.raises(ConfigError, match="--number-format grid needs encoded parameters"):
+    with pytest.raises(ConfigError, match="needs encoded parameters; --method vanilla sends them raw"):
         make_config("CartPole", "vanilla", number_format="grid")
+    with pytest.raises(ConfigError, match="needs encoded parameters; --encode-params off sends them raw"):
+        make_config("CartPole", "pp", number_format="grid", mechanisms=resolve("pp", encode_params=False))
     with pytest.raises(ConfigError, match="--number-format"):
         make_config("CartPole", "pp", number_format="hex")
 
