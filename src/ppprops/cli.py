@@ -24,7 +24,7 @@ from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn
 
-from .errors import ConfigError, PPPropsError
+from .errors import ConfigError, PPPropsError, interrupted_by_user
 from .version import __version__
 
 if TYPE_CHECKING:
@@ -557,6 +557,11 @@ def _main(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
         print(f"ppprops: error: {e}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
+        print(interrupted_line(args), file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except Exception as e:
+        if not interrupted_by_user(e):  # a Ctrl-C that Python wrapped on its way up is still a Ctrl-C
+            raise
         print(interrupted_line(args), file=sys.stderr, flush=True)
         return EXIT_INTERRUPTED
 

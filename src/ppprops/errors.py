@@ -33,3 +33,19 @@ class MissingExtraError(PPPropsError, ImportError):
     def __init__(self, extra: str, what: str) -> None:
         super().__init__(f"{what} needs the '{extra}' extra: pip install 'ppprops[{extra}]'")
         self.extra = extra
+
+
+def interrupted_by_user(error: BaseException) -> bool:
+    """Whether a Ctrl-C lies under ``error``: a ``KeyboardInterrupt`` itself, or one that Python
+    wrapped on its way up. A SIGINT that lands while a module is being imported lazily (an HTTP
+    client loading its resources on first use) can surface as ``RuntimeError: Error calling
+    __set_name__ ...`` whose cause is the ``KeyboardInterrupt`` (Python 3.11); such an error means
+    the user stopped the run, not that the run failed. Follows ``__cause__`` and ``__context__``."""
+    seen: set[int] = set()
+    e: BaseException | None = error
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False

@@ -44,7 +44,7 @@ from .client.codec import Codec, encode_feedback
 from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
-from .errors import ConfigError, LLMError, StoreError
+from .errors import ConfigError, LLMError, StoreError, interrupted_by_user
 from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, Fleet, PoolError, WorkerError, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
@@ -617,6 +617,9 @@ class Study:
             self._mark(RunStatus.FAILED, str(e))
             raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from None
         except Exception as e:  # nothing above foresaw it: the status says so (not "interrupted"), and the error goes on
+            if interrupted_by_user(e):  # a Ctrl-C that Python wrapped (a lazy import it landed in): still a Ctrl-C
+                self._mark(RunStatus.INTERRUPTED)
+                raise KeyboardInterrupt from e
             self._mark(RunStatus.FAILED, f"{type(e).__name__}: {e}".splitlines()[0])
             raise
         if fe is not None:
