@@ -20,6 +20,7 @@ from typing import Any
 from _common import Context, Section, config, llm_calls, run_search, run_secrets, table, timings
 
 from ppprops.privacy.audit import audit_run
+from ppprops.rundir import policy_path
 from ppprops.summary import run_summary
 
 TASKS = ("CartPole", "Pendulum-v1", "Acrobot")  # cheapest first: a partial run still fills whole rows
@@ -29,13 +30,9 @@ FORMATS = (("decimal", "decimal (before)"), ("grid", "grid (now)"))
 
 
 def _finished(run_dir: Path) -> bool:
-    """Whether a recorded run got as far as its final evaluation."""
-    if not (run_dir / "run.sqlite").exists():
-        return False
-    try:
-        return bool((run_summary(run_dir).get("final_eval") or {}).get("mean") is not None)
-    except Exception:  # a half-written run from an interrupted benchmark: start it again
-        return False
+    """Whether a recorded run finished: its policy file is written after the final evaluation
+    (the rule ``privacy.matrix.run_matrix`` keeps finished runs by)."""
+    return policy_path(run_dir).exists()
 
 
 def run(ctx: Context) -> Section:
