@@ -6,6 +6,7 @@ offline stand-in optimizer, each trial's evaluation a sleep of 2 ms per step."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import pytest
 import ppprops
 from ppprops.privacy.audit import audit_run
 from ppprops.store import open_store
+from ppprops.study import StudyComplete
 
 from support import offline_llm
 
@@ -59,6 +61,54 @@ def test_gaps_that_follow_the_episodes_are_reported_and_pacing_removes_them(tmp_
     assert state["requests"] == len(SEARCH) and state["longest_gap"] >= STEP_S * max(WARMUP)
     # every paced gap is at least the pad: twice the longest warm-up trial
     assert paced_s >= len(SEARCH) * 2 * STEP_S * max(WARMUP) * 0.9
+
+
+# --parallel 4: each round's four trials run side by side on four workers, so the round's requests
+# leave when its longest trial is told; one long trial per round (its length a permutation of the
+# range), three short ones
+ROUND_LONGEST = [int(x) for x in np.random.default_rng(1).permutation(np.linspace(20, 190, 12)).round()]
+WIDE_WARMUP = [40, 200, 90, 150]
+
+
+def _run_wide(tmp_path: Path, pace: bool) -> Path:
+    run_dir = tmp_path / ("wide-paced" if pace else "wide-plain")
+    lengths = WIDE_WARMUP + [n for longest in ROUND_LONGEST for n in (10, longest, 12, 8)]
+    with offline_llm(), ppprops.create_study("CartPole", storage=run_dir, method="pp", warmup=len(WIDE_WARMUP),
+                                             iterations=4 * len(ROUND_LONGEST), seed=1, prompt={"form": "chat"},
+                                             evaluation={"final_episodes": 0, "select_top": 0, "parallel": 4},
+                                             privacy={"pace_requests": pace}) as study:
+        def worker(name: str) -> None:
+            while True:
+                try:
+                    trial = study.ask(worker=name)
+                except StudyComplete:
+                    return
+                steps = lengths[trial.number]
+                time.sleep(STEP_S * steps)
+                study.tell(trial, float(steps), diagnostics={"episode_length": steps, "termination": "pole_fell"})
+
+        threads = [threading.Thread(target=worker, args=(f"rig-{i}",)) for i in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    return run_dir
+
+
+def test_a_round_of_parallel_requests_shows_its_longest_trial_and_pacing_removes_it(tmp_path: Path) -> None:
+    plain_dir = _run_wide(tmp_path, pace=False)
+    with open_store(plain_dir) as store:
+        assert len(store.llm_calls()) == 4 * len(ROUND_LONGEST)  # one request per LLM candidate, four per round
+    plain = audit_run(plain_dir, simulate=False)
+    timing = [f for f in plain.findings if f.kind in ("request_timing", "request-timing")]
+    assert len(timing) == 1 and "episode steps" in timing[0].detail, plain.format()
+    (note,) = [n for n in plain.notes if n.startswith("request timing")]
+    assert f"over {len(ROUND_LONGEST) - 1} gaps" in note  # one gap between each round and the next
+    assert _rho(plain) > 0.8  # each gap follows its round's longest trial
+
+    paced = audit_run(_run_wide(tmp_path, pace=True), simulate=False)
+    assert not [f for f in paced.findings if f.kind in ("request_timing", "request-timing")], paced.format()
+    assert abs(_rho(paced)) < 0.6 and any("(requests paced)" in n for n in paced.notes)
 
 
 @pytest.mark.parametrize("pace", [True])

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 
 from ppprops.llm.pacing import Pacer
 from ppprops.privacy import timing
@@ -104,3 +105,36 @@ def test_constant_gaps_show_nothing() -> None:
 def test_too_few_gaps_are_not_measured() -> None:
     calls, told = _planted(lambda r: r)
     assert timing.measure(calls[:4], told[:3], []) == "3 gaps between an answer and the next request (needs 6)"
+
+
+def _rounds(serial: bool) -> tuple[list[dict[str, Any]], list[tuple[float, Candidate]], list[list[float]]]:
+    """Ten rounds of --parallel 3: three requests leave together (1 ms apart), their trials are
+    told, and the next round leaves when the last is: after the longest (side by side) or the sum
+    (one after another) of the round's episodes, at 2 ms per step."""
+    rounds = [[30.0, 120.0, 20.0], [60.0, 15.0, 10.0], [200.0, 40.0, 35.0], [90.0, 100.0, 6.0],
+              [150.0, 10.0, 12.0], [45.0, 20.0, 8.0], [180.0, 190.0, 7.0], [70.0, 60.0, 65.0], [110.0, 5.0, 5.0],
+              [25.0, 25.0, 25.0]]
+    calls, told, t, i = [], [], 0.0, 0
+    for rets in rounds:
+        for k in range(3):
+            calls.append({"sent": t + 0.001 * k, "latency_s": 0.5, "ok": True, "answered": True, "retry": 0})
+        t += 0.502
+        ends = np.cumsum([0.002 * x for x in rets]) if serial else [0.002 * x for x in rets]
+        for ret, end in zip(rets, ends, strict=True):
+            told.append((t + float(end), _cand(i, ret)))
+            i += 1
+        t += float(max(ends)) + 0.01
+    return calls, told, rounds
+
+
+@pytest.mark.parametrize("serial", [False, True])
+def test_a_round_gives_one_gap_that_follows_its_longest_or_summed_trials(serial: bool) -> None:
+    calls, told, rounds = _rounds(serial)
+    got = timing.pairs(calls, told, width=3)
+    assert [[k.index for k in batch] for _, batch in got] == [[3 * r, 3 * r + 1, 3 * r + 2] for r in range(9)]  # the last round has no next
+    got_t = timing.measure(calls, told, [k.index for _, k in told], width=3)
+    assert isinstance(got_t, timing.Timing) and got_t.rho_steps == 1.0 and got_t.significant
+    combine = sum if serial else max
+    assert got_t.steps == [combine(r) for r in rounds[:-1]]
+    assert got_t.returns == [max(r) for r in rounds[:-1]]  # scored against the round's best raw return
+    assert timing.pairs(calls, told, width=1) == []  # a width-1 reading of the same run sees no one-candidate gap

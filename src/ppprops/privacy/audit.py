@@ -499,7 +499,7 @@ class _Auditor:
 
         pure = not self.mech.warp_rewards and not self.mech.secret_offsets
         got = timing.measure(self.calls, self.told, list(self.shown), c=self.secrets.c if self.secrets is not None else None,
-                             pure_scale=pure)
+                             pure_scale=pure, width=max(1, int(getattr(self.config, "parallel", 1))))
         paced = " (requests paced)" if self.mech.pace_requests else ""
         if isinstance(got, str):
             self.report.notes.append(f"request timing not measured: {got}")

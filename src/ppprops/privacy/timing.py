@@ -11,7 +11,9 @@ request, and reports:
 
 - ``rho_steps`` / ``rho_return``: the Spearman correlation of the gaps with the candidates' episode
   steps (``episode_length`` x episodes, where the task reports it; else the evaluation time) and
-  with their raw returns: what a provider would see once it knows what to look for;
+  with their raw returns: what a provider would see once it knows what to look for. Under
+  ``--parallel`` P a round's requests leave together after its P trials are told, so a gap
+  follows the round's longest trial (or their sum, evaluated one after another) and its best;
 - ``p``: how likely a correlation this strong is without any relation (two-sided, normal
   approximation of Spearman's rho under independence);
 - ``best_error``: the relative error of the best shown candidate's raw return as the gap gives it,
@@ -103,10 +105,13 @@ def _steps(c: Candidate) -> float:
     return float(c.eval_s) if c.eval_s is not None else math.nan
 
 
-def pairs(calls: Sequence[dict[str, Any]], told: Sequence[tuple[float, Candidate]]) -> list[tuple[float, Candidate]]:
-    """(gap, candidate) for each answered request followed by a new request with exactly one
-    candidate told in between (``told``: (when it was recorded, Unix s; the candidate)): the gap,
-    in seconds, from the answer to the next request's arrival."""
+def pairs(calls: Sequence[dict[str, Any]], told: Sequence[tuple[float, Candidate]], width: int = 1) -> list[tuple[float, list[Candidate]]]:
+    """(gap, batch) for each request that leaves after a batch of 1 to ``width`` candidates was told
+    since the last answer before it (``told``: (when it was recorded, Unix s; the candidate)): the
+    gap, in seconds, from that answer to the request's arrival. At ``width`` 1 a batch is the one
+    candidate the answer proposed; at ``--parallel`` P, the round's P requests leave together once
+    the last of its P trials is told, so each round gives one gap and its batch (later requests of
+    the same round add nothing). Retries are left out (their gap is the client's own back-off)."""
     times = []
     for c in calls:
         sent = c.get("sent")
@@ -114,44 +119,60 @@ def pairs(calls: Sequence[dict[str, Any]], told: Sequence[tuple[float, Candidate
             sent = float(c.get("created") or 0.0) - float(c.get("latency_s") or 0.0)
         times.append((float(sent), c))
     times.sort(key=lambda t: t[0])
-    out = []
-    for (sent, c), (nxt, n) in zip(times, times[1:], strict=False):
-        if not c.get("ok") or not c.get("answered", True) or int(n.get("retry") or 0) != 0:
+    answers = sorted((sent + float(c.get("latency_s") or 0.0), i) for i, (sent, c) in enumerate(times)
+                     if c.get("ok") and c.get("answered", True))
+    out: list[tuple[float, list[Candidate]]] = []
+    used: set[float] = set()
+    for j, (nxt, n) in enumerate(times):
+        if int(n.get("retry") or 0) != 0:
             continue
-        answer = sent + float(c.get("latency_s") or 0.0)
-        between = [k for when, k in told if answer <= when <= nxt]
-        if len(between) == 1:
-            out.append((nxt - answer, between[0]))
+        before = [a for a, i in answers if a <= nxt and i != j]
+        if not before or before[-1] in used:
+            continue
+        answer = before[-1]
+        batch = [k for when, k in told if answer <= when <= nxt]
+        if 1 <= len(batch) <= width:
+            used.add(answer)
+            out.append((nxt - answer, batch))
     return out
 
 
 def measure(calls: Sequence[dict[str, Any]], told: Sequence[tuple[float, Candidate]], shown: Sequence[int], *,
-            c: float | None = None, pure_scale: bool = False) -> Timing | str:
+            c: float | None = None, pure_scale: bool = False, width: int = 1) -> Timing | str:
     """The provider's clock on one run, or why it cannot be measured (fewer than ``MIN_GAPS`` gaps).
 
     ``told``: (when recorded, candidate) of every candidate; ``shown``: indices of the candidates some request showed (the best of them is scored);
-    ``c``: the true reward scale, scored when ``pure_scale`` (r~ = c r)."""
-    got = [(g, k) for g, k in pairs(calls, told) if math.isfinite(k.ret)]
+    ``c``: the true reward scale, scored when ``pure_scale`` (r~ = c r); ``width``: the run's
+    ``--parallel`` P. A round's gap is set by its trials together: by the longest when they are
+    evaluated side by side, by their sum when one after another; both are measured and the closer
+    one reported, and the gap is scored against the round's best raw return (the longest episode
+    on tasks whose return is the length)."""
+    got = [(g, ks) for g, ks in pairs(calls, told, width) if all(math.isfinite(k.ret) for k in ks)]
     if len(got) < MIN_GAPS:
         return f"{len(got)} gaps between an answer and the next request (needs {MIN_GAPS})"
     gaps = [g for g, _ in got]
-    steps = [_steps(k) for _, k in got]
-    rets = [float(k.ret) for _, k in got]
-    finite = [i for i, s in enumerate(steps) if math.isfinite(s)]
-    rho_s = spearman([gaps[i] for i in finite], [steps[i] for i in finite]) if len(finite) >= MIN_GAPS else 0.0
+    best_of = [max(ks, key=lambda k: k.ret) for _, ks in got]
+    rets = [float(k.ret) for k in best_of]
+    rho_s, n_s, chosen = 0.0, 0, [math.nan] * len(got)
+    for combine in (max, sum):
+        steps = [float(combine(_steps(k) for k in ks)) for _, ks in got]
+        finite = [i for i, st in enumerate(steps) if math.isfinite(st)]
+        rho = spearman([gaps[i] for i in finite], [steps[i] for i in finite]) if len(finite) >= MIN_GAPS else 0.0
+        if n_s == 0 or abs(rho) > abs(rho_s):
+            rho_s, n_s, chosen = rho, len(finite), steps
     rho_r = spearman(gaps, rets)
-    p = min(_p_value(rho_s, len(finite)) if len(finite) >= MIN_GAPS else 1.0, _p_value(rho_r, len(gaps)))
+    p = min(_p_value(rho_s, n_s) if n_s >= MIN_GAPS else 1.0, _p_value(rho_r, len(gaps)))
     A = np.column_stack([gaps, np.ones(len(gaps))])
     coef, *_ = np.linalg.lstsq(A, np.asarray(rets), rcond=None)
     est = A @ coef
-    in_shown = [i for i, (_, k) in enumerate(got) if k.index in set(shown)]
+    in_shown = [i for i, k in enumerate(best_of) if k.index in set(shown)]
     best_error = None
     if in_shown:
         b = max(in_shown, key=lambda i: rets[i])
         best_error = abs(float(est[b]) - rets[b]) / abs(rets[b]) if rets[b] else None
-    t = Timing(gaps, steps, rets, rho_s, rho_r, p, best_error)
+    t = Timing(gaps, chosen, rets, rho_s, rho_r, p, best_error)
     if pure_scale and c is not None:
-        enc = np.asarray([float(k.feedback_enc.ret) for _, k in got])
+        enc = np.asarray([float(k.feedback_enc.ret) for k in best_of])
         ok = np.abs(est) > 1e-9
         if ok.any():
             c_hat = float(np.median(enc[ok] / est[ok]))
