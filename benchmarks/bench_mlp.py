@@ -26,10 +26,10 @@ from pathlib import Path
 POLICIES = ("linear", "mlp:8", "mlp:16")
 
 
-def _run(out: Path, task: str, method: str, policy: str, seed: int, warmup: int, iterations: int) -> None:
+def _run(out: Path, task: str, method: str, policy: str, seed: int, warmup: int, iterations: int, episodes: int = 1) -> None:
     import ppprops
 
-    run_dir = out / f"{task}-{method}-{policy.replace(':', '')}-s{seed}"
+    run_dir = out / f"{task}-{method}-{policy.replace(':', '')}{f'-e{episodes}' if episodes != 1 else ''}-s{seed}"
     if (run_dir / "best_policy.json").exists():
         return
     if run_dir.exists():
@@ -38,7 +38,7 @@ def _run(out: Path, task: str, method: str, policy: str, seed: int, warmup: int,
         shutil.rmtree(run_dir)
     t0 = time.perf_counter()
     r = ppprops.search(task, method=method, policy=policy, warmup=warmup, iterations=iterations, seed=seed, out=run_dir,
-                       evaluation={"final_episodes": 20})
+                       evaluation={"final_episodes": 20, "episodes": episodes})
     assert r.final is not None
     print(f"{run_dir.name}: final {r.final.mean:.1f} in {time.perf_counter() - t0:.0f} s", flush=True)
 
@@ -54,7 +54,8 @@ def _report(out: Path) -> None:
         r = load_run(run_dir)
         doc = json.loads((run_dir / "best_policy.json").read_text())
         policy = "linear" if doc["format"].startswith("ppprops.linear") else "mlp:" + ",".join(map(str, doc["policy"]["hidden"]))
-        key = (r.task, r.method, policy)
+        episodes = f", {r.config.episodes} episodes each" if r.config.episodes != 1 else ""
+        key = (r.task, r.method, policy + episodes)
         assert r.final is not None
         finals[key].append(r.final.mean)
         budget[key] = f"{r.config.warmup}+{r.config.iterations}"
@@ -68,7 +69,7 @@ def _report(out: Path) -> None:
                                                      float(c["latency_s"])))  # fmt: skip
     print("| task | method | policy | budget | seeds | final mean (std) | median |")
     print("|---|---|---|---|---|---|---|")
-    for key in sorted(finals, key=lambda k: (k[0], k[1], POLICIES.index(k[2]) if k[2] in POLICIES else 9)):
+    for key in sorted(finals, key=lambda k: (k[0], k[1], POLICIES.index(k[2].split(",")[0]), k[2])):
         v = finals[key]
         print(f"| {key[0]} | {key[1]} | {key[2]} | {budget[key]} | {len(v)} | {statistics.fmean(v):.1f} ({statistics.pstdev(v):.1f}) | "
               f"{statistics.median(v):.1f} |")
@@ -118,6 +119,7 @@ def main() -> int:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--iterations", type=int, default=50)
+    ap.add_argument("--episodes", type=int, default=1, help="episodes per candidate (runs with more than 1 are named -e<N>)")
     ap.add_argument("--report", action="store_true", help="only print the tables of the runs under --out")
     ap.add_argument("--prompt-sizes", action="store_true", help="only measure prompt size against D (no model: the offline stand-in)")
     a = ap.parse_args()
@@ -130,7 +132,7 @@ def main() -> int:
             for method in a.methods.split(","):
                 for policy in a.policies.split(","):
                     for seed in (int(s) for s in a.seeds.split(",")):
-                        _run(a.out, task, method, policy, seed, a.warmup, a.iterations)
+                        _run(a.out, task, method, policy, seed, a.warmup, a.iterations, a.episodes)
     _report(a.out)
     return 0
 
