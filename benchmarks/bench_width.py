@@ -7,8 +7,8 @@ four candidates per round from one shown history (four concurrent requests, four
 embedded server), so the same 50 candidates take 13 rounds; at equal rounds P = 4 gets 50 rounds,
 200 candidates, which is what a user with a concurrent endpoint pays the same wall time for.
 
-Every pp run at P = 4 shares the secrets of the same seed's run at P = 1 (the same warm-up, A and
-c), so a row compares the width alone. The P = 1 pp runs have the settings of benchmark 12's
+Every run at P = 4 shares the secrets of the same method's run at P = 1 with the same seed (the
+same warm-up, A and c, and the same keyed draws), so a row compares the width alone. The P = 1 pp runs have the settings of benchmark 12's
 decimal arm: ``--keep`` reuses such a run when it is copied under ``--out``/width (a finished run
 counts by its policy file). ``--keep --collect`` starts nothing and reports the (task, seed) pairs
 whose runs have all finished; the rows say how many seeds each holds.
@@ -71,7 +71,8 @@ def run(ctx: Context) -> Section:
                     method, width, n = arms[arm]
                     run_dir = ctx.dir("width") / f"{task}-{seed}-{arm}"
                     if not _finished(run_dir):
-                        shared = ctx.dir("width") / f"{task}-{seed}-pp-P1" if method == "pp" and arm != "pp-P1" else None
+                        first = f"{method}-P1"
+                        shared = ctx.dir("width") / f"{task}-{seed}-{first}" if arm != first else None
                         if ctx.collect or (shared is not None and not _finished(shared)):
                             continue
                         budget = n if not ctx.quick else 2 * width  # --quick: the smallest budget each width accepts
@@ -94,8 +95,8 @@ def run(ctx: Context) -> Section:
                          req, f"{statistics.fmean(r['phase_s'] for r in runs) / 60:.1f}"])
     body = [
         "pp: embedded Gemma 3 270M, document form, decimal numbers; 10 warm-up + LLM candidates as the row says, selection stage "
-        "(top 5 on 10 fresh episodes), final evaluation on 20 fresh episodes. A pp row at P = 4 shares each seed's secrets "
-        "with the P = 1 row. "
+        "(top 5 on 10 fresh episodes), final evaluation on 20 fresh episodes. A row at P = 4 shares each seed's secrets "
+        "with the same method's P = 1 row. "
         "The search phase is the wall time from the last warm-up candidate to the last search candidate, averaged over the seeds "
         "(LLM requests and episodes; shared cores, see the header's load).",
         "",
