@@ -102,6 +102,13 @@ def run(ctx: Context) -> Section:
         "",
         table(["task", "arm", "seeds", "final-evaluation mean", "median", "best search return", "LLM candidates",
                "LLM requests (all seeds)", "search phase (min per run)"], rows),
+        "",
     ]
+    for task in TASKS:
+        per_seed = {arm: [data[f"{task}/{sd}/{arm}"]["final"] for sd in done.get((task, arm), [])]
+                    for arm in ("pp-P1", "pp-P4", "pp-P4-rounds")}
+        if per_seed["pp-P1"] and per_seed["pp-P4"]:
+            body.append(f"- {task}, pp final-evaluation mean per seed: " + "; ".join(
+                f"{LABELS[arm]}: {' / '.join(f'{v:.1f}' for v in vals)}" for arm, vals in per_seed.items() if vals) + ".")
     return Section("width", "15. Search quality at width P (equal candidates, equal rounds)", "\n".join(body),
                    {"runs": data})
