@@ -206,7 +206,9 @@ def test_requests_are_completions_of_the_document_with_its_grammar(run_dir: Path
 
 @pytest.mark.llm
 def test_audit_reads_every_document_entry_and_its_target(run_dir: Path) -> None:
-    report = audit_run(run_dir)
+    # the transcript's checks only: what the simulator attacks get from a handful of entries follows
+    # the model's answers, which vary with the cores' load (tests/test_simulator_attacks.py covers them)
+    report = audit_run(run_dir, simulate=False)
     # nothing raw sent and every byte accounted for; a pp run is EXPOSED by the channels the paper's
     # scheme keeps (the lattice, the small run seed's warm-up), which the form does not change
     assert not report.leaks and not report.unverified, report.format()
