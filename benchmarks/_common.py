@@ -28,6 +28,7 @@ from ppprops.config import LLMConfig, RunConfig
 from ppprops.llm.client import EndpointClient
 from ppprops.methods import resolve
 from ppprops.proposers.llm import LLMProposer, LLMSearch
+from ppprops.rundir import policy_path
 from ppprops.runner import load_run, start
 from ppprops.seeding import Streams
 from ppprops.store import Candidate, open_store
@@ -128,6 +129,12 @@ def run_search(cfg: RunConfig, run_dir: Path, secrets: Secrets | None = None) ->
         shutil.rmtree(run_dir)
     start(cfg, run_dir, secrets=secrets)
     return run_dir
+
+
+def finished(run_dir: Path) -> bool:
+    """Whether a recorded run finished: its policy file is written after the final evaluation
+    (the rule ``privacy.matrix.run_matrix`` keeps finished runs by)."""
+    return policy_path(run_dir).exists()
 
 
 def run_secrets(run_dir: Path) -> Secrets:

@@ -14,13 +14,11 @@ pairs whose two runs have both finished: the rows say how many seeds each holds.
 from __future__ import annotations
 
 import statistics
-from pathlib import Path
 from typing import Any
 
-from _common import Context, Section, config, llm_calls, run_search, run_secrets, table, timings
+from _common import Context, Section, config, finished, llm_calls, run_search, run_secrets, table, timings
 
 from ppprops.privacy.audit import audit_run
-from ppprops.rundir import policy_path
 from ppprops.summary import run_summary
 
 TASKS = ("CartPole", "Pendulum-v1", "Acrobot")  # cheapest first: a partial run still fills whole rows
@@ -28,11 +26,6 @@ SEEDS = (0, 1, 2, 3, 4)
 ITERATIONS = 50
 FORMATS = (("decimal", "decimal (before)"), ("grid", "grid (now)"))
 
-
-def _finished(run_dir: Path) -> bool:
-    """Whether a recorded run finished: its policy file is written after the final evaluation
-    (the rule ``privacy.matrix.run_matrix`` keeps finished runs by)."""
-    return policy_path(run_dir).exists()
 
 
 def run(ctx: Context) -> Section:
@@ -43,11 +36,11 @@ def run(ctx: Context) -> Section:
         for seed in SEEDS:
             secrets = None
             dirs = {fmt: ctx.dir("formats") / f"{task}-{seed}-{fmt}" for fmt, _ in FORMATS}
-            if ctx.collect and not all(_finished(d) for d in dirs.values()):
+            if ctx.collect and not all(finished(d) for d in dirs.values()):
                 continue
             for fmt, _ in FORMATS:
                 cfg = config(task, warmup=10, iterations=iterations, seed=seed, final_episodes=20, number_format=fmt)
-                if ctx.keep and _finished(dirs[fmt]):
+                if ctx.keep and finished(dirs[fmt]):
                     run_dir = dirs[fmt]
                 else:
                     run_dir = run_search(cfg, dirs[fmt], secrets=secrets)

@@ -20,9 +20,8 @@ import statistics
 from pathlib import Path
 from typing import Any
 
-from _common import Context, Section, config, llm_calls, run_search, run_secrets, table
+from _common import Context, Section, config, finished, llm_calls, run_search, run_secrets, table
 
-from ppprops.rundir import policy_path
 from ppprops.store import open_store
 from ppprops.summary import run_summary
 
@@ -41,10 +40,6 @@ LABELS = {"pp-P1": "pp, P = 1", "pp-P4": "pp, P = 4", "pp-P4-rounds": f"pp, P = 
 PLAN = ((("CartPole", "Pendulum-v1"), tuple(a for a, *_ in ARMS if a != "pp-P4-rounds")), (("Pendulum-v1",), ("pp-P4-rounds",)),
         (("Acrobot",), tuple(a for a, *_ in ARMS if a != "pp-P4-rounds")))
 
-
-def _finished(run_dir: Path) -> bool:
-    """Whether a recorded run finished (its policy file is written after the final evaluation)."""
-    return policy_path(run_dir).exists()
 
 
 def _measure(run_dir: Path) -> dict[str, Any]:
@@ -70,10 +65,10 @@ def run(ctx: Context) -> Section:
                 for arm in names:
                     method, width, n = arms[arm]
                     run_dir = ctx.dir("width") / f"{task}-{seed}-{arm}"
-                    if not _finished(run_dir):
+                    if not finished(run_dir):
                         first = f"{method}-P1"
                         shared = ctx.dir("width") / f"{task}-{seed}-{first}" if arm != first else None
-                        if ctx.collect or (shared is not None and not _finished(shared)):
+                        if ctx.collect or (shared is not None and not finished(shared)):
                             continue
                         budget = n if not ctx.quick else 2 * width  # --quick: the smallest budget each width accepts
                         cfg = config(task, method, warmup=10, iterations=budget, seed=seed, final_episodes=20,
