@@ -35,10 +35,10 @@ ARMS = (("pp-P1", "pp", 1, ITERATIONS), ("pp-P4", "pp", WIDE, ITERATIONS), ("pp-
         ("cmaes-P1", "cmaes", 1, ITERATIONS), ("cmaes-P4", "cmaes", WIDE, ITERATIONS))
 LABELS = {"pp-P1": "pp, P = 1", "pp-P4": "pp, P = 4", "pp-P4-rounds": f"pp, P = 4, {ITERATIONS} rounds",
           "random-P1": "random, P = 1", "random-P4": "random, P = 4", "cmaes-P1": "CMA-ES, P = 1", "cmaes-P4": "CMA-ES, P = 4"}
-# the order runs are started in (a partial run still fills whole rows): equal candidates on the two
-# cheaper tasks, then equal rounds (four times a row's LLM time, so on Pendulum-v1 alone), then Acrobot
-PLAN = ((("CartPole", "Pendulum-v1"), tuple(a for a, *_ in ARMS if a != "pp-P4-rounds")), (("Pendulum-v1",), ("pp-P4-rounds",)),
-        (("Acrobot",), tuple(a for a, *_ in ARMS if a != "pp-P4-rounds")))
+# the order runs are started in (a partial run still fills whole rows): equal candidates on every
+# task, cheapest first, then equal rounds (four times a row's LLM time, so on Pendulum-v1 alone)
+EQUAL = tuple(a for a, *_ in ARMS if a != "pp-P4-rounds")
+PLAN = ((("CartPole", "Pendulum-v1"), EQUAL), (("Acrobot",), EQUAL), (("Pendulum-v1",), ("pp-P4-rounds",)))
 
 
 
