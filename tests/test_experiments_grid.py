@@ -132,12 +132,12 @@ def ray_local() -> Iterator[Any]:
 
 @pytest.mark.llm
 def test_embedded_grid_gives_the_same_numbers_locally_and_on_ray(tmp_path: Path, ray_local: Any) -> None:
-    """2 methods x 2 seeds with the embedded model (the suite's slowest test: one task keeps it to 4
-    runs twice): every candidate, LLM answer and final evaluation is the same whether the grid ran
-    in local processes or as Ray tasks."""
-    spec = build_spec(flags_table(["CartPole"], ["pp", "cmaes"], 2), overrides=SMALL)
+    """2 methods x 1 seed with the embedded model (one of the suite's slowest tests: one task and one
+    seed keep it to 2 runs twice, side by side): every candidate, LLM answer and final evaluation is
+    the same whether the grid ran in local processes or as Ray tasks."""
+    spec = build_spec(flags_table(["CartPole"], ["pp", "cmaes"], 1), overrides=SMALL)
     local = run_grid(spec, tmp_path / "local", log=lambda s: None)
-    assert local.ok and len(local.outcomes) == 4
+    assert local.ok and len(local.outcomes) == 2
     (tmp_path / "ray").mkdir()
     shutil.copy2(tmp_path / "local" / MASTER_KEY, tmp_path / "ray" / MASTER_KEY)  # the same master key: the same secrets
     on_ray = run_grid(spec, tmp_path / "ray", ray_address="local", log=lambda s: None)
@@ -147,12 +147,11 @@ def test_embedded_grid_gives_the_same_numbers_locally_and_on_ray(tmp_path: Path,
         assert _content(a) == _content(b), run.name
         assert (a / "secrets.key").read_bytes() == (b / "secrets.key").read_bytes()
     llm_answers = [c for run in spec.runs if run.method == "pp" for c in _content(tmp_path / "ray" / "runs" / run.name)[1]]
-    assert len(llm_answers) >= 4 and all(ok for *_, ok in llm_answers)  # the model really answered, twice per pp run
+    assert len(llm_answers) >= 2 and all(ok for *_, ok in llm_answers)  # the model really answered, twice in the pp run
     # different master keys give different secrets, so the check above is not vacuous
-    other = run_grid(build_spec(flags_table(["CartPole"], ["pp"], 1), overrides={**SMALL, "iterations": 0}), tmp_path / "other",
-                     log=lambda s: None)  # fmt: skip
+    other = run_grid(build_spec(flags_table(["CartPole"], ["cmaes"], 1), overrides=SMALL), tmp_path / "other", log=lambda s: None)
     assert other.ok
-    fp = lambda d: _content(d / "runs" / "CartPole__pp__0")[3]  # noqa: E731
+    fp = lambda d: _content(d / "runs" / "CartPole__cmaes__0")[3]  # noqa: E731
     assert [v for k, v in fp(tmp_path / "other") if k == "key_fingerprint"] != [v for k, v in fp(tmp_path / "local") if k == "key_fingerprint"]
 
 
