@@ -62,24 +62,24 @@ def _resumed(out: Path, total: int, capsys, *extra: str) -> None:  # type: ignor
 
 def test_ctrl_c_during_the_warmup(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
-    run = Launched(["run", "--env", "Highway-Fast", "--method", "random", "--warmup", "12", "--iterations", "2",
+    run = Launched(["run", "--env", "Highway-Fast", "--method", "random", "--warmup", "6", "--iterations", "2",
                     "--final-episodes", "2", "--select-top", "0", "--out", str(out), "--quiet"])  # fmt: skip
     run.wait_for(lambda: count(out / "run.sqlite") >= 1, "a warm-up candidate")
     _interrupted(run, out)
-    assert 1 <= count(out / "run.sqlite") < 12, "the signal did not land in the warm-up"
-    _resumed(out, 14, capsys)
+    assert 1 <= count(out / "run.sqlite") < 6, "the signal did not land in the warm-up"
+    _resumed(out, 8, capsys)
 
 
 def test_ctrl_c_during_the_final_evaluation(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path / "run"
     run = Launched(["run", "--env", "Highway-Fast", "--method", "random", "--warmup", "2", "--iterations", "0",
-                    "--final-episodes", "12", "--select-top", "0", "--out", str(out)])  # fmt: skip
+                    "--final-episodes", "6", "--select-top", "0", "--out", str(out)])  # fmt: skip
     run.wait_for(lambda: "final evaluation" in run.stderr, "the final evaluation's progress")
     _interrupted(run, out)
     assert count(out / "run.sqlite") == 2
     _resumed(out, 2, capsys)
     store = open_store(out)
-    assert len(store.final_eval().returns) == 12  # type: ignore[union-attr]
+    assert len(store.final_eval().returns) == 6  # type: ignore[union-attr]
     store.close()
 
 
