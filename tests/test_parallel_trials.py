@@ -120,7 +120,11 @@ def test_workers_failed_trials_and_retry_from_the_shell(tmp_path: Path) -> None:
         (["tell", "s", "0", "--failed", " "], "ppprops: error: --failed needs a reason (what went wrong, e.g. --failed "
                                               "'e-stop at 3.2 s')\n"),
         (["tell", "s", "0", "--return", "1", "--worker", "arm-b"],
-         "ppprops: error: trial 0 is held by worker 'arm-a', not 'arm-b': each worker tells the trials it asked for\n"),
+         "ppprops: error: trial 0 is held by worker 'arm-a', not 'arm-b': each worker tells the trials it asked for "
+         "(ppprops tell --worker arm-a; in Python the Trial that ask returned)\n"),
+        (["tell", "s", "1", "--return", "1"], "ppprops: error: trial 1 is held by worker 'arm-b', and this tell names no worker: "
+                                               "each worker tells the trials it asked for (ppprops tell --worker arm-b; in Python "
+                                               "the Trial that ask returned)\n"),
         (["study", "retry", "s", "1"], "ppprops: error: trial 1 did not fail (it is pending): only a failed trial can be retried\n"),
     ]
     for args, line in bad:
@@ -138,6 +142,29 @@ def test_workers_failed_trials_and_retry_from_the_shell(tmp_path: Path) -> None:
     assert (c["trial"], c["theta"], c["seeds"], c["worker"]) == (0, a["theta"], a["seeds"], "arm-c")
     with open_store(tmp_path / "s") as store:
         assert store.failed_trials() == [] and [t.number for t in store.pending_trials()] == [0, 1]
+
+
+def test_a_finalized_study_with_a_failed_trial_says_so_and_stays_closed(tmp_path: Path) -> None:
+    assert _ppprops(["study", "create", "--env", "CartPole", "--method", "random", "--warmup", "2", "--iterations", "2",
+                     "--select-top", "0", "--out", "s"], tmp_path).returncode == 0  # fmt: skip
+    for n in range(3):
+        assert json.loads(_ppprops(["ask", "s"], tmp_path).stdout)["trial"] == n
+        assert _ppprops(["tell", "s", str(n), "--return", str(10 * (n + 1))], tmp_path).returncode == 0
+    assert json.loads(_ppprops(["ask", "s"], tmp_path).stdout)["trial"] == 3
+    assert _ppprops(["tell", "s", "3", "--failed", "e-stop"], tmp_path).returncode == 0
+    done = _ppprops(["study", "finalize", "s"], tmp_path)
+    assert done.returncode == 0 and done.stderr == ("ppprops: note: study finalized with 3 of its 4 trials told and 1 failed "
+                                                    "(never selected, not retried); its best told trial is handed over\n")
+    policy = (tmp_path / "s" / "best_policy.json").read_bytes()
+    retry = _ppprops(["study", "retry", "s", "3"], tmp_path)
+    assert (retry.returncode, retry.stdout, retry.stderr) == (2, "", "ppprops: error: study s is finalized (its best policy is "
+                                                              "handed over): a failed trial can be retried only before "
+                                                              "'ppprops study finalize'\n")
+    again = _ppprops(["ask", "s"], tmp_path)
+    assert again.returncode == 3 and "is finalized" in again.stderr  # nothing reopened
+    assert (tmp_path / "s" / "best_policy.json").read_bytes() == policy
+    with open_store(tmp_path / "s") as store:
+        assert [t.number for t, _ in store.failed_trials()] == [3] and store.pending_trials() == []
 
 
 def test_run_parallel_evaluates_rounds_on_the_pool_and_bad_settings_are_one_line(tmp_path: Path) -> None:

@@ -110,7 +110,7 @@ def test_bad_tells_are_one_line_and_store_nothing(tmp_path: Path) -> None:
         (["tell", "s", "0"], "tell needs --return R (or --stdin with a JSON object)"),
         (["tell", "s", "0", "--return", "nan"], "argument --return: expected a finite number, got 'nan'"),
         (["tell", "s", "0", "--return", "x"], "argument --return: expected a number, got 'x'"),
-        (["tell", "s", "3", "--return", "1"], "trial 3 is not the study's pending trial (the study waits for trial 0)"),
+        (["tell", "s", "3", "--return", "1"], "trial 3 has not been asked yet: ask hands out the next trial (1)"),
         (["tell", "s", "0", "--return", "1", "--diagnostic", "speed=3"], "unknown diagnostic 'speed'"),
         (["tell", "s", "0", "--return", "1", "--component", "x"], "--component must be NAME=VALUE, got 'x'"),
         (["tell", "s", "0", "--return", "1", "--component", "x=fast"], "--component x='fast': expected a number"),

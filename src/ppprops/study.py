@@ -391,9 +391,10 @@ class Study:
             if pending is None:
                 self._not_pending(number, out)
             assert pending is not None
-            if teller and pending.worker and teller != pending.worker:
-                raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, not {teller!r}: each worker tells "
-                                  "the trials it asked for")
+            if pending.worker and teller != pending.worker:  # a tell that names no worker is the unnamed worker's
+                who = f"not {teller!r}" if teller else "and this tell names no worker"
+                raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, {who}: each worker tells the trials "
+                                  f"it asked for (ppprops tell --worker {pending.worker}; in Python the Trial that ask returned)")
             if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
                 raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
             if failed is not None:
@@ -438,6 +439,8 @@ class Study:
             if status is RunStatus.STOPPED or self.store.next_number() >= self.total:
                 raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
                                   f"{self.total} trials told): finalize it")
+        if number >= self.store.next_number():
+            raise ConfigError(f"trial {number} has not been asked yet: ask hands out the next trial ({self.store.next_number()})")
         if len(out) > 1:
             raise ConfigError(f"trial {number} is not pending (the study waits for trials {', '.join(str(t.number) for t in out)})")
         waiting = "no trial is pending: ask first" if not out else f"the study waits for trial {out[0].number}"
@@ -446,9 +449,13 @@ class Study:
     def retry(self, trial: Trial | int) -> Trial:
         """Ask a failed trial again: the same parameters and seeds, under its own number, pending
         again for the next worker that asks (its place in the budget is kept). Returns it.
-        Raises ConfigError when it did not fail, or when ``--parallel`` trials are already out."""
+        Raises ConfigError when it did not fail, when the study is finalized (its policy is handed
+        over: nothing more is asked), or when ``--parallel`` trials are already out."""
         number = trial if isinstance(trial, int) else trial.number
         with file_lock(self.run_dir, STUDY_LOCK):
+            if self.store.run_status()[0] is RunStatus.FINISHED:
+                raise ConfigError(f"study {self.run_dir} is finalized (its best policy is handed over): a failed trial can be "
+                                  "retried only before 'ppprops study finalize'")
             failed = {t.number for t, _ in self.store.failed_trials()}
             if number not in failed:
                 state = {"told": "it was told", "pending": "it is pending"}.get(self.store.trial_state(number) or "", "it was never asked")

@@ -301,11 +301,15 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
     from .summary import format_summary, run_summary
 
     with Study.load(a.dir) as study:
-        told, total = study.store.candidate_count(), study.total
+        told, failed, total = study.store.candidate_count(), study.store.failed_count(), study.total
         study.finalize(returns=a.returns)
-    if told < total:  # stopping early is the user's call; say what it means once
-        print(f"ppprops: note: study finalized after {told} of its {total} planned trials; its best of those is handed over "
-              "(nothing more can be asked)", file=sys.stderr)
+    lost = f", {failed} failed (never selected)" if failed else ""
+    if told + failed < total:  # stopping early is the user's call; say what it means once
+        print(f"ppprops: note: study finalized after {told} of its {total} planned trials{lost}; its best of those is handed "
+              "over (nothing more can be asked)", file=sys.stderr)
+    elif failed:
+        print(f"ppprops: note: study finalized with {told} of its {total} trials told and {failed} failed (never selected, not "
+              "retried); its best told trial is handed over", file=sys.stderr)
     s = run_summary(a.dir)
     print(json.dumps(s) if a.json else format_summary(s))
     return 0

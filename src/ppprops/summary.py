@@ -197,7 +197,7 @@ def format_summary(s: dict[str, Any]) -> str:
     ]
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())
-    lines.append(f"evals    {c['candidates']} ({sources}); {c['llm_calls']} LLM calls")
+    lines.append(f"evals    {c['candidates']}" + (f" ({sources})" if sources else "") + f"; {c['llm_calls']} LLM calls")
     searched = c["candidates"] - c.get("warmup", 0) - c.get("by_source", {}).get("reeval", 0)
     fallbacks = c.get("fallback", 0)
     if searched and fallbacks * 2 > searched:  # the LLM contributed nothing, or little: say so first
@@ -209,7 +209,7 @@ def format_summary(s: dict[str, Any]) -> str:
     for note in s.get("notes") or []:
         lines.append(f"note     {note}")
     out = s.get("trials_out") or []
-    if len(out) > 1 or any(t["worker"] for t in out):  # one trial out by the unnamed worker: the status says enough
+    if len(out) > 1 or any(t["worker"] != "" for t in out):  # one trial out by the unnamed worker: the status says enough
         lines.append(f"out      {len(out)} trial(s): " + ", ".join(
             f"{t['trial']} ({'held by nobody yet' if t['worker'] is None else 'held by ' + (t['worker'] or 'the unnamed worker')})"
             for t in out))

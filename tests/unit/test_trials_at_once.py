@@ -62,6 +62,12 @@ def test_four_workers_hold_four_trials_and_a_fifth_waits(tmp_path: Path) -> None
             study.ask(worker="robot-4", wait=False)
         with pytest.raises(ConfigError, match=r"^trial 1 is held by worker 'robot-1', not 'robot-3': each worker tells"):
             study.tell(1, [1.0], worker="robot-3")
+        with pytest.raises(ConfigError, match=r"^trial 1 is held by worker 'robot-1', and this tell names no worker: each worker "
+                                              r"tells the trials it asked for \(ppprops tell --worker robot-1;"):
+            study.tell(1, [1.0])  # a trial number without a worker is not the holder's tell
+        with pytest.raises(ConfigError, match=r"^trial 6 has not been asked yet: ask hands out the next trial \(4\)$"):
+            study.tell(6, [1.0])
+        assert study.store.candidate_count() == 0  # none of those stored anything
         for t in reversed(warm):  # tells in any order
             study.tell(t, _run(study, t))
         assert llm.calls == 0
@@ -126,6 +132,9 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
         study.tell(t1, [500.0])
         again = study.retry(0)
         assert again.number == 0 and np.array_equal(again.theta, t0.theta) and again.seeds == t0.seeds and again.worker is None
+        from ppprops.summary import format_summary, run_summary
+
+        assert "out      1 trial(s): 0 (held by nobody yet)" in format_summary(run_summary(tmp_path / "s"))  # retried, not lost
         got = study.ask(worker="r3")
         assert got.number == 0 and got.worker == "r3"
         study.tell(got, failed="rig fault")  # fails again, for good
@@ -141,6 +150,9 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
             for t in ts:
                 study.tell(t, _run(study, t) if t.source != "reeval" else [float(np.mean(_run(study, t)))] * len(t.seeds))
         study.finalize(returns=[1.0])
+        with pytest.raises(ConfigError, match=r"is finalized \(its best policy is handed over\): a failed trial can be retried only "
+                                              r"before 'ppprops study finalize'$"):
+            study.retry(0)  # a finalized study stays closed: its policy file is what the study found
         failed = study.failed
         assert [(t.number, why) for t, why in failed] == [(0, "rig fault")]
         reevaluated = {c.reevaluates for c in study.trials if c.reevaluates is not None}
@@ -148,7 +160,6 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
         assert 0 not in reevaluated and policy["search"]["candidate"] != 0
     shown = _prompts(tmp_path / "s")
     assert all(p[1].count("params:") in (3, 3 + 2) for p in shown)  # trials 1-3, then the first LLM round's two; never trial 0
-    from ppprops.summary import format_summary, run_summary
 
     s = run_summary(tmp_path / "s")
     assert s["counts"]["failed"] == 1 and s["failed_trials"] == [{"trial": 0, "source": "warmup", "worker": "r3", "reason": "rig fault"}]

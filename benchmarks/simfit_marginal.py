@@ -1,0 +1,186 @@
+"""How well the marginal simulator fit recovers the reward scale c, and how well any fit could.
+
+Makes (or reuses) offline runs of one task and preset (the ``privacy-report --offline`` stand-in:
+warm-up 10, 10 iterations answered by ``privacy.simulate.EchoOptimizer``), each with secrets drawn
+by the product's own routine (``Secrets.generate`` / ``generate_hardened``) from a generator
+seeded per run, and prints per run and in median the relative error of c
+(``privacy.matrix._rel``: exp|ln(est/true)| - 1) for:
+
+- ``fit``: the product's ``sim-marginal`` on the run's transcript (a and m searched, within the
+  audit's step bound; the wall-clock guard lifted so results repeat on a loaded machine);
+- ``bound`` (``--bound``): an attacker handed the TRUE raw parameters of every shown entry, so
+  that only the reward map is left to fit from the printed returns. Each shown policy is
+  simulated on ``--episodes`` public initial states; c is then estimated by the closed form of
+  the product (``simfit.fit_rewards``: least squares on the simulated means), and, for integer
+  returns under the warped and dithered map, by the exact likelihood of each printed return
+  (x = w_p^-1(y / c + w_p(s)) must round to a raw return the policy reaches; probability from
+  the simulated episodes, Jacobian of the warp), as its maximum and as the posterior median of
+  c over a (p, s, c) grid with the public prior. This bounds what the returns can give: a fit
+  that must also find a and m does no better.
+- ``prior``: the guess c = 1.
+
+    PYTHONPATH=src nice -n 10 python benchmarks/simfit_marginal.py --task CartPole --seeds 0-21 --bound \\
+        --out /tmp/simfit-bound
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ppprops.client.hardening import reward_scale
+from ppprops.client.secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
+from ppprops.privacy import simfit
+from ppprops.privacy.matrix import PRIOR, _rel
+from ppprops.privacy.requests import load_requests
+from ppprops.privacy.simulator import Budget, simulator_for
+from ppprops.privacy.view import view_of
+from ppprops.tasks import Task, get_task
+
+BOX = (-6.0, 6.0)
+
+
+def secrets_for(method: str, task: Task, seed: int) -> Secrets:
+    """The preset's secrets, drawn by the product's routine from a generator seeded by ``seed``."""
+    rng = np.random.default_rng(9000 + seed)
+    rid = f"{task.name}-{method}-{seed}"
+    if method == "pp":
+        return Secrets.generate(rid, task.D, rng=rng)
+    return Secrets.generate_hardened(rid, task.D, box=BOX, reward_scale=reward_scale(task), rng=rng)
+
+
+def make_run(out: Path, task: Task, method: str, seed: int) -> Path:
+    """An offline run (EchoOptimizer answers), made once and reused."""
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.rundir import policy_path
+    from ppprops.runner import start
+    from ppprops.settings import build_config
+
+    d = out / f"{task.name}__{method}__{seed}"
+    if policy_path(d).exists():
+        return d
+    cfg = build_config({"method": method, "warmup": 10, "iterations": 10, "final_episodes": 0, "seed": seed}, task=task)
+    start(cfg, d, llm=EchoOptimizer(cfg.llm), secrets=secrets_for(method, task, seed))
+    return d
+
+
+def _w(x: Any, p: float) -> Any:
+    return np.sign(x) * np.abs(x) ** p
+
+
+def exact_c(R: NDArray[np.float64], y: NDArray[np.float64], S: float, step: float) -> tuple[float, float]:
+    """(maximum-likelihood c, posterior-median c) of y = c (w_p(r + d) - w_p(s)), d ~ U(-step/2, step/2),
+    r on the grid of ``step``; R (n, E) simulated returns of the n entries. The grid is flat in ln p
+    (each side of 1), s and ln c: the public prior."""
+    n = len(y)
+    ps = np.exp(np.concatenate([np.linspace(*HARDENED_P_LOG, 41), -np.linspace(*HARDENED_P_LOG, 41)]))
+    ss = np.linspace(-S, S, 201)
+    cs = np.exp(np.linspace(LOG_LOW, LOG_HIGH, 301))
+    k_all = np.rint(R / step).astype(int)
+    lo, hi = int(k_all.min()) - 2, int(k_all.max()) + 2
+    counts = np.zeros((n, hi - lo + 1))
+    for i in range(n):
+        np.add.at(counts[i], k_all[i] - lo, 1.0)
+    smooth = np.array([np.convolve(row, [0.25, 0.5, 0.25], mode="same") for row in counts]) + 0.02
+    logpmf = np.log(smooth / smooth.sum(axis=1, keepdims=True))
+    LL = np.empty((len(ps), len(ss), len(cs)))
+    rows = np.arange(n)[None, :]
+    for i, p in enumerate(ps):
+        for j, s in enumerate(ss):
+            x = _w(y[None, :] / cs[:, None] + _w(s, p), 1.0 / p)
+            k = np.rint(x / step).astype(int)
+            inside = (k >= lo) & (k <= hi)
+            ll = logpmf[rows, np.clip(k - lo, 0, hi - lo)] - np.log(cs[:, None] * p / step) \
+                - (p - 1) * np.log(np.maximum(np.abs(x), 1e-9))
+            LL[i, j] = np.where(inside, ll, -1e9).sum(axis=1)
+    c_ml = float(cs[np.unravel_index(np.argmax(LL), LL.shape)[2]])
+    post = np.exp(LL - LL.max()).sum(axis=(0, 1))
+    c_med = float(cs[np.searchsorted(np.cumsum(post / post.sum()), 0.5)])
+    return c_ml, c_med
+
+
+def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -> dict[str, float]:
+    """c from the printed returns with the true raw parameters of every shown entry (module docstring)."""
+    from ppprops.store import open_store
+
+    v = view_of(load_requests(run), task, BOX)
+    with open_store(run) as st:
+        cands = [c for c in st.candidates() if c.source != "reeval"]
+    enc = np.array([c.params_enc for c in cands])
+    rows = []
+    for e in v.entries:  # each shown entry's candidate, by its encoded parameters as printed
+        near = np.all(np.abs(enc - np.asarray(e.params)) <= np.asarray(e.tols) * (1 + 1e-9) + 1e-12, axis=1)
+        if near.any():
+            rows.append((cands[int(np.argmax(near))].params, e.ret))
+    theta = np.array([r[0] for r in rows])
+    y = np.array([r[1] for r in rows])
+    sim, why = simulator_for(task, Budget(10**12, math.inf))
+    if sim is None:
+        raise SystemExit(why)
+    draws = np.random.default_rng(simfit.MARGINAL_SEED).integers(0, 2**31, size=episodes)
+    R = sim.rollout(np.repeat(theta, episodes, axis=0), np.tile(draws, len(y)).tolist()).returns.reshape(len(y), episodes)
+    sim.close()
+    schemes = simfit.schemes_of(v)  # the document form names no encoding: the preset's own
+    scheme = schemes[0] if method == "pp" else schemes[-1]
+    fit = simfit.fit_rewards(R[None], y, scheme, simfit.RewardPrior(S=reward_scale(task)), refine=40)
+    out = {"closed form": _rel(float(fit.c[0]), secrets.c)}
+    step = (v.facts.resolution or {}).get("return", 0.0)
+    if scheme.rewards == "warp" and step > 0:
+        c_ml, c_med = exact_c(R, y, reward_scale(task), step)
+        out["exact, max"] = _rel(c_ml, secrets.c)
+        out["exact, posterior median"] = _rel(c_med, secrets.c)
+    return out
+
+
+def seeds_of(text: str) -> list[int]:
+    """'0-3,7' -> [0, 1, 2, 3, 7]."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", default="CartPole")
+    ap.add_argument("--method", default="pp-hardened", choices=["pp", "pp-hardened"])
+    ap.add_argument("--seeds", default="0-10")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/simfit-runs"))
+    ap.add_argument("--steps", type=float, default=simfit.DEFAULT_LIMITS.vector_steps, help="the fit's step bound")
+    ap.add_argument("--no-fit", action="store_true", help="skip the product's fit (with --bound: the bound alone)")
+    ap.add_argument("--bound", action="store_true", help="also the true-parameter bound")
+    ap.add_argument("--episodes", type=int, default=64, help="simulated episodes per shown policy in the bound")
+    a = ap.parse_args()
+    task = get_task(a.task)
+    errors: dict[str, list[float]] = {}
+    for seed in seeds_of(a.seeds):
+        run = make_run(a.out, task, a.method, seed)
+        s = secrets_for(a.method, task, seed)
+        row = {"prior": float(_rel(PRIOR, s.c))}
+        note = ""
+        if not a.no_fit:
+            v = view_of(load_requests(run), task, BOX)
+            v.memo["sim_limits"] = simfit.SimLimits(vector_steps=int(a.steps), seconds=math.inf)
+            t0 = time.process_time()
+            fit = simfit.fit_view(v, "marginal")
+            row["fit"] = float(_rel(fit.c if not isinstance(fit, str) else PRIOR, s.c))
+            note = f" ({time.process_time() - t0:.0f} s CPU{'; ' + fit if isinstance(fit, str) else ''})"
+        if a.bound:
+            row.update(bound(run, task, a.method, s, a.episodes))
+        for k, e in row.items():
+            errors.setdefault(k, []).append(e)
+        print(f"seed {seed}: c {s.c:.4g}  " + "  ".join(f"{k} {100 * e:.1f}%" for k, e in row.items()) + note, flush=True)
+    print(f"{a.task} {a.method}, {len(errors['prior'])} runs, median error of c: "
+          + ", ".join(f"{k} {100 * statistics.median(e):.1f}%" for k, e in errors.items()))
+
+
+if __name__ == "__main__":
+    main()
