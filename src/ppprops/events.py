@@ -20,7 +20,8 @@ class RunEvents:
     seconds or None, best return so far); on_llm_loading() and on_llm_ready(seconds) around the
     start of the embedded model; on_final_start(episodes) and on_final_episode(done) during the
     final evaluation; on_final(final evaluation) at the end; on_notice(line) for something the user
-    should know once (printed even without progress).
+    should know once (printed even without progress); on_failed(trial number, reason) for a trial
+    recorded as failed (it takes its place in the plan, like a candidate).
     """
 
     on_start: Callable[[int, int], None] = _ignore
@@ -31,6 +32,7 @@ class RunEvents:
     on_final_start: Callable[[int], None] = _ignore
     on_final_episode: Callable[[int], None] = _ignore
     on_notice: Callable[[str], None] = _ignore
+    on_failed: Callable[[int, str], None] = _ignore
 
 
 NO_EVENTS = RunEvents()  # the default: no hook does anything

@@ -86,12 +86,17 @@ class ProgressEvents:
         else:
             print(f"note: {text}", file=sys.stderr, flush=True)
 
+    def _failed(self, number: int, reason: str) -> None:
+        self._notice(f"trial {number} failed: {reason}")
+        if self.bar is not None:
+            self.bar.update(1)
+
     def hooks(self) -> RunEvents:
         """The runner's callbacks that drive these progress bars."""
         return RunEvents(on_start=self._start, on_candidate=self._candidate, on_final=self._final,
                          on_llm_loading=self._llm_loading, on_llm_ready=self._llm_ready,
                          on_final_start=self._final_start, on_final_episode=self._final_episode,
-                         on_notice=self._notice)  # fmt: skip
+                         on_notice=self._notice, on_failed=self._failed)  # fmt: skip
 
 
 @contextmanager

@@ -572,7 +572,8 @@ class Study:
         if status is not RunStatus.STOPPED:
             store.set_status(RunStatus.RUNNING)
         done = store.candidates()
-        events.on_start(len(done), self.total if status is not RunStatus.STOPPED else len(done))
+        settled = len(done) + store.failed_count()  # a failed trial holds its place in the plan
+        events.on_start(settled, self.total if status is not RunStatus.STOPPED else settled)
         best = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
         try:
             while not self.done:
@@ -598,7 +599,7 @@ class Study:
                         if not fail_trials:
                             raise fb
                         self.tell(trial, failed=str(fb))
-                        events.on_notice(f"trial {trial.number} failed: {fb}")
+                        events.on_failed(trial.number, str(fb))
                         continue
                     cand = self.tell(trial, feedback=fb, eval_s=eval_s)
                     if math.isfinite(cand.ret):  # a numerical fault is never the best so far

@@ -250,11 +250,20 @@ def test_on_episode_error_fail_trial_records_the_error_and_goes_on(tmp_path: Pat
               "select_top": 2, "select_episodes": 1, "prompt_form": "chat", "top_k": 0, "on_episode_error": "fail-trial",
               "parallel": 2}
     config = build_config(values)
+    seen: dict[str, list[Any]] = {"start": [], "candidate": [], "failed": []}
+    from ppprops.events import RunEvents
+
+    events = RunEvents(on_start=lambda done, total: seen["start"].append((done, total)),
+                       on_candidate=lambda c, lat, best: seen["candidate"].append(c.index),
+                       on_failed=lambda n, why: seen["failed"].append(n))
     with Study.create(config, tmp_path / "r", llm=EchoOptimizer(config.llm)) as study:
-        study.optimize()
+        study.optimize(events=events)
         failed = study.failed
         cands = study.trials
     assert failed and all("raised in step" in why and "RuntimeError: e-stop" in why for _, why in failed)
+    # a progress display counts every place in the plan: the candidates and the failed trials make up its total
+    assert seen["start"] == [(0, 12)] and sorted(seen["candidate"] + seen["failed"]) == list(range(12))
+    assert seen["failed"] == [t.number for t, _ in failed]
     assert sorted([c.index for c in cands] + [t.number for t, _ in failed]) == list(range(12))
     fail_enc = {t.number for t, _ in failed}
     assert not fail_enc & {c.reevaluates for c in cands if c.reevaluates is not None}  # never re-evaluated by the selection
