@@ -51,6 +51,7 @@ from .view import Estimate, RawGuess, View
 
 ENCODED_LIMIT = 1.0e6  # the public clamp of warped encoded parameters (client.codec.ENCODED_LIMIT)
 MARGINAL_EPISODES = 8  # episodes per shown policy in the marginal fit (attacker's own seeds)
+LATTICE_EPISODES = 64  # episodes per shown policy for the marginal fit's final reward map on integer returns
 MARGINAL_SEED = 20261201  # the attacker's own stream of reset seeds for the marginal fit
 SEARCH_SEED = 7  # CMA-ES sampling stream (fixed: the attack is deterministic)
 P_GRID = 17  # exponents tried per side of the hardened prior in the closed-form reward fit
@@ -677,19 +678,70 @@ def _exact_level(d: Data, scheme: Scheme) -> float:
     return slack / spread
 
 
+def lattice_posterior(R: NDArray[np.float64], y: NDArray[np.float64], step: float, prior: RewardPrior) -> tuple[float, float, float]:
+    """(c, s, p): the posterior medians of the warped, dithered reward map of returns on a lattice.
+
+    The codec prints y = c (w_p(r + d) - w_p(s)) with r on the lattice of ``step`` (integer returns:
+    1) and d uniform on +-step/2 (``client.codec``). Under a hypothesis (c, s, p) each printed
+    return therefore names one raw return, x = w_p^-1(y / c + w_p(s)) rounded to the lattice, with
+    density P(r = round(x)) / (c p |x|^(p-1)) (the warp's Jacobian; d contributes 1 / step). P comes
+    from ``R`` (n, E): E simulated episodes of each of the n shown policies (counts smoothed over
+    the neighbouring lattice points, plus a floor). The posterior over a grid flat in ln p (each
+    side of 1, the public support), s (on +-S) and ln c (the public support) gives each secret's
+    median: under a likelihood that pins c loosely, the median is far closer than the maximum.
+    """
+    n = len(y)
+    side = np.linspace(HARDENED_P_LOG[0], HARDENED_P_LOG[1], 41)
+    ps = np.exp(np.concatenate([-side[::-1], side]))
+    ss = np.linspace(-prior.S, prior.S, 201)
+    cs = np.exp(np.linspace(math.log(prior.c_lo), math.log(prior.c_hi), 301))
+    k_sim = np.rint(R / step).astype(np.int64)
+    lo, hi = int(k_sim.min()) - 2, int(k_sim.max()) + 2
+    counts = np.zeros((n, hi - lo + 1))
+    for i in range(n):
+        np.add.at(counts[i], k_sim[i] - lo, 1.0)
+    smooth = np.array([np.convolve(row, [0.25, 0.5, 0.25], mode="same") for row in counts]) + 0.02
+    logpmf = np.log(smooth / smooth.sum(axis=1, keepdims=True))
+    rows = np.arange(n)[None, None, :]
+    LL = np.empty((len(ps), len(ss), len(cs)))
+    for i, p in enumerate(ps):  # (s, c, entry) at once for each exponent
+        x = _w(y[None, None, :] / cs[None, :, None] + _w(ss, p)[:, None, None], 1.0 / p)
+        k = np.rint(x / step).astype(np.int64)
+        inside = (k >= lo) & (k <= hi)
+        ll = (logpmf[rows, np.clip(k - lo, 0, hi - lo)] - np.log(cs[None, :, None] * p / step)
+              - (p - 1) * np.log(np.maximum(np.abs(x), 1e-9)))
+        LL[i] = np.where(inside, ll, -1e9).sum(axis=2)
+    w = np.exp(LL - LL.max())
+    w /= w.sum()
+
+    def median(grid: NDArray[np.float64], mass: NDArray[np.float64]) -> float:
+        return float(grid[min(int(np.searchsorted(np.cumsum(mass), 0.5)), len(grid) - 1)])
+
+    return median(cs, w.sum(axis=(0, 1))), median(ss, w.sum(axis=(0, 2))), median(ps, w.sum(axis=(1, 2)))
+
+
 def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes: int, space: Space, z: NDArray[np.float64],
             f: float, exact: bool, stopped: str, prior: RewardPrior, reward: tuple[float, float, float] | None = None) -> Fit:
     """The secrets and raw values of hypothesis ``z``, with the exponent refined further (or the
-    reward map ``reward`` = (c, s, p) when given: the marginal fit's average)."""
+    reward map ``reward`` = (c, s, p) when given: the marginal fit's average). For returns on a
+    lattice under a warped, dithered map the marginal fit's reward map is instead the posterior
+    median of ``lattice_posterior`` on ``LATTICE_EPISODES`` episodes of each decoded policy."""
     theta = space.decode(z[None], d.E)
     known = np.isfinite(d.raw).all(axis=1)
     if known.any():
         theta[:, known, :] = d.raw[known][None]
+    lattice = not exact and space.scheme.rewards == "warp" and space.scheme.dither > 0
+    if lattice:  # more episodes of the one hypothesis left: the likelihood reads each printed return's raw value
+        episodes = LATTICE_EPISODES
+        draws = np.random.default_rng(MARGINAL_SEED + 1).integers(0, 2**31, size=episodes)
+        seeds = np.tile(draws, len(d.y))
     sim.budget.steps += len(seeds) * 100_000  # the final decoding is always simulated, past the budget if need be
     sim.budget.seconds = math.inf
     out = sim.rollout(np.repeat(theta[0], episodes, axis=0), seeds.tolist())
     R = out.returns.reshape(1, len(d.y), episodes)
     fit = fit_rewards(R, d.y, space.scheme, prior, refine=40)
+    if lattice:
+        reward = lattice_posterior(R[0], d.y, space.scheme.dither, prior)
     a = np.exp(z[: v.D])
     replayed = _scale_from_raw(d) if space.scheme.params == "scale" else None
     if replayed is not None:
