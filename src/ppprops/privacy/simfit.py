@@ -15,7 +15,9 @@ with the printed ones. Two attacks:
 - ``sim-marginal`` (no initial states): each shown policy is run on episodes drawn from the
   public initial-state distribution (seeds of the attacker's own), and the printed returns are
   fitted in expectation; raw diagnostics that the prompt still shows (CartPole's termination
-  cause, Acrobot's mean tip height) are fitted the same way.
+  cause, Acrobot's mean tip height) are fitted the same way. For returns on a lattice (integer
+  returns) under the warped, dithered map, the reward map of the hypothesis found is then the
+  posterior median of an exact likelihood (``lattice_posterior``).
 
 Both search the parameter secrets (a, and the offsets m under ``pp-hardened``) with CMA-ES inside
 their public prior, and, for each hypothesis, solve the reward map (c; s and p when the prompt
