@@ -6,8 +6,9 @@ by the product's own routine (``Secrets.generate`` / ``generate_hardened``) from
 seeded per run, and prints per run and in median the relative error of c
 (``privacy.matrix._rel``: exp|ln(est/true)| - 1) for:
 
-- ``fit``: the product's ``sim-marginal`` on the run's transcript (a and m searched, within the
-  audit's step bound; the wall-clock guard lifted so results repeat on a loaded machine);
+- ``sim-marginal`` and ``sim-marginal-lattice``: the product's marginal fit on the run's
+  transcript (a and m searched, within the audit's step bound; the wall-clock guard lifted so
+  results repeat on a loaded machine), its c by the closed form and by the lattice posterior;
 - ``bound`` (``--bound``): an attacker handed the TRUE raw parameters of every shown entry, so
   that only the reward map is left to fit from the printed returns. Each shown policy is
   simulated on ``--episodes`` public initial states; c is then estimated by the closed form of
@@ -171,7 +172,9 @@ def main() -> None:
             v.memo["sim_limits"] = simfit.SimLimits(vector_steps=int(a.steps), seconds=math.inf)
             t0 = time.process_time()
             fit = simfit.fit_view(v, "marginal")
-            row["fit"] = float(_rel(fit.c if not isinstance(fit, str) else PRIOR, s.c))
+            row["sim-marginal"] = float(_rel(fit.c if not isinstance(fit, str) else PRIOR, s.c))
+            if not isinstance(fit, str) and fit.lattice is not None:
+                row["sim-marginal-lattice"] = float(_rel(fit.lattice[0], s.c))
             note = f" ({time.process_time() - t0:.0f} s CPU{'; ' + fit if isinstance(fit, str) else ''})"
         if a.bound:
             row.update(bound(run, task, a.method, s, a.episodes))

@@ -123,7 +123,7 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
     text, analyses = privacy_report([runs["CartPole", "pp", 0], runs["CartPole", "pp-hardened", 0]], small)
     assert "| CartPole pp | CartPole pp-hardened |" in text
     for row in ("diagnostic", "lattice", "known-cap", "warmup-range", "stated-range", "clip-edge", "seed-replay", "sim-exact",
-                "sim-exact-a", "sim-marginal", "sim-marginal-a", "raw return (sim-exact)", "prior (c)"):
+                "sim-exact-a", "sim-marginal", "sim-marginal-lattice", "sim-marginal-a", "raw return (sim-exact)", "prior (c)"):
         assert f"| {row} |" in text
     assert re.search(r"\| diagnostic \| c \| [^|]*% \(1/1\) \| [^|]*% \(0/1\) \|", text)  # k/n: runs within 1%
     assert "Simulator attacks are bounded by 1e+06 simulated steps" in text

@@ -139,17 +139,20 @@ def test_finding_2_the_exact_fit_breaks_pendulum_hardened_and_the_audit_says_exp
 def test_finding_3_the_marginal_fit_moves_c_from_the_prior_towards_the_truth(tmp_path: Path) -> None:
     """No initial states (run seeds beyond the search): the shown policies are simulated on public
     initial-state draws. With c = 8 (the prior guess 1 is off by 700%), five runs with different
-    A, m, s, p: the errors of the estimate were measured at 77.7, 57.2, 28.8, 2.4 and 19.2%
-    (median 28.8%; 78% with two runs off by more than 20x before the reward map on integer
-    returns used their exact likelihood); the median is asserted below 100%."""
-    errors = []
+    A, m, s, p: the median error of ``sim-marginal`` was measured at 78% (three of the five within
+    a factor 1.8, two off by more than 20x: the exponent p and c trade off), asserted below 200%;
+    ``sim-marginal-lattice`` (the same hypothesis, the exact likelihood of the integer returns)
+    at 77.7, 57.2, 28.8, 2.4 and 19.2% (median 28.8%), asserted below 100%."""
+    errors, lattice = [], []
     for k in range(5):
         secrets = dataclasses.replace(seeded_secrets("pp-hardened", "CartPole", k), c=8.0)
         run = make_run(tmp_path, "CartPole", "pp-hardened", 5000 + k, secrets)
         ests = estimates(run, "CartPole")
         assert "initial states unknown" in ests["sim-exact"].not_run  # type: ignore[attr-defined]
         errors.append(float(err(ests["sim-marginal"].value, 8.0)))  # type: ignore[attr-defined]
-    assert float(np.median(errors)) < 1.0, errors
+        lattice.append(float(err(ests["sim-marginal-lattice"].value, 8.0)))  # type: ignore[attr-defined]
+    assert float(np.median(errors)) < 2.0, errors
+    assert float(np.median(lattice)) < 1.0, lattice
     assert float(err(1.0, 8.0)) == pytest.approx(7.0)
     r = audit_run(run)  # the last run: what the audit says about it
     text = r.format()

@@ -21,7 +21,8 @@ the shown values) and ``fallback-spread`` (fallback candidates: the best policy 
 public width, replayed from the run seed or measured by its spread).
 Simulator attacks (``privacy.simfit``; they also build the task's env when it is public, within a
 bound): ``sim-exact`` / ``sim-exact-a`` (initial states known: c, a and the raw values) and
-``sim-marginal`` / ``sim-marginal-a`` (over the public initial-state distribution).
+``sim-marginal`` / ``sim-marginal-a`` (over the public initial-state distribution), and
+``sim-marginal-lattice`` (c from the same fit by the exact likelihood of integer returns).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from .requests import Request
 from .reward_attacks import additivity, saturated_ctrl, survive_length, warped_lattice
 from .runseed import RANGE_STATED as _RANGE
 from .runseed import find_run_seed, replay_scale
-from .simfit import SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a
+from .simfit import SimLimits, sim_exact, sim_exact_a, sim_marginal, sim_marginal_a, sim_marginal_lattice
 from .tokens import token_value
 from .view import Estimate, Shown, View, same_marker, view_of
 
@@ -276,17 +277,18 @@ ATTACKS: dict[str, Callable[[View], Estimate]] = {
     "sim-exact": sim_exact,
     "sim-exact-a": sim_exact_a,
     "sim-marginal": sim_marginal,
+    "sim-marginal-lattice": sim_marginal_lattice,
     "sim-marginal-a": sim_marginal_a,
 }
 # The secret each attack estimates: "c" (the reward scale) or "a" (the parameter scales a_j).
 TARGET: dict[str, str] = {
     **dict.fromkeys(("diagnostic", "lattice", "warped-lattice", "known-cap", "additivity", "survive-length", "saturated-ctrl",
-                     "sim-exact", "sim-marginal"), "c"),
+                     "sim-exact", "sim-marginal", "sim-marginal-lattice"), "c"),
     **dict.fromkeys(("warmup-range", "stated-range", "clip-edge", "seed-replay", "fallback-spread", "sim-exact-a",
                      "sim-marginal-a"), "a"),
 }
 # Attacks that simulate the task's env (bounded by ``simfit.SimLimits``); the others read the transcript alone.
-SIMULATOR_ATTACKS = frozenset({"sim-exact", "sim-exact-a", "sim-marginal", "sim-marginal-a"})
+SIMULATOR_ATTACKS = frozenset({"sim-exact", "sim-exact-a", "sim-marginal", "sim-marginal-lattice", "sim-marginal-a"})
 assert TARGET.keys() == ATTACKS.keys()
 
 

@@ -16,8 +16,8 @@ with the printed ones. Two attacks:
   public initial-state distribution (seeds of the attacker's own), and the printed returns are
   fitted in expectation; raw diagnostics that the prompt still shows (CartPole's termination
   cause, Acrobot's mean tip height) are fitted the same way. For returns on a lattice (integer
-  returns) under the warped, dithered map, the reward map of the hypothesis found is then the
-  posterior median of an exact likelihood (``lattice_posterior``).
+  returns) under the warped, dithered map, ``sim-marginal-lattice`` reads the reward map of the
+  hypothesis found a second way: the posterior median of an exact likelihood (``lattice_posterior``).
 
 Both search the parameter secrets (a, and the offsets m under ``pp-hardened``) with CMA-ES inside
 their public prior, and, for each hypothesis, solve the reward map (c; s and p when the prompt
@@ -450,6 +450,7 @@ class Fit:
     entries: list[int] = field(default_factory=list)  # the View.entries position of each fitted row
     stopped: str = ""  # why the search stopped early ("over its budget ...")
     notes: list[str] = field(default_factory=list)
+    lattice: tuple[float, float, float] | None = None  # (c, s, p) by ``lattice_posterior`` (marginal fit, lattice returns)
 
 
 Objective = Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], RewardFit, NDArray[np.float64]]]
@@ -726,24 +727,24 @@ def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes
             f: float, exact: bool, stopped: str, prior: RewardPrior, reward: tuple[float, float, float] | None = None) -> Fit:
     """The secrets and raw values of hypothesis ``z``, with the exponent refined further (or the
     reward map ``reward`` = (c, s, p) when given: the marginal fit's average). For returns on a
-    lattice under a warped, dithered map the marginal fit's reward map is instead the posterior
-    median of ``lattice_posterior`` on ``LATTICE_EPISODES`` episodes of each decoded policy."""
+    lattice under a warped, dithered map the marginal fit also gives ``Fit.lattice``: the
+    posterior medians of ``lattice_posterior`` on ``LATTICE_EPISODES`` episodes of each decoded
+    policy (a second estimate of the same hypothesis; neither is always the closer)."""
     theta = space.decode(z[None], d.E)
     known = np.isfinite(d.raw).all(axis=1)
     if known.any():
         theta[:, known, :] = d.raw[known][None]
-    lattice = not exact and space.scheme.rewards == "warp" and space.scheme.dither > 0
-    if lattice:  # more episodes of the one hypothesis left: the likelihood reads each printed return's raw value
-        episodes = LATTICE_EPISODES
-        draws = np.random.default_rng(MARGINAL_SEED + 1).integers(0, 2**31, size=episodes)
-        seeds = np.tile(draws, len(d.y))
     sim.budget.steps += len(seeds) * 100_000  # the final decoding is always simulated, past the budget if need be
     sim.budget.seconds = math.inf
     out = sim.rollout(np.repeat(theta[0], episodes, axis=0), seeds.tolist())
     R = out.returns.reshape(1, len(d.y), episodes)
     fit = fit_rewards(R, d.y, space.scheme, prior, refine=40)
-    if lattice:
-        reward = lattice_posterior(R[0], d.y, space.scheme.dither, prior)
+    lattice = None
+    if not exact and space.scheme.rewards == "warp" and space.scheme.dither > 0:  # the likelihood reads each raw return
+        draws = np.random.default_rng(MARGINAL_SEED + 1).integers(0, 2**31, size=LATTICE_EPISODES)
+        sim.budget.steps += len(d.y) * LATTICE_EPISODES * 100_000
+        many = sim.rollout(np.repeat(theta[0], LATTICE_EPISODES, axis=0), np.tile(draws, len(d.y)).tolist())
+        lattice = lattice_posterior(many.returns.reshape(len(d.y), LATTICE_EPISODES), d.y, space.scheme.dither, prior)
     a = np.exp(z[: v.D])
     replayed = _scale_from_raw(d) if space.scheme.params == "scale" else None
     if replayed is not None:
@@ -752,7 +753,7 @@ def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes
     c, s, p = (float(fit.c[0]), float(fit.s[0]), float(fit.p[0])) if reward is None else reward
     reproduced = exact and _reproduces(d, out, R[0, :, 0], c, s, p, space.scheme)
     return Fit(space.scheme, a, m, c, s, p, f, float(fit.rms[0]), theta[0], R[0].mean(axis=1), reproduced,
-               sim.budget.used, list(d.entries), stopped)
+               sim.budget.used, list(d.entries), stopped, lattice=lattice)
 
 
 def _reproduces(d: Data, out: Any, R: NDArray[np.float64], c: float, s: float, p: float, scheme: Scheme) -> bool:
@@ -901,6 +902,22 @@ def sim_exact_a(v: View) -> Estimate:
 def sim_marginal(v: View) -> Estimate:
     """c (with s, p) by simulating the shown policies on public initial-state draws."""
     return _estimate(v, "marginal", "c")
+
+
+def sim_marginal_lattice(v: View) -> Estimate:
+    """c (with s, p) from the ``sim-marginal`` fit's hypothesis by the exact likelihood of returns
+    on a lattice (``lattice_posterior``); not run when the printed returns are not such."""
+    fit = fit_view(v, "marginal")
+    name = "sim-marginal-lattice"
+    if isinstance(fit, str):
+        return Estimate(name, "c", None, fit, not_run=fit)
+    if fit.lattice is None:
+        why = "the printed returns are not on a lattice under a warped map (nothing for the exact likelihood to read)"
+        return Estimate(name, "c", None, why, not_run=why)
+    c, s, p = fit.lattice
+    detail = (f"posterior median of the exact likelihood of the printed returns on {LATTICE_EPISODES} episodes of each policy "
+              f"the marginal fit decodes ({_detail(fit, 'marginal')})")
+    return Estimate(name, "c", c, detail, extras={"s": s, "p": p})
 
 
 def sim_marginal_a(v: View) -> Estimate:
