@@ -14,9 +14,8 @@ seeded per run, and prints per run and in median the relative error of c
   simulated on ``--episodes`` public initial states; c is then estimated by the closed form of
   the product (``simfit.fit_rewards``: least squares on the simulated means), and, for integer
   returns under the warped and dithered map, by the exact likelihood of each printed return
-  (x = w_p^-1(y / c + w_p(s)) must round to a raw return the policy reaches; probability from
-  the simulated episodes, Jacobian of the warp), as its maximum and as the posterior median of
-  c over a (p, s, c) grid with the public prior. This bounds what the returns can give: a fit
+  (``simfit.lattice_posterior``, the reading of ``sim-marginal-lattice``: the posterior median
+  of c over a (p, s, c) grid with the public prior). This bounds what the returns can give: a fit
   that must also find a and m does no better.
 - ``prior``: the guess c = 1.
 
@@ -31,13 +30,11 @@ import math
 import statistics
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ppprops.client.hardening import reward_scale
-from ppprops.client.secrets import HARDENED_P_LOG, LOG_HIGH, LOG_LOW, Secrets
+from ppprops.client.secrets import Secrets
 from ppprops.privacy import simfit
 from ppprops.privacy.matrix import PRIOR, _rel
 from ppprops.privacy.requests import load_requests
@@ -72,41 +69,6 @@ def make_run(out: Path, task: Task, method: str, seed: int) -> Path:
     return d
 
 
-def _w(x: Any, p: float) -> Any:
-    return np.sign(x) * np.abs(x) ** p
-
-
-def exact_c(R: NDArray[np.float64], y: NDArray[np.float64], S: float, step: float) -> tuple[float, float]:
-    """(maximum-likelihood c, posterior-median c) of y = c (w_p(r + d) - w_p(s)), d ~ U(-step/2, step/2),
-    r on the grid of ``step``; R (n, E) simulated returns of the n entries. The grid is flat in ln p
-    (each side of 1), s and ln c: the public prior."""
-    n = len(y)
-    ps = np.exp(np.concatenate([np.linspace(*HARDENED_P_LOG, 41), -np.linspace(*HARDENED_P_LOG, 41)]))
-    ss = np.linspace(-S, S, 201)
-    cs = np.exp(np.linspace(LOG_LOW, LOG_HIGH, 301))
-    k_all = np.rint(R / step).astype(int)
-    lo, hi = int(k_all.min()) - 2, int(k_all.max()) + 2
-    counts = np.zeros((n, hi - lo + 1))
-    for i in range(n):
-        np.add.at(counts[i], k_all[i] - lo, 1.0)
-    smooth = np.array([np.convolve(row, [0.25, 0.5, 0.25], mode="same") for row in counts]) + 0.02
-    logpmf = np.log(smooth / smooth.sum(axis=1, keepdims=True))
-    LL = np.empty((len(ps), len(ss), len(cs)))
-    rows = np.arange(n)[None, :]
-    for i, p in enumerate(ps):
-        for j, s in enumerate(ss):
-            x = _w(y[None, :] / cs[:, None] + _w(s, p), 1.0 / p)
-            k = np.rint(x / step).astype(int)
-            inside = (k >= lo) & (k <= hi)
-            ll = logpmf[rows, np.clip(k - lo, 0, hi - lo)] - np.log(cs[:, None] * p / step) \
-                - (p - 1) * np.log(np.maximum(np.abs(x), 1e-9))
-            LL[i, j] = np.where(inside, ll, -1e9).sum(axis=1)
-    c_ml = float(cs[np.unravel_index(np.argmax(LL), LL.shape)[2]])
-    post = np.exp(LL - LL.max()).sum(axis=(0, 1))
-    c_med = float(cs[np.searchsorted(np.cumsum(post / post.sum()), 0.5)])
-    return c_ml, c_med
-
-
 def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -> dict[str, float]:
     """c from the printed returns with the true raw parameters of every shown entry (module docstring)."""
     from ppprops.store import open_store
@@ -133,9 +95,8 @@ def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -
     fit = simfit.fit_rewards(R[None], y, scheme, simfit.RewardPrior(S=reward_scale(task)), refine=40)
     out = {"closed form": _rel(float(fit.c[0]), secrets.c)}
     step = (v.facts.resolution or {}).get("return", 0.0)
-    if scheme.rewards == "warp" and step > 0:
-        c_ml, c_med = exact_c(R, y, reward_scale(task), step)
-        out["exact, max"] = _rel(c_ml, secrets.c)
+    if scheme.rewards == "warp" and step > 0:  # the reading of sim-marginal-lattice, on the true policies
+        c_med = simfit.lattice_posterior(R, y, step, simfit.RewardPrior(S=reward_scale(task)))[0]
         out["exact, posterior median"] = _rel(c_med, secrets.c)
     return out
 
