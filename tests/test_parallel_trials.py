@@ -125,7 +125,7 @@ def test_workers_failed_trials_and_retry_from_the_shell(tmp_path: Path) -> None:
         (["tell", "s", "1", "--return", "1"], "ppprops: error: trial 1 is held by worker 'arm-b', and this tell names no worker: "
                                                "each worker tells the trials it asked for (ppprops tell --worker arm-b; in Python "
                                                "the Trial that ask returned)\n"),
-        (["study", "retry", "s", "1"], "ppprops: error: trial 1 did not fail (it is pending): only a failed trial can be retried\n"),
+        (["study", "retry", "s", "1"], "ppprops: error: trial 1 did not fail (it is out, held by arm-b): only a failed trial can be retried\n"),
     ]
     for args, line in bad:
         proc = _ppprops(args, tmp_path)

@@ -253,8 +253,8 @@ class Study:
     def ask(self, worker: str | None = None, *, wait: bool = True, timeout: float | None = None) -> Trial:
         """The next trial to evaluate: raw ``theta`` (shape (D,)), ``W``, ``b``, its episode seeds and source.
 
-        ``worker`` names who evaluates it (a plain name: letters, digits, ``.``, ``_``, ``-``;
-        None: the unnamed worker). A worker gets its own pending trial again until it tells it
+        ``worker`` names who evaluates it (a plain name: letters, digits, ``.``, ``_``, ``-``, up to
+        64 characters, starting with a letter or digit; None: the unnamed worker). A worker gets its own pending trial again until it tells it
         (after a restart too: no LLM call is made twice); another worker gets another trial, up
         to ``--parallel`` P out at once. Past P (or while a round, a phase or a CMA-ES generation
         waits for trials that are out) ``ask`` blocks until a trial is told, up to ``timeout``
@@ -296,9 +296,11 @@ class Study:
                 raise StudyComplete(f"study {self.run_dir} is finalized ({self.store.candidate_count()} of {self.total} trials told): "
                                     "nothing more to ask", finalized=True)
             if status is RunStatus.STOPPED or n >= self.total:
-                settled = self.store.candidate_count() + self.store.failed_count()
+                told, failed = self.store.candidate_count(), self.store.failed_count()
                 why = (f"it stopped: {reason}" if status is RunStatus.STOPPED and reason
-                       else f"all {settled} of {self.total} trials are told" if not out
+                       else f"all {self.total} trials are told" if not out and not failed
+                       else f"all {self.total} trials are settled: {told} told, {failed} failed (ppprops study retry "
+                            f"{self.run_dir} TRIAL asks a failed one again)" if not out
                        else f"every trial is asked; {_holders(out)} still out")
                 raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it"
                                     + (" once they are told" if out else ""))
@@ -312,6 +314,8 @@ class Study:
             earlier = [t for t in out if t.number < first]
             if earlier:
                 return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {_holders(earlier)} still out")
+            if phase.name == "selection" and self.store.candidate_count() == 0:
+                raise ConfigError(self._all_failed())
             end = phase.budget
             if self.parallel > 1 and getattr(phase.proposer, "rounds", False):  # one shown history per round of P
                 start = (iteration // self.parallel) * self.parallel
@@ -391,6 +395,9 @@ class Study:
             if pending is None:
                 self._not_pending(number, out)
             assert pending is not None
+            if pending.worker is None:  # made by a round (or a retry) and handed to nobody: no worker evaluated it
+                raise ConfigError(f"trial {number} has not been handed to a worker yet: ask for it first "
+                                  f"(ppprops ask {self.run_dir} --worker NAME; study.ask(worker=...))")
             if pending.worker and teller != pending.worker:  # a tell that names no worker is the unnamed worker's
                 who = f"not {teller!r}" if teller else "and this tell names no worker"
                 raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, {who}: each worker tells the trials "
@@ -419,6 +426,14 @@ class Study:
             if self._phases is not None:
                 self._sync()
             return cand
+
+    def _all_failed(self) -> str:
+        """One line for a search whose every trial failed: nothing to re-evaluate or hand over."""
+        failed = self.store.failed_trials()
+        first = f"; the first, trial {failed[0][0].number}: {failed[0][1]}" if failed else ""
+        return (f"every search trial failed ({len(failed)} of {self.store.next_number()}{first}): there is no candidate to "
+                f"re-evaluate or hand over; 'ppprops show {self.run_dir}' lists each reason, and once the evaluation is "
+                f"fixed 'ppprops study retry {self.run_dir} TRIAL' asks a failed trial again")
 
     def _not_pending(self, number: int, out: list[Trial]) -> None:
         """Raise the ConfigError that says why trial ``number`` cannot be told (it is not pending)."""
@@ -458,7 +473,10 @@ class Study:
                                   "retried only before 'ppprops study finalize'")
             failed = {t.number for t, _ in self.store.failed_trials()}
             if number not in failed:
-                state = {"told": "it was told", "pending": "it is pending"}.get(self.store.trial_state(number) or "", "it was never asked")
+                held = next((t for t in self.store.pending_trials() if t.number == number), None)
+                state = ("it was told" if self.store.trial_state(number) == "told"
+                         else f"it is out, held by {_who(held)}" if held is not None
+                         else "it was never asked")
                 raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
             out_n = len(self.store.pending_trials())
             if out_n >= self.parallel:
@@ -680,7 +698,7 @@ class Study:
             raise ConfigError(f"trial {store.pending_trial().number} is pending: tell it before finalizing")  # type: ignore[union-attr]
         done = store.candidates()
         if not search_candidates(done):
-            raise ConfigError("no trial has been told: nothing to finalize")
+            raise ConfigError(self._all_failed() if store.failed_count() else "no trial has been told: nothing to finalize")
         best = select_best(done)
         fe = store.final_eval()
         if returns is not None:
@@ -881,12 +899,14 @@ def ask_many(proposer: Any, iterations: Sequence[int]) -> list[Any]:
     return [proposer.ask(it) for it in iterations]
 
 
+def _who(t: Trial) -> str:
+    """Who holds the trial that is out: its worker's name, ``unnamed worker`` or ``nobody yet``."""
+    return "nobody yet" if t.worker is None else (t.worker or "unnamed worker")
+
+
 def _holders(trials: Sequence[Trial]) -> str:
     """``trial 3 (robot-1), trial 4 (nobody yet)``: which trials are out and who holds them."""
-    def who(t: Trial) -> str:
-        return "nobody yet" if t.worker is None else (t.worker or "unnamed worker")
-
-    return ", ".join(f"trial {t.number} ({who(t)})" for t in trials)
+    return ", ".join(f"trial {t.number} ({_who(t)})" for t in trials)
 
 
 def _returns(returns: Any) -> list[Any]:

@@ -209,7 +209,7 @@ def format_summary(s: dict[str, Any]) -> str:
     for note in s.get("notes") or []:
         lines.append(f"note     {note}")
     out = s.get("trials_out") or []
-    if len(out) > 1 or any(t["worker"] != "" for t in out):  # one trial out by the unnamed worker: the status says enough
+    if out:
         lines.append(f"out      {len(out)} trial(s): " + ", ".join(
             f"{t['trial']} ({'held by nobody yet' if t['worker'] is None else 'held by ' + (t['worker'] or 'the unnamed worker')})"
             for t in out))

@@ -127,7 +127,7 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
         study.tell(t0, failed="e-stop at 3.2 s")
         with pytest.raises(ConfigError, match=r"^trial 0 failed \(e-stop at 3.2 s\); ask it again with 'ppprops study retry"):
             study.tell(0, [1.0])
-        with pytest.raises(ConfigError, match=r"^trial 1 did not fail \(it is pending\): only a failed trial can be retried$"):
+        with pytest.raises(ConfigError, match=r"^trial 1 did not fail \(it is out, held by r2\): only a failed trial can be retried$"):
             study.retry(1)
         study.tell(t1, [500.0])
         again = study.retry(0)
@@ -135,6 +135,8 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
         from ppprops.summary import format_summary, run_summary
 
         assert "out      1 trial(s): 0 (held by nobody yet)" in format_summary(run_summary(tmp_path / "s"))  # retried, not lost
+        with pytest.raises(ConfigError, match=r"^trial 0 has not been handed to a worker yet: ask for it first \(ppprops ask "):
+            study.tell(0, [1.0], worker="r9")  # no worker ran it: a mistyped number must not store a return for it
         got = study.ask(worker="r3")
         assert got.number == 0 and got.worker == "r3"
         study.tell(got, failed="rig fault")  # fails again, for good
@@ -149,6 +151,9 @@ def test_a_failed_trial_is_kept_never_shown_never_selected_and_retry_asks_it_aga
                 pass
             for t in ts:
                 study.tell(t, _run(study, t) if t.source != "reeval" else [float(np.mean(_run(study, t)))] * len(t.seeds))
+        with pytest.raises(StudyComplete, match=r"\(all 10 trials are settled: 9 told, 1 failed \(ppprops study retry .* TRIAL "
+                                                r"asks a failed one again\)\); finalize it$"):
+            study.ask(worker="r1")
         study.finalize(returns=[1.0])
         with pytest.raises(ConfigError, match=r"is finalized \(its best policy is handed over\): a failed trial can be retried only "
                                               r"before 'ppprops study finalize'$"):
@@ -277,6 +282,62 @@ def test_on_episode_error_fail_trial_records_the_error_and_goes_on(tmp_path: Pat
         assert text.count("return:") == len(told_before)  # exactly the told candidates: no failed trial
     policy = json.loads((tmp_path / "r" / "best_policy.json").read_text())
     assert policy["search"]["candidate"] not in fail_enc
+
+
+ALWAYS = FAULTY.replace("if int(action) == 1 and self.x > 0.45:", "if True:")
+
+
+@pytest.mark.parametrize("select_top", [2, 0])
+def test_a_search_whose_every_trial_failed_ends_with_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, select_top: int) -> None:
+    """Every trial fails (the env raises in every episode): the study says so in one line, at the
+    selection stage or at the final evaluation, and keeps every failed trial with its reason."""
+    (tmp_path / "dead_robot.py").write_text(ALWAYS)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    values = {"env": "dead_robot:Faulty", "method": "random", "warmup": 3, "iterations": 2, "seed": 5, "final_episodes": 1,
+              "select_top": select_top, "select_episodes": 1, "on_episode_error": "fail-trial"}
+    with Study.create(build_config(values), tmp_path / "r") as study:
+        with pytest.raises(ConfigError, match=r"^every search trial failed \(5 of 5; the first, trial 0: .*RuntimeError: e-stop .*\): "
+                                              r"there is no candidate to re-evaluate or hand over; 'ppprops show .*' lists each "
+                                              r"reason, and once the evaluation is fixed 'ppprops study retry .* TRIAL' asks a "
+                                              r"failed trial again$"):
+            study.optimize()
+            study.finalize()
+        assert [t.number for t, _ in study.failed] == [0, 1, 2, 3, 4] and study.trials == []
+    assert not (tmp_path / "r" / "best_policy.json").exists()
+
+
+def test_a_run_whose_every_trial_failed_exits_2_with_one_line_and_so_does_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from ppprops.cli import main
+
+    (tmp_path / "dead_robot.py").write_text(ALWAYS)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    args = ["run", "--env", "dead_robot:Faulty", "--method", "random", "--warmup", "3", "--iterations", "2", "--final-episodes", "1",
+            "--on-episode-error", "fail-trial", "--out", "r", "--quiet"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [line.split(":")[0] for line in err] == ["note"] * 5 + ["ppprops"], err  # a note per failed trial, then the error
+    assert err[-1].startswith("ppprops: error: every search trial failed (5 of 5; the first, trial 0: "), err
+    assert main(["resume", "r", "--quiet"]) == 2
+    again = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("note: ")]
+    assert len(again) == 1 and again[0].startswith("ppprops: error: every search trial failed (5 of 5; "), again
+    assert main(["show", "r", "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["counts"]["failed"] == 5 and [f["trial"] for f in s["failed_trials"]] == [0, 1, 2, 3, 4]
+
+
+def test_show_lists_a_trial_asked_without_a_worker_name(tmp_path: Path) -> None:
+    from ppprops.summary import format_summary, run_summary
+
+    with Study.create(_config(method="random"), tmp_path / "one") as study:
+        study.ask()
+    assert "out      1 trial(s): 0 (held by the unnamed worker)" in format_summary(run_summary(tmp_path / "one"))
+    with Study.create(_config(method="random", parallel=4), tmp_path / "four") as study:
+        study.ask()  # the warm-up's first four trials are made at once: the first is the unnamed worker's, the rest nobody's
+    assert ("out      4 trial(s): 0 (held by the unnamed worker), 1 (held by nobody yet), 2 (held by nobody yet), "
+            "3 (held by nobody yet)") in format_summary(run_summary(tmp_path / "four"))
 
 
 def test_the_embedded_server_gets_p_slots(tmp_path: Path) -> None:
