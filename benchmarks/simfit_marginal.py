@@ -19,6 +19,12 @@ seeded per run, and prints per run and in median the relative error of c
   that must also find a and m does no better.
 - ``prior``: the guess c = 1.
 
+``--returns`` also prints, per run and in mean, the mean absolute error (raw reward units) of the
+raw returns of the shown entries the fit used: ``sim-marginal`` its expected return of each
+decoded policy; ``sim-marginal-lattice`` each printed return read back through the lattice
+reading's map (x = w_p^-1(y / c + w_p(s)), to the nearest lattice point); ``prior map`` the
+printed return itself (c = 1, s = 0, p = 1).
+
     PYTHONPATH=src nice -n 10 python benchmarks/simfit_marginal.py --task CartPole --seeds 0-21 --bound \\
         --out /tmp/simfit-bound
 """
@@ -101,6 +107,36 @@ def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -
     return out
 
 
+def true_returns(run: Path, v: object, positions: list[int]) -> np.ndarray:
+    """The raw return of each shown entry at ``positions`` (by its encoded parameters as printed)."""
+    from ppprops.store import open_store
+
+    with open_store(run) as st:
+        cands = [c for c in st.candidates() if c.source != "reeval"]
+    enc = np.array([c.params_enc for c in cands])
+    out = []
+    for pos in positions:
+        e = v.entries[pos]  # type: ignore[attr-defined]
+        near = np.all(np.abs(enc - np.asarray(e.params)) <= np.asarray(e.tols) * (1 + 1e-9) + 1e-12, axis=1)
+        out.append(cands[int(np.argmax(near))].ret if near.any() else math.nan)
+    return np.array(out)
+
+
+def return_errors(run: Path, v: object, fit: simfit.Fit, step: float) -> dict[str, float]:
+    """Mean absolute error of the raw returns of the entries the fit used (module docstring)."""
+    truth = true_returns(run, v, fit.entries)
+    y = np.array([v.entries[pos].ret for pos in fit.entries])  # type: ignore[attr-defined]
+    out = {"prior map": float(np.nanmean(np.abs(y - truth))),
+           "sim-marginal": float(np.nanmean(np.abs(fit.raw_returns - truth)))}
+    if fit.lattice is not None:
+        c, s_, p = fit.lattice
+        x = simfit._w(y / c + simfit._w(s_, p), 1.0 / p)
+        if step > 0:
+            x = np.rint(x / step) * step
+        out["sim-marginal-lattice"] = float(np.nanmean(np.abs(x - truth)))
+    return out
+
+
 def seeds_of(text: str) -> list[int]:
     """'0-3,7' -> [0, 1, 2, 3, 7]."""
     out: list[int] = []
@@ -120,9 +156,11 @@ def main() -> None:
     ap.add_argument("--no-fit", action="store_true", help="skip the product's fit (with --bound: the bound alone)")
     ap.add_argument("--bound", action="store_true", help="also the true-parameter bound")
     ap.add_argument("--episodes", type=int, default=64, help="simulated episodes per shown policy in the bound")
+    ap.add_argument("--returns", action="store_true", help="also the error of the raw returns the fit reads")
     a = ap.parse_args()
     task = get_task(a.task)
     errors: dict[str, list[float]] = {}
+    ret_errors: dict[str, list[float]] = {}
     for seed in seeds_of(a.seeds):
         run = make_run(a.out, task, a.method, seed)
         s = secrets_for(a.method, task, seed)
@@ -137,6 +175,12 @@ def main() -> None:
             if not isinstance(fit, str) and fit.lattice is not None:
                 row["sim-marginal-lattice"] = float(_rel(fit.lattice[0], s.c))
             note = f" ({time.process_time() - t0:.0f} s CPU{'; ' + fit if isinstance(fit, str) else ''})"
+            if a.returns and not isinstance(fit, str):
+                step = (v.facts.resolution or {}).get("return", 0.0)
+                got = return_errors(run, v, fit, step)
+                for k, e in got.items():
+                    ret_errors.setdefault(k, []).append(e)
+                note += "  raw returns, mean abs error: " + "  ".join(f"{k} {e:.1f}" for k, e in got.items())
         if a.bound:
             row.update(bound(run, task, a.method, s, a.episodes))
         for k, e in row.items():
@@ -144,6 +188,9 @@ def main() -> None:
         print(f"seed {seed}: c {s.c:.4g}  " + "  ".join(f"{k} {100 * e:.1f}%" for k, e in row.items()) + note, flush=True)
     print(f"{a.task} {a.method}, {len(errors['prior'])} runs, median error of c: "
           + ", ".join(f"{k} {100 * statistics.median(e):.1f}%" for k, e in errors.items()))
+    if ret_errors:
+        print("raw returns of the shown entries, mean absolute error over runs (median over runs): "
+              + ", ".join(f"{k} {statistics.mean(e):.1f} ({statistics.median(e):.1f})" for k, e in ret_errors.items()))
 
 
 if __name__ == "__main__":
