@@ -32,6 +32,9 @@ if TYPE_CHECKING:
 EXPOSED_WITHIN = 0.01  # an attack that recovers a secret (or a raw value) within 1% fails the audit
 NEAR_MISS = 0.02  # within 2% (and not 1%): named in the verdict's line, the run still CLEAN
 PRIOR = 1.0  # the prior guess of c and a_j (the geometric mean of both schemes' distributions)
+# Attacks whose raw reading of the best shown entry is scored against the store (``raw_exposures``):
+# the exact fit reproduces each episode, the lattice reading names each printed return's raw value.
+RAW_READERS = frozenset({"sim-exact", "sim-marginal-lattice"})
 
 # Channels that PP-ProPS as the paper defines it keeps (unscaled diagnostics, integer returns and
 # caps under a pure scale, the warm-up's uniform box, clipping to the box); the others come from how
@@ -159,7 +162,7 @@ def assess(requests: Sequence[Request], task: str | Task, box: tuple[float, floa
         if est.not_run:
             out.not_run.append((est.attack, est.not_run))
             continue
-        if mech.encode_params and est.attack == "sim-exact":
+        if mech.encode_params and est.attack in RAW_READERS:
             out.exposures += raw_exposures(est, cands, box)
         if not est.applicable or est.value is None:
             continue

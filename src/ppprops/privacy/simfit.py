@@ -920,7 +920,24 @@ def sim_marginal_lattice(v: View) -> Estimate:
     c, s, p = fit.lattice
     detail = (f"posterior median of the exact likelihood of the printed returns on {LATTICE_EPISODES} episodes of each policy "
               f"the marginal fit decodes ({_detail(fit, 'marginal')})")
-    return Estimate(name, "c", c, detail, extras={"s": s, "p": p})
+    return Estimate(name, "c", c, detail, extras={"s": s, "p": p}, raw=_lattice_guesses(v, fit))
+
+
+def _lattice_guesses(v: View, fit: Fit) -> tuple[RawGuess, ...]:
+    """Each printed return the fit used, read back through the lattice reading's map: the raw
+    return x = w_p^-1(y / c + w_p(s)) at the nearest lattice point (the dither's step), with the
+    raw parameters the fit decodes. The map's secrets trade off against each other, so the
+    returns can be read closer than c (docs/threat-model.md)."""
+    assert fit.lattice is not None
+    c, s, p = fit.lattice
+    step = fit.scheme.dither
+    out = []
+    for k, pos in enumerate(fit.entries):
+        e = v.entries[pos]
+        x = float(_w(e.ret / c + _w(s, p), 1.0 / p))
+        out.append(RawGuess(tuple(float(t) for t in e.params), tuple(float(t) for t in e.tols), e.ret,
+                            round(x / step) * step if step > 0 else x, tuple(float(t) for t in fit.raw_params[k])))
+    return tuple(out)
 
 
 def sim_marginal_a(v: View) -> Estimate:
