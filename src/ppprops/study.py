@@ -254,7 +254,8 @@ class Study:
         """The next trial to evaluate: raw ``theta`` (shape (D,)), ``W``, ``b``, its episode seeds and source.
 
         ``worker`` names who evaluates it (a plain name: letters, digits, ``.``, ``_``, ``-``, up to
-        64 characters, starting with a letter or digit; None: the unnamed worker). A worker gets its own pending trial again until it tells it
+        64 characters, starting with a letter or digit; None: the unnamed worker). A worker gets its
+        own pending trial again until it tells it
         (after a restart too: no LLM call is made twice); another worker gets another trial, up
         to ``--parallel`` P out at once. Past P (or while a round, a phase or a CMA-ES generation
         waits for trials that are out) ``ask`` blocks until a trial is told, up to ``timeout``
@@ -377,7 +378,8 @@ class Study:
         ``Trial`` given) must be the worker holding the trial.
 
         Nothing is stored when this raises ConfigError: a trial that is not pending or was already
-        told, one another worker holds, an empty ``failed`` reason, a non-finite value, a missing or unknown
+        told, one another worker holds, one no worker has been handed yet (the rest of a round, a
+        retried trial: ask for it first), an empty ``failed`` reason, a non-finite value, a missing or unknown
         component, an unknown diagnostic, a mismatch between the episodes given, or fewer returns than the
         trial asked episodes for (more are welcome: the mean of all is used).
         """
