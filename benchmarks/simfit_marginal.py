@@ -109,37 +109,23 @@ def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -
     return out
 
 
-def true_returns(run: Path, v: object, positions: list[int]) -> np.ndarray:
-    """The raw return of each shown entry at ``positions`` (by its encoded parameters as printed)."""
+def return_errors(run: Path, v: object, fit: simfit.Fit) -> dict[str, float]:
+    """Mean absolute error of the raw returns of the entries the fit used (module docstring); the
+    lattice reading's raw returns are the audit's own (``sim-marginal-lattice``'s raw guesses)."""
+    from ppprops.privacy.exposure import shown_candidate
     from ppprops.store import open_store
 
     with open_store(run) as st:
-        cands = [c for c in st.candidates() if c.source != "reeval"]
-    enc = np.array([c.params_enc for c in cands])
-    out = []
-    for pos in positions:
-        e = v.entries[pos]  # type: ignore[attr-defined]
-        near = np.all(np.abs(enc - np.asarray(e.params)) <= np.asarray(e.tols) * (1 + 1e-9) + 1e-12, axis=1)
-        out.append(cands[int(np.argmax(near))].ret if near.any() else math.nan)
-    return np.array(out)
-
-
-def return_errors(run: Path, v: object, fit: simfit.Fit, step: float) -> dict[str, float]:
-    """Mean absolute error of the raw returns of the entries the fit used (module docstring)."""
-    truth = true_returns(run, v, fit.entries)
-    y = np.array([v.entries[pos].ret for pos in fit.entries])  # type: ignore[attr-defined]
-    best = int(np.argmax(y))  # the best shown entry (the warp is increasing): the one the audit scores
-    out = {"constant": float(np.nanmean(np.abs(np.nanmean(truth) - truth))),
-           "sim-marginal": float(np.nanmean(np.abs(fit.raw_returns - truth)))}
-    hits = {"sim-marginal": float(abs(fit.raw_returns[best] - truth[best]) <= 0.01 * abs(truth[best]))}
+        cands = st.candidates()
+    guesses = simfit._raw_guesses(v, fit)  # type: ignore[arg-type]
+    truth = np.array([getattr(shown_candidate(g, cands), "ret", math.nan) for g in guesses])
+    best = int(np.argmax([g.ret for g in guesses]))  # the best shown entry (the warp is increasing): the one the audit scores
+    readings = {"sim-marginal": np.array([g.raw_ret for g in guesses])}
     if fit.lattice is not None:
-        c, s_, p = fit.lattice
-        x = simfit._w(y / c + simfit._w(s_, p), 1.0 / p)
-        if step > 0:
-            x = np.rint(x / step) * step
-        out["sim-marginal-lattice"] = float(np.nanmean(np.abs(x - truth)))
-        hits["sim-marginal-lattice"] = float(abs(x[best] - truth[best]) <= 0.01 * abs(truth[best]))
-    out.update({f"best within 1%, {k}": v for k, v in hits.items()})
+        readings["sim-marginal-lattice"] = np.array([g.raw_ret for g in simfit._lattice_guesses(v, fit)])  # type: ignore[arg-type]
+    out = {"constant": float(np.nanmean(np.abs(np.nanmean(truth) - truth)))}
+    out.update({k: float(np.nanmean(np.abs(x - truth))) for k, x in readings.items()})
+    out.update({f"best within 1%, {k}": float(abs(x[best] - truth[best]) <= 0.01 * abs(truth[best])) for k, x in readings.items()})
     return out
 
 
@@ -182,8 +168,7 @@ def main() -> None:
                 row["sim-marginal-lattice"] = float(_rel(fit.lattice[0], s.c))
             note = f" ({time.process_time() - t0:.0f} s CPU{'; ' + fit if isinstance(fit, str) else ''})"
             if a.returns and not isinstance(fit, str):
-                step = (v.facts.resolution or {}).get("return", 0.0)
-                got = return_errors(run, v, fit, step)
+                got = return_errors(run, v, fit)
                 for k, e in got.items():
                     ret_errors.setdefault(k, []).append(e)
                 note += "  raw returns: " + "  ".join(f"{k} {e:.1f}" for k, e in got.items())

@@ -249,17 +249,11 @@ def _shows(c: object, g: object) -> bool:
 
 
 def _shown_raw_returns(run: Path, guesses: Any) -> np.ndarray:
-    """The true raw return behind each guessed entry (the candidate whose encoded parameters print as shown)."""
-    from ppprops.store import open_store
+    """The true raw return behind each guessed entry (``exposure.shown_candidate``: the candidate it stands for)."""
+    from ppprops.privacy.exposure import shown_candidate
 
-    with open_store(run) as store:
-        cands = [c for c in store.candidates() if c.reevaluates is None]
-    enc = np.array([c.params_enc for c in cands])
-    out = []
-    for g in guesses:
-        near = np.all(np.abs(enc - np.asarray(g.params)) <= np.asarray(g.tols) * (1 + 1e-9) + 1e-12, axis=1)
-        out.append(cands[int(np.argmax(near))].ret)
-    return np.array(out)
+    cands = _candidates(run)
+    return np.array([shown_candidate(g, cands).ret for g in guesses])  # type: ignore[union-attr]
 
 
 def test_the_lattice_reading_names_acrobot_raw_returns_closer_than_the_marginal_fit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -282,15 +276,12 @@ def test_the_lattice_reading_names_acrobot_raw_returns_closer_than_the_marginal_
 
     # the audit reads the lattice row's raw values: a reading that names the best shown return is an exposure
     from ppprops.privacy import exposure
-    from ppprops.store import open_store
 
     best = max(lat.raw, key=lambda g: g.ret)  # type: ignore[attr-defined]
     exact = dataclasses.replace(best, raw_ret=float(_shown_raw_returns(run, [best])[0]))
     planted = dataclasses.replace(lat, raw=tuple(exact if g is best else g for g in lat.raw))  # type: ignore[attr-defined,type-var]
     monkeypatch.setattr(exposure, "run_attacks", lambda *a, **k: [planted])
-    with open_store(run) as store:
-        cands = store.candidates()
     from ppprops.client.mechanisms import PRESETS
 
-    found = exposure.assess([], get_task("Acrobot"), (-6.0, 6.0), PRESETS["pp-hardened"], cands, secrets)
+    found = exposure.assess([], get_task("Acrobot"), (-6.0, 6.0), PRESETS["pp-hardened"], _candidates(run), secrets)
     assert [(e.attack, e.error) for e in found.exposures if e.target == "raw return"] == [("sim-marginal-lattice", 0.0)]
