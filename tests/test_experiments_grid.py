@@ -123,11 +123,23 @@ def test_grid_killed_midway_finishes_on_rerun_without_redoing_runs(tmp_path: Pat
 
 @pytest.fixture(scope="module")
 def ray_local() -> Iterator[Any]:
-    """One local Ray instance for this module's Ray grids (starting one takes seconds)."""
-    import ray
-    ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    """One private Ray instance for this module's Ray grids (starting one takes seconds), started
+    as ``--ray local`` starts it."""
+    from ppprops.ray_cluster import connect
+    ray, started = connect("local", "--ray")
+    assert started
     yield ray
     ray.shutdown()
+
+
+def test_a_private_ray_instance_runs_its_workers_at_niceness_0(ray_local: Any) -> None:
+    """Ray's own default (15) starves a run's embedded server whenever anything else uses the
+    cores; the workers of the instance ppprops starts run at this process's priority."""
+    @ray_local.remote
+    def niceness() -> int:
+        return os.nice(0)
+
+    assert ray_local.get(niceness.remote()) == 0 == os.nice(0)
 
 
 @pytest.mark.llm

@@ -10,15 +10,14 @@ of the task) installed; Ray is the ``ray`` extra.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import ConfigError, MissingExtraError
 from .evaluation import EpisodeError, aggregate, make_policy, run_episode, step_cap
+from .ray_cluster import connect, import_ray
 from .tasks import Task, resolve_task, task_ref
 from .values import Feedback
 
@@ -42,11 +41,7 @@ def _episodes(ref: Any, theta: NDArray[np.floating], seeds: Sequence[int]) -> tu
 
 
 def _ray() -> Any:
-    try:
-        import ray
-    except ImportError as e:
-        raise MissingExtraError("ray", "--ray-address") from e
-    return ray
+    return import_ray("--ray-address")
 
 
 class RayFleet:
@@ -57,19 +52,7 @@ class RayFleet:
     reached (one line)."""
 
     def __init__(self, task: Task, address: str, *, cpus: float = 1.0) -> None:
-        ray = _ray()
-        self._started = not ray.is_initialized()
-        if self._started:
-            kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
-            if address == "local":
-                kw["num_cpus"] = os.cpu_count() or 1
-            else:
-                kw["address"] = address
-            try:
-                ray.init(**kw)
-            except (ConnectionError, RuntimeError, ValueError) as e:
-                raise ConfigError(f"--ray-address {address}: cannot reach a Ray cluster ({type(e).__name__}: "
-                                  f"{str(e).splitlines()[0] if str(e) else 'no detail'})") from None
+        ray, self._started = connect(address, "--ray-address")
         self._remote = ray.remote(num_cpus=cpus)(_episodes)
         self._ref = task_ref(task)
 

@@ -26,18 +26,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, MissingExtraError
+from ..errors import ConfigError
+from ..ray_cluster import connect, import_ray
 from .grid import MANIFEST, Job, Outcome, execute_job
 
 TRANSFER = ("auto", "ship")
 
 
 def _ray() -> Any:
-    try:
-        import ray
-    except ImportError as e:
-        raise MissingExtraError("ray", "ppprops experiment --ray / --ray-address") from e
-    return ray
+    return import_ray("ppprops experiment --ray / --ray-address")
 
 
 class RayGate:
@@ -170,19 +167,7 @@ def run_ray(
     """
     if transfer not in TRANSFER:
         raise ConfigError(f"transfer must be one of {', '.join(TRANSFER)}, got {transfer!r}")
-    ray = _ray()
-    started = False
-    if not ray.is_initialized():
-        kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
-        if address == "local":
-            kw["num_cpus"] = os.cpu_count() or 1
-        else:
-            kw["address"] = address
-        try:
-            ray.init(**kw)
-        except (ConnectionError, RuntimeError, ValueError) as e:
-            raise ConfigError(f"cannot reach the Ray cluster at {address!r}: {str(e).splitlines()[0]}") from None
-        started = True
+    ray, started = connect(address, "--ray-address" if address != "local" else "--ray")
     try:
         gate = make_gate(llm_concurrency) if llm_concurrency is not None else None
         remote = ray.remote(ray_task).options(num_cpus=llm_threads, max_retries=2, retry_exceptions=False)
