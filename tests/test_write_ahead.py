@@ -47,9 +47,13 @@ def _kill_once(proc: subprocess.Popen[bytes], server: FaultServer, arrived: int)
     assert proc.returncode == -signal.SIGKILL
 
 
+def _raw_bodies(received: list[bytes]) -> list[bytes]:
+    """The bodies of the POSTs the endpoint received, as bytes."""
+    return [r.split(b"\r\n\r\n", 1)[1] for r in received if r.startswith(b"POST ")]
+
+
 def _bodies(received: list[bytes]) -> list[dict[str, object]]:
-    posts = [r for r in received if r.startswith(b"POST ")]
-    return [json.loads(r.split(b"\r\n\r\n", 1)[1]) for r in posts]
+    return [json.loads(b) for b in _raw_bodies(received)]
 
 
 def _stored(run_dir: Path) -> list[dict[str, object]]:
@@ -58,9 +62,9 @@ def _stored(run_dir: Path) -> list[dict[str, object]]:
 
 
 def _the_endpoint_saw_what_the_store_holds(server: FaultServer, run_dir: Path, unanswered: int) -> list[dict[str, object]]:
-    sent = _bodies(server.received())
     calls = _stored(run_dir)
-    assert [json.loads(str(c["request"])) for c in calls] == sent  # the same requests, in the order sent
+    # the same requests, byte for byte, in the order sent
+    assert [str(c["request"]).encode("utf-8") for c in calls] == _raw_bodies(server.received())
     assert [c["answered"] for c in calls] == [True] * (len(calls) - unanswered) + [False] * unanswered
     assert all(c["error_kind"] == "unanswered" and not c["ok"] for c in calls[len(calls) - unanswered:])
     return calls
@@ -148,9 +152,9 @@ def test_requests_in_flight_together_killed(tmp_path: Path) -> None:
     with FaultServer(FaultConfig(fault_rate=0.0, hold_after=0, record=True)) as server:
         proc = _launch([sys.executable, "-c", script, str(db), server.base_url], tmp_path)
         _kill_once(proc, server, arrived=3)
-        sent = _bodies(server.received())
+        raw = _raw_bodies(server.received())
+    sent = [json.loads(b) for b in raw]
     calls = _stored(tmp_path)
-    assert sorted(json.dumps(b, sort_keys=True) for b in sent) == sorted(json.dumps(json.loads(str(c["request"])), sort_keys=True)
-                                                                         for c in calls)
+    assert sorted(raw) == sorted(str(c["request"]).encode("utf-8") for c in calls)  # byte for byte, in any order
     assert sorted(c["iteration"] for c in calls) == [0, 1, 2] and not any(c["answered"] for c in calls)
     assert sorted(b["messages"][0]["content"] for b in sent) == ["request 0", "request 1", "request 2"]  # type: ignore[index]

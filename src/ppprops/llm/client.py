@@ -8,7 +8,9 @@ store. It never reads the form's fields one by one: a field a form adds is sent 
 embedded model it starts the shipped llama.cpp server on the first request (``connect``), so a
 warm-up never waits for a model to load.
 
-Only the request body is recorded (never headers, so never the API key). ``send`` returns one
+Only the request body is recorded (never headers, so never the API key), as the bytes the HTTP
+client sends: an httpx request hook hands them to the recorder after the SDK has serialised the
+body and before it leaves (``_announce``). ``send`` returns one
 usable exchange or raises, so an HTTP error never reaches the model as if it were an answer.
 
 - **Transient faults** (timeouts, refused or dropped connections, 429, 5xx, a garbled body, a
@@ -481,9 +483,11 @@ class EndpointClient:
                 server = self._stack.enter_context(self._server())
                 self._on_ready(time.monotonic() - t0)
                 self.base_url = server.base_url
-            from openai import OpenAI
+            from openai import DefaultHttpxClient, OpenAI
 
-            self._sdk = OpenAI(base_url=self.base_url, api_key=self._key, timeout=self.config.timeout_s, max_retries=0)
+            http = DefaultHttpxClient(event_hooks={"request": [_announce]})
+            self._sdk = OpenAI(base_url=self.base_url, api_key=self._key, timeout=self.config.timeout_s, max_retries=0,
+                               http_client=http)
             self._stack.callback(self._sdk.close)
         return self._sdk
 
@@ -581,13 +585,23 @@ class EndpointClient:
 
         document = req.endpoint == ENDPOINT_COMPLETIONS
         url = self.document_url if document else self.url
-        request = json.dumps(body)
+        request = json.dumps(body)  # what is recorded if the SDK fails before the request is made
         prompt_chars = req.prompt_chars
         known = _SDK_DOCUMENT_ARGS if document else _SDK_ARGS
         sdk_args = {k: v for k, v in body.items() if k in known}
         extra = {k: v for k, v in body.items() if k not in known} or None
-        if before_try is not None:
-            before_try(request, retry)
+        sent: list[str] = []
+        unrecorded: list[BaseException] = []  # before_try's own error: the SDK would report it as a dropped connection
+
+        def announce(wire: str) -> None:  # the body's bytes, about to leave (_announce)
+            sent.append(wire)
+            if before_try is not None:
+                try:
+                    before_try(wire, retry)
+                except BaseException as e:
+                    unrecorded.append(e)
+                    raise
+
         t0 = time.perf_counter()
 
         def failed(kind: str, error: str, response: str | None = None) -> Exchange:
@@ -604,7 +618,16 @@ class EndpointClient:
 
         try:
             api: Any = client.completions if document else client.chat.completions
-            raw = api.with_raw_response.create(**sdk_args, extra_body=extra, timeout=timeout_s)
+            _wire.announce = announce
+            try:
+                raw = api.with_raw_response.create(**sdk_args, extra_body=extra, timeout=timeout_s)
+            except BaseException:
+                if unrecorded:  # not written ahead, so not sent: the recorder's error, as it was raised
+                    raise unrecorded[0] from None
+                raise
+            finally:
+                _wire.announce = None
+                request = sent[-1] if sent else request
             latency = time.perf_counter() - t0
             text = raw.http_response.text
         except openai.APITimeoutError:
@@ -673,6 +696,18 @@ def connect(config: LLMConfig, *, gate: AbstractContextManager[object] | None = 
 
 
 # Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
+_wire = threading.local()  # .announce: the recorder of the try this thread is making (EndpointClient._attempt)
+
+
+def _announce(request: Any) -> None:
+    """httpx's request hook: hand the request's body, the exact bytes about to be sent, to the
+    try this thread is making. It runs after the SDK has serialised the body and before a byte
+    leaves, so the write-ahead record is the body sent; a failure to record stops the request."""
+    announce = getattr(_wire, "announce", None)
+    if announce is not None:
+        announce(request.content.decode("utf-8"))
+
+
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
 _SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed", "top_p"})
