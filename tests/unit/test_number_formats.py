@@ -116,15 +116,16 @@ def test_the_first_attack_on_the_factor_recovers_neither_it_nor_a_better_than_wi
     """One request: the pp warm-up (10 policies uniform in the box) printed on the grid. The attack
     estimates g a_j per coordinate (the warm-up attack), then g from the prior's support (every a_j
     in [0.1, 10]: g between max_j(g a_j)/10 and min_j(g a_j)/0.1, the geometric middle), and a_j
-    from both. Over 30 keys of Ant-Ultra's size (D = 88; the extremes of 88 draws pin A's overall
-    scale, so this is the size where it works best), g is rarely within 1% and about 5% off in the
-    median, and the estimates of A are no closer than the warm-up attack's on the paper's decimal
+    from both. Over 300 keys of Ant-Ultra's size (D = 88; the extremes of 88 draws pin A's overall
+    scale, so this is the size where it works best), g is within 1% for about one key in ten
+    (measured 30 of 300; asserted at most 15%, since the keys' last bits, hence g, follow the
+    platform's exp and log) and about 5% off in the median, and the estimates of A are no closer than the warm-up attack's on the paper's decimal
     prompt from the same draws (the effective scale g a_j, what decoding needs, is exactly as
     exposed as a_j was: the audit scores attacks against it)."""
     rng = np.random.default_rng(3)
     D, n, half = 88, 10, 6.0
     g_hits, g_err, err_grid, err_plain = 0, [], [], []
-    for k in range(30):
+    for k in range(300):
         s = Secrets.generate(f"k{k}", D, rng=rng)
         codec = grid_codec(s)
         theta = rng.uniform(-6, 6, (n, D))
@@ -138,7 +139,7 @@ def test_the_first_attack_on_the_factor_recovers_neither_it_nor_a_better_than_wi
         err_grid.append(np.median(np.abs(ga / g_hat / s.a - 1)))
         plain = np.round(np.array([s.a * t for t in theta]), 2)
         err_plain.append(np.median(np.abs(_warmup_attack(plain, half) / s.a - 1)))
-    assert g_hits <= 3 and np.median(g_err) > 0.03
+    assert g_hits <= 45 and np.median(g_err) > 0.03, (g_hits, np.median(g_err))
     assert np.median(err_grid) > np.median(err_plain)  # the grid makes the attack on A worse, never better
 
 
