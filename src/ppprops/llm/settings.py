@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
 from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
@@ -70,6 +71,15 @@ class LLMConfig:
             raise ConfigError(f"--retry-max-delay ({self.retry_max_s}) must be >= --retry-base-delay ({self.retry_base_s})")
         if self.base_url is not None and not self.base_url.startswith(("http://", "https://")):
             raise ConfigError(f"--base-url must start with http:// or https://, got {self.base_url!r}")
+        if self.base_url is not None:
+            parts = urlsplit(self.base_url)
+            try:
+                port = parts.port
+            except ValueError:
+                port = 0
+            if not parts.hostname or port == 0:
+                what = "names no host" if not parts.hostname else "has a port outside 1-65535"
+                raise ConfigError(f"--base-url {what}: {self.base_url!r}")
         if self.base_url is not None and not self.model:
             raise ConfigError("--model is required with --base-url")
         return self
