@@ -15,6 +15,7 @@ import pytest
 
 import ppprops
 from ppprops.privacy.audit import audit_run
+from ppprops.privacy.matrix import analyse_run, format_report
 from ppprops.store import open_store
 from ppprops.study import StudyComplete
 
@@ -61,6 +62,12 @@ def test_gaps_that_follow_the_episodes_are_reported_and_pacing_removes_them(tmp_
     assert state["requests"] == len(SEARCH) and state["longest_gap"] >= STEP_S * max(WARMUP)
     # every paced gap is at least the pad: twice the longest warm-up trial
     assert paced_s >= len(SEARCH) * 2 * STEP_S * max(WARMUP) * 0.9
+    # the privacy report names the clock's finding per run, and the paced runs apart
+    runs = [analyse_run(d, simulate=False) for d in (tmp_path / "plain", paced_dir)]
+    assert runs[0].timing in ("channel", "exposed") and not runs[0].paced
+    assert runs[1].timing == "" and runs[1].paced
+    text = format_report(runs)
+    assert "| CartPole | pp, paced | 1 |" in text and "| 0/1 / 0/1 | 0/1 |" in text, text
 
 
 # --parallel 4: each round's four trials run side by side on four workers, so the round's requests

@@ -14,6 +14,7 @@ import pytest
 
 import ppprops
 from ppprops.privacy.audit import audit_run
+from ppprops.privacy.matrix import analyse_run, format_report
 from ppprops.store import open_store
 
 from support import offline_llm
@@ -53,6 +54,11 @@ def test_a_return_pinned_by_a_shown_diagnostic_is_never_clean_and_hide_anchors_c
     assert all(diagnostic not in str(b["messages"]) for b in new_bodies)  # withheld from every request
     assert not [f for f in new.findings if f.kind == "anchored_return"]
     assert new.clean and new.verdict().startswith("CLEAN"), new.format()
+    # the privacy report counts the runs a shown diagnostic pins
+    runs = [analyse_run(tmp_path / f"{task}-{hide}", simulate=False) for hide in (False, True)]
+    assert [r.anchored for r in runs] == [True, False]
+    text = format_report(runs)
+    assert "| pp-hardened | 2 |" in text and text.splitlines()[-3].endswith("| 1/2 |"), text
 
 
 def test_pp_hardened_hides_anchors_by_default() -> None:

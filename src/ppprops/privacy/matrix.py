@@ -58,6 +58,9 @@ class RunAnalysis:
     coord_errors: dict[str, list[float]] = field(default_factory=dict)  # a-attacks: one error per scored coordinate
     not_run: dict[str, str] = field(default_factory=dict)  # attack -> why it could not run on this run
     within: dict[str, bool] = field(default_factory=dict)  # attack -> recovered its secret within 1% on this run
+    paced: bool = False  # the run paced its requests (pace_requests)
+    timing: str = ""  # the audit on the provider's clock: "" (nothing found), "channel" or "exposed"
+    anchored: bool = False  # a shown diagnostic pinned a shown raw return at a public cap (the audit's anchored_return)
 
     def to_json(self) -> dict[str, Any]:
         """The JSON form written to ``privacy-report.json``."""
@@ -100,6 +103,10 @@ def analyse_run(run_dir: Path, limits: SimLimits | None = None, *, simulate: boo
     )
     report = audit_run(run_dir, limits=limits, simulate=simulate)
     out.audit = report.verdict()
+    out.paced = m.pace_requests
+    kinds = {(f.kind, f.severity) for f in report.findings}
+    out.timing = "exposed" if ("request-timing", "exposed") in kinds else "channel" if ("request_timing", "channel") in kinds else ""
+    out.anchored = any(k == "anchored_return" for k, _ in kinds)
     requests = load_requests(run_dir)
     out.model = _model_of(calls) if requests else ""
     estimates = report.estimates or run_attacks(requests, task, config.box, limits=limits, simulate=simulate)
@@ -199,8 +206,8 @@ def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) 
     """The report as Markdown: one row per attack (and the prior guesses), one column per (task, scheme); then the search results."""
     groups: dict[tuple[str, str], list[RunAnalysis]] = {}
     for r in runs:
-        groups.setdefault((r.task, r.method), []).append(r)
-    cols = sorted(groups, key=lambda k: (k[0], SCHEMES.index(k[1]) if k[1] in SCHEMES else 9, k[1]))
+        groups.setdefault((r.task, r.method + (", paced" if r.paced else "")), []).append(r)
+    cols = sorted(groups, key=lambda k: (k[0], SCHEMES.index(k[1].split(",")[0]) if k[1].split(",")[0] in SCHEMES else 9, k[1]))
     head = "| attack | secret | " + " | ".join(f"{t} {m}" for t, m in cols) + " |"
     lim = limits or simfit.DEFAULT_LIMITS
     lines = [
@@ -237,8 +244,9 @@ def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) 
     models = ", ".join(sorted({r.model for r in runs if r.model})) or "-"
     lines += ["", f"Search results (best return found during the search; final evaluation of that policy on fresh episodes); "
               f"model: {models}:", "",
-              "| task | scheme | runs | warm-up + iterations | best search return | final evaluation | fallbacks | audit clean | audit exposed |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "| task | scheme | runs | warm-up + iterations | best search return | final evaluation | fallbacks | audit clean | audit exposed "
+              "| provider's clock: channel / exposed | anchored return |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for key in cols:
         rs = groups[key]
         best = np.array([r.best_return for r in rs])
@@ -248,7 +256,12 @@ def format_report(runs: Sequence[RunAnalysis], limits: SimLimits | None = None) 
         clean = sum(r.audit.startswith("CLEAN") for r in rs)
         exposed = sum(r.audit.startswith("EXPOSED") for r in rs)
         lines.append(f"| {key[0]} | {key[1]} | {len(rs)} | {budget} | {best.mean():.1f} +- {best.std():.1f} | {final} | "
-                     f"{sum(r.fallbacks for r in rs)} | {clean}/{len(rs)} | {exposed}/{len(rs)} |")
+                     f"{sum(r.fallbacks for r in rs)} | {clean}/{len(rs)} | {exposed}/{len(rs)} | "
+                     f"{sum(r.timing == 'channel' for r in rs)}/{len(rs)} / {sum(r.timing == 'exposed' for r in rs)}/{len(rs)} | "
+                     f"{sum(r.anchored for r in rs)}/{len(rs)} |")
+    lines += ["", "Provider's clock: runs whose request gaps follow the episodes significantly (a channel), or give the best shown "
+              "raw return within 1% (exposed); anchored return: runs where a shown diagnostic pins a shown raw return at a public cap. "
+              "`ppprops audit RUN` gives each run's figures."]
     return "\n".join(lines)
 
 
