@@ -20,6 +20,7 @@ import os
 import secrets as _os_secrets
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,6 +42,18 @@ HARDENED_P_LOG = (math.log(1.25), math.log(2.0))
 def os_rng() -> np.random.Generator:
     """A generator seeded with 128 bits from the operating system's entropy source."""
     return np.random.default_rng(_os_secrets.randbits(128))
+
+
+def portable(x: Any) -> NDArray[np.float64]:
+    """``x`` (a number or an array) rounded to 12 significant digits, as float64.
+
+    Secrets drawn through ``np.exp`` may differ in their last bits between numpy builds, and every
+    keyed draw hashes the secrets' exact values (``Secrets.subkey``), so unrounded a master key or
+    a seeded generator would give other keyed draws on another machine. Rounded, they agree
+    (unless a value lies within a last bit of a rounding boundary). A key file stores the values
+    exactly, so a run reads back the same secrets wherever it is resumed.
+    """
+    return np.asarray([float(f"{v:.12g}") for v in np.ravel(x)], dtype=np.float64).reshape(np.shape(x))
 
 
 @dataclass(frozen=True, repr=False, eq=False)
@@ -87,8 +100,8 @@ class Secrets:
     def generate(cls, run_id: str, D: int, *, rng: np.random.Generator | None = None) -> Secrets:
         """The paper's secrets: A and c only. ``rng`` None: from the OS entropy source."""
         rng = os_rng() if rng is None else rng
-        a = np.exp(rng.uniform(LOG_LOW, LOG_HIGH, size=D))
-        c = float(np.exp(rng.uniform(LOG_LOW, LOG_HIGH)))
+        a = portable(np.exp(rng.uniform(LOG_LOW, LOG_HIGH, size=D)))
+        c = float(portable(np.exp(rng.uniform(LOG_LOW, LOG_HIGH))))
         return cls(run_id=run_id, a=a, c=c)
 
     @classmethod
@@ -103,11 +116,11 @@ class Secrets:
         rng = os_rng() if rng is None else rng
         lo, hi = box
         mid, quarter = (lo + hi) / 2.0, (hi - lo) / 4.0
-        a = np.exp(rng.uniform(*HARDENED_A_LOG, size=D))
+        a = portable(np.exp(rng.uniform(*HARDENED_A_LOG, size=D)))
         m = rng.uniform(mid - quarter, mid + quarter, size=D)
-        c = float(np.exp(rng.uniform(LOG_LOW, LOG_HIGH)))
+        c = float(portable(np.exp(rng.uniform(LOG_LOW, LOG_HIGH))))
         s = float(rng.uniform(-abs(reward_scale), abs(reward_scale)))
-        p = float(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*HARDENED_P_LOG)))
+        p = float(portable(np.exp(rng.choice([-1.0, 1.0]) * rng.uniform(*HARDENED_P_LOG))))
         return cls(run_id=run_id, a=a, c=c, m=m, s=s, p=p)
 
     def subkey(self, purpose: str) -> bytes:
