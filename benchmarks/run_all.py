@@ -35,6 +35,7 @@ from pathlib import Path
 import bench_cache
 import bench_eval
 import bench_formats
+import bench_hardened
 import bench_history
 import bench_labels
 import bench_overhead
@@ -49,7 +50,8 @@ from _common import Context, Section, commit, machine, table
 # Order matters: later benchmarks replay runs that earlier ones recorded (see Context.cache).
 SUITE = (("quality", bench_quality), ("prompt", bench_prompt), ("labels", bench_labels), ("history", bench_history), ("cache", bench_cache),
          ("overhead", bench_overhead), ("eval", bench_eval), ("readme", bench_readme), ("startup", bench_startup),
-         ("threads", bench_threads), ("formats", bench_formats), ("width", bench_width))
+         ("threads", bench_threads), ("formats", bench_formats), ("width", bench_width),
+         ("hardened", bench_hardened))
 HERE = Path(__file__).resolve().parent
 SECTION_ORDER = ["6", "12", "7", "1", "11", "2", "3", "4", "5", "9", "10"]  # RESULTS.md order: the search itself first, as SUITE runs them
 
