@@ -229,7 +229,8 @@ def test_warmup_shows_the_same_numbers_whatever_the_secrets() -> None:
         assert all(np.all((t > -6) & (t < 6)) for t in raws)
         shown.append(np.round([codec.encode(t) for t in raws], 9))
     assert np.array_equal(shown[0], shown[1]) and np.array_equal(shown[1], shown[2])
-    assert np.all(np.abs(shown[0]) <= 6 * codec.public_scale)  # the public box, times the grid's public scale G
+    # the public box times the hardened prior's largest a_j (3), times the grid's public scale G (1 here)
+    assert np.all(np.abs(shown[0]) <= 18 * codec.public_scale) and np.abs(shown[0]).max() > 12 * codec.public_scale
     # the paper's warm-up: the shown numbers are A theta, different for every key
     pp = make_config("CartPole", "pp", seed=4)
     sampler = warmup_sampler(task.D, pp.box, Streams(pp.seed), pp.mechanisms, codec)
@@ -246,9 +247,9 @@ def test_hardened_prompt_wording_states_nothing_the_encoding_does_not_keep() -> 
     enc = encode_feedback(codec, fb)
     e = codec.entry(0, codec.encode(np.full(task.D, 0.5)), enc.ret, enc.components, enc.diagnostics)
     text = build_prompt(ctx, [e])
-    G = codec.public_scale  # the grid's public scale: the encoded warm-up box is the public box times G
-    assert ctx.warmup_range == (-6 * G, 6 * G) and round(6 * G) == 333
-    assert "increasing transformation" in text and "drawn uniformly from [-333, 333] in these encoded coordinates" in text
+    G = codec.public_scale  # the grid's public scale: the encoded warm-up box is the public box times 3 G
+    assert ctx.warmup_range == (-18 * G, 18 * G) and round(18 * G) == 999
+    assert "increasing transformation" in text and "drawn uniformly from [-999, 999] in these encoded coordinates" in text
     assert "Signs and order are kept" not in text and "multiplied by one positive constant" not in text
     assert "episode_length" not in text and "termination" not in text  # hide_anchors: termination=time_limit would pin 500
     old = replace(cfg, mechanisms=resolve("pp-hardened", hide_anchors=False))  # as pp-hardened was: the termination shown

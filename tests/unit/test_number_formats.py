@@ -151,8 +151,9 @@ def test_grid_warmup_box_and_fallback_width_scale_by_the_public_factor_only() ->
     c1, c2 = codec_for(s1, task, cfg.encoding), codec_for(s2, task, cfg.encoding)
     assert c1.public_scale == c2.public_scale == grid_scale(BOX, warp_params=True)
     ctx1, ctx2 = prompt_context(task, cfg.prompt, c1), prompt_context(task, cfg.prompt, c2)
-    assert ctx1.warmup_range == ctx2.warmup_range == warmup_box(BOX, c1.public_scale)
-    assert ctx1.warmup_range == (-6 * c1.public_scale, 6 * c1.public_scale)
+    assert ctx1.warmup_range == ctx2.warmup_range == warmup_box(BOX, c1.warmup_scale)
+    # warped parameters: the raw box's width times the prior's largest a_j (3), which on the grid is +-999
+    assert ctx1.warmup_range == (-18 * c1.public_scale, 18 * c1.public_scale) == pytest.approx((-999, 999))
 
 
 @pytest.mark.parametrize("fmt", ["grid", "decimal"])

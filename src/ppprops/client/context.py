@@ -47,7 +47,8 @@ def encoding_words(codec: Codec) -> tuple[str, str]:
 
 def warmup_box(box: tuple[float, float], scale: float = 1.0) -> tuple[float, float]:
     """The public encoded box an encoded warm-up draws from: the public ``box``'s width, centred on 0,
-    times ``scale`` (the codec's public grid scale G on the grid, else 1: ``Codec.public_scale``)."""
+    times ``scale`` (``Codec.warmup_scale``: the public grid scale G on the grid, else 1, times the
+    prior's largest a_j, 3, for warped parameters)."""
     half = scale * (box[1] - box[0]) / 2.0
     return (-half, half)
 
@@ -99,7 +100,7 @@ def prompt_context(task: Task, settings: PromptSettings, codec: Codec) -> Prompt
         history_limit=settings.top_k,
         param_encoding=param_words,
         reward_encoding=reward_words,
-        warmup_range=warmup_box(settings.box, codec.public_scale) if (m.encoded_warmup and m.encode_params) else None,
+        warmup_range=warmup_box(settings.box, codec.warmup_scale) if (m.encoded_warmup and m.encode_params) else None,
         describe_task=m.describe_task,
         hidden=task.policy.hidden,
         activation="" if task.policy.is_linear else task.policy.activation,

@@ -72,5 +72,5 @@ def warmup_sampler(D: int, box: tuple[float, float], streams: seeding.Streams, m
     if mechanisms.encoded_warmup and codec.warp_params:
         from ..client.context import warmup_box
 
-        return UniformSampler(D, warmup_box(box, codec.public_scale), streams, decode=codec.decode, clip=bounds)
+        return UniformSampler(D, warmup_box(box, codec.warmup_scale), streams, decode=codec.decode, clip=bounds)
     return UniformSampler(D, box if init is None else init, streams)
