@@ -121,13 +121,13 @@ def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path]
                                           capsys: pytest.CaptureFixture[str]) -> None:
     small = SimLimits(vector_steps=1_000_000, env_steps=5_000, seconds=120.0)
     text, analyses = privacy_report([runs["CartPole", "pp", 0], runs["CartPole", "pp-hardened", 0]], small)
-    assert "| CartPole pp | CartPole pp-hardened |" in text
+    assert "| CartPole pp | CartPole pp-hardened, paced |" in text  # these pp-hardened runs pace their requests
     for row in ("diagnostic", "lattice", "known-cap", "warmup-range", "stated-range", "clip-edge", "seed-replay", "sim-exact",
                 "sim-exact-a", "sim-marginal", "sim-marginal-lattice", "sim-marginal-a", "raw return (sim-exact)", "prior (c)"):
         assert f"| {row} |" in text
     assert re.search(r"\| diagnostic \| c \| [^|]*% \(1/1\) \| [^|]*% \(0/1\) \|", text)  # k/n: runs within 1%
     assert "Simulator attacks are bounded by 1e+06 simulated steps" in text
-    assert "| CartPole | pp-hardened | 1 | 10 + 10 |" in text
+    assert "| CartPole | pp-hardened, paced | 1 | 10 + 10 |" in text
     root = runs["CartPole", "pp", 0].parent
     assert main(["privacy-report", "--runs", str(root), "--no-simulate"]) == 0
     assert "| Acrobot pp |" in capsys.readouterr().out

@@ -139,7 +139,7 @@ def test_a_private_ray_instance_runs_its_workers_at_niceness_0(ray_local: Any) -
     def niceness() -> int:
         return os.nice(0)
 
-    assert ray_local.get(niceness.remote()) == 0 == os.nice(0)
+    assert ray_local.get(niceness.remote()) == os.nice(0)  # 0 unless the test itself runs niced
 
 
 @pytest.mark.llm
