@@ -19,10 +19,18 @@ import textwrap
 import time
 from pathlib import Path
 
+import pytest
+
+from ppprops.errors import StoreError
+from ppprops.llm.client import EndpointClient
+from ppprops.llm.recording import RecordingLLM
+from ppprops.llm.settings import LLMConfig
 from ppprops.privacy.audit import audit_run
-from ppprops.store import open_store
+from ppprops.store import RunStore, open_store
 from ppprops.summary import format_summary, run_summary
 from ppprops.testing.fault_server import FaultConfig, FaultServer
+
+from support import chat_request
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
@@ -158,3 +166,20 @@ def test_requests_in_flight_together_killed(tmp_path: Path) -> None:
     assert sorted(raw) == sorted(str(c["request"]).encode("utf-8") for c in calls)  # byte for byte, in any order
     assert sorted(c["iteration"] for c in calls) == [0, 1, 2] and not any(c["answered"] for c in calls)
     assert sorted(b["messages"][0]["content"] for b in sent) == ["request 0", "request 1", "request 2"]  # type: ignore[index]
+
+
+def test_a_try_that_cannot_be_written_ahead_is_never_sent(tmp_path: Path) -> None:
+    """The body is written ahead from inside the HTTP client's request hook; when the store refuses
+    it, the request does not leave, and the store's own error reaches the caller (not a dropped
+    connection to retry)."""
+    class FullDisk(RunStore):
+        def begin_llm_call(self, *args: object, **kwargs: object) -> int:
+            raise StoreError("cannot write the run store: disk full")
+
+    with FaultServer(FaultConfig(fault_rate=0.0, record=True)) as server:
+        client = EndpointClient(LLMConfig(base_url=server.base_url, model="m", transport_retries=2))
+        rec = RecordingLLM(client, FullDisk(tmp_path / "run.sqlite"))
+        with pytest.raises(StoreError, match="disk full"):
+            rec.send(chat_request([{"role": "user", "content": "hello"}], 3))
+        client.close()
+        assert _raw_bodies(server.received()) == []

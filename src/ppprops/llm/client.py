@@ -591,7 +591,7 @@ class EndpointClient:
         sdk_args = {k: v for k, v in body.items() if k in known}
         extra = {k: v for k, v in body.items() if k not in known} or None
         sent: list[str] = []
-        unrecorded: list[BaseException] = []  # before_try's own error: the SDK would report it as a dropped connection
+        unrecorded: list[BaseException] = []  # before_try's own error (an SDK may wrap what its send raises)
 
         def announce(wire: str) -> None:  # the body's bytes, about to leave (_announce)
             sent.append(wire)
@@ -695,7 +695,6 @@ def connect(config: LLMConfig, *, gate: AbstractContextManager[object] | None = 
     return EndpointClient(config, gate=gate, on_loading=on_loading, on_ready=on_ready, server=server)
 
 
-# Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _wire = threading.local()  # .announce: the recorder of the try this thread is making (EndpointClient._attempt)
 
 
@@ -708,6 +707,7 @@ def _announce(request: Any) -> None:
         announce(request.content.decode("utf-8"))
 
 
+# Arguments the SDK takes by name; anything else in the body (grammar) goes as extra_body.
 _SDK_ARGS = frozenset({"model", "messages", "temperature", "max_tokens", "max_completion_tokens", "seed",
                        "reasoning_effort", "response_format"})
 _SDK_DOCUMENT_ARGS = frozenset({"model", "prompt", "temperature", "max_tokens", "seed", "top_p"})
