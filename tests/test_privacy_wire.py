@@ -149,7 +149,9 @@ def test_pp_hardened_sends_no_raw_value_and_no_known_channel(tmp_path: Path, emb
     assert leaks(posts, run_dir, 500.0) == []
     assert all(b"episode_length" not in r for r in posts)
     _recorded_is_what_was_sent(requests, run_dir)
-    report = audit_run(run_dir)
+    # the transcript's channels, strictly; the simulator attacks have their own tests (a run whose
+    # model happens to find a policy at the cap of 500 is EXPOSED by them, which no encoding hides)
+    report = audit_run(run_dir, simulate=False)
     assert report.exit_code(strict=True) == 0, report.format()
 
 
