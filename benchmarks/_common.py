@@ -12,6 +12,7 @@ import platform
 import shutil
 import statistics
 import subprocess
+import sys
 import time
 import urllib.request
 from collections.abc import Iterator, Sequence
@@ -129,6 +130,19 @@ def run_search(cfg: RunConfig, run_dir: Path, secrets: Secrets | None = None) ->
         shutil.rmtree(run_dir)
     start(cfg, run_dir, secrets=secrets)
     return run_dir
+
+
+def grid_dir(ctx: Context, name: str, spec: Path) -> tuple[Path, list[str], bool]:
+    """A benchmark's ``ppprops experiment`` grid under ``ctx.out/name``: deleted first unless
+    ``--keep``; with ``--collect`` it must exist. Returns (its directory, the command that runs
+    ``spec`` there, whether a recorded grid is reused)."""
+    out = ctx.out / name
+    reused = ctx.keep and (out / "grid.json").exists()
+    if out.exists() and not ctx.keep:
+        shutil.rmtree(out)
+    if ctx.collect and not reused:
+        raise SystemExit(f"--collect reports a recorded grid, and {out} holds none (run with --keep, or without both)")
+    return out, [sys.executable, "-m", "ppprops", "experiment", str(spec), "--out", str(out), "--quiet"], reused
 
 
 def finished(run_dir: Path) -> bool:

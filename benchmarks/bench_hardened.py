@@ -21,15 +21,13 @@ session: Pendulum-v1 and CartPole (Acrobot's and Ant-Ultra's requests take 3 to 
 
 from __future__ import annotations
 
-import shutil
 import statistics
 import subprocess
-import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from _common import Context, Section, llm_calls, mean_std, table
+from _common import Context, Section, grid_dir, llm_calls, mean_std, table
 
 from ppprops.privacy.audit import audit_run
 from ppprops.store import open_store
@@ -56,20 +54,12 @@ def _measure(run_dir: Path, s: dict[str, Any]) -> dict[str, Any]:
 
 
 def run(ctx: Context) -> Section:
-    out = ctx.out / "hardened"
-    reused = ctx.keep and (out / "grid.json").exists()
-    if out.exists() and not ctx.keep:
-        shutil.rmtree(out)
-    if ctx.collect and not reused:
-        raise SystemExit(f"--collect reports a recorded grid, and {out} holds none (run with --keep, or without both)")
-    cmd = [sys.executable, "-m", "ppprops", "experiment", str(SPEC), "--out", str(out), "--quiet"]
+    out, cmd, reused = grid_dir(ctx, "hardened", SPEC)
     if ctx.quick:
         cmd += ["--seeds", "1", "--tasks", "Pendulum-v1", "--warmup", "3", "--iterations", "2", "--final-episodes", "1"]
-    if not ctx.collect:
-        for task in TASKS:  # the cheaper task first: a grid stopped halfway still holds its whole rows
-            subprocess.run([*cmd, "--tasks", task] if not ctx.quick else cmd, check=True)
-            if ctx.quick:
-                break
+    if not ctx.collect:  # the cheaper task first: a grid stopped halfway still holds its whole rows
+        for only in ([[]] if ctx.quick else [["--tasks", task] for task in TASKS]):
+            subprocess.run([*cmd, *only], check=True)
     runs: dict[tuple[str, str, int], dict[str, Any]] = {}
     for run_dir in sorted(p.parent for p in out.glob("runs/*/run.sqlite")):
         s = run_summary(run_dir)

@@ -20,16 +20,14 @@ process), and every row says how many seeds it holds.
 
 from __future__ import annotations
 
-import shutil
 import statistics
 import subprocess
-import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import Context, Section, llm_calls, mean_std, table, timings
+from _common import Context, Section, grid_dir, llm_calls, mean_std, table, timings
 
 from ppprops import seeding
 from ppprops.config import RunConfig
@@ -97,13 +95,7 @@ def median_of(values: list[float]) -> str:
 
 
 def run(ctx: Context) -> Section:
-    out = ctx.out / "quality"
-    reused = ctx.keep and (out / "grid.json").exists()
-    if out.exists() and not ctx.keep:
-        shutil.rmtree(out)
-    if ctx.collect and not reused:
-        raise SystemExit(f"--collect reports a recorded grid, and {out} holds none (run with --keep, or without both)")
-    cmd = [sys.executable, "-m", "ppprops", "experiment", str(SPEC), "--out", str(out), "--quiet"]
+    out, cmd, reused = grid_dir(ctx, "quality", SPEC)
     if ctx.quick:
         cmd += ["--seeds", "1", "--tasks", "CartPole,Acrobot", "--warmup", "3", "--iterations", "2", "--final-episodes", "1"]
     if not ctx.collect:
