@@ -12,8 +12,9 @@ Per task and arm: the final evaluation (mean (std) and median over seeds), the q
 hardened arm relative to pp (the difference of the means over the absolute pp mean; target at most
 5%), the search phase's wall time (from the last warm-up candidate to the last proposal), the LLM's
 share of it (the sum of request latencies), the time between an answer and the next request (the
-gap the pacer pads), and ``ppprops audit``'s verdicts. Tasks are benchmark 6's that fit 2 cores in a
-session: Pendulum-v1 and CartPole (Acrobot's and Ant-Ultra's requests take 3 to 9 times longer).
+gap the pacer pads), and ``ppprops audit``'s verdicts. Tasks are benchmark 6's, cheapest first
+(Acrobot's requests take about 3 times Pendulum-v1's, Ant-Ultra's about 10 times; Ant-Ultra has one
+seed, as in benchmark 6).
 
 ``--keep`` reuses the grid recorded under ``--out``/hardened (finished runs kept, the rest resumed);
 ``--keep --collect`` starts nothing and reports the seeds finished in both arms.
@@ -34,7 +35,7 @@ from ppprops.store import open_store
 from ppprops.summary import run_summary
 
 SPEC = Path(__file__).with_name("hardened.toml")
-TASKS = ("Pendulum-v1", "CartPole")
+TASKS = ("Pendulum-v1", "CartPole", "Acrobot", "Ant-Ultra")
 ARMS = (("pp", "pp"), ("pp-hardened", "pp-hardened, paced"))
 TARGET = 0.05  # the hardened arm's quality cost, relative to pp's mean final return
 
