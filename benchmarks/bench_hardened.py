@@ -54,6 +54,15 @@ def _measure(run_dir: Path, s: dict[str, Any]) -> dict[str, Any]:
             "requests": len(calls), "verdict": report.verdict().split(":")[0], "seed": s["seed"]}
 
 
+def _interval(data: dict[str, list[dict[str, Any]]], task: str, cost: float) -> str:
+    """The cost's 95% interval over the seeds' spread (normal, Welch standard error), or "" for one seed."""
+    pp, hard = ([x["final"] for x in data[f"{task}/{arm}"]] for arm, _ in ARMS)
+    if len(pp) < 2:
+        return ""
+    half = 1.96 * (statistics.variance(pp) / len(pp) + statistics.variance(hard) / len(hard)) ** 0.5 / abs(statistics.fmean(pp))
+    return f"; 95% interval {cost - half:+.1%} to {cost + half:+.1%} over the seeds' spread"
+
+
 def run(ctx: Context) -> Section:
     out, cmd, reused = grid_dir(ctx, "hardened", SPEC)
     if ctx.quick:
@@ -77,16 +86,18 @@ def run(ctx: Context) -> Section:
             data[f"{task}/{arm}"] = r
             final = [x["final"] for x in r]
             means[arm] = statistics.fmean(final)
-            cost = "" if arm == "pp" else f"{(means['pp'] - means[arm]) / abs(means['pp']):+.1%}"
+            cost_cell = "" if arm == "pp" else f"{(means['pp'] - means[arm]) / abs(means['pp']):+.1%}"
             verdicts: dict[str, int] = defaultdict(int)
             for x in r:
                 verdicts[x["verdict"]] += 1
-            rows.append([task, label, len(seeds), mean_std(final), f"{statistics.median(final):.1f}", cost,
+            rows.append([task, label, len(seeds), mean_std(final), f"{statistics.median(final):.1f}", cost_cell,
                          f"{statistics.fmean(x['search_s'] for x in r):.0f}", f"{statistics.fmean(x['llm_s'] for x in r):.0f}",
                          f"{statistics.median(x['gap_s'] for x in r):.2f}", ", ".join(f"{k} {n}" for k, n in sorted(verdicts.items()))])
         cost = (means["pp"] - means["pp-hardened"]) / abs(means["pp"])
+        n_seeds = f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}"
         targets.append((f"{task}: pp-hardened with pacing costs at most {TARGET:.0%} of pp's mean final return",
-                        f"{cost:+.1%} ({means['pp-hardened']:.1f} vs {means['pp']:.1f}, {len(seeds)} seeds)", cost <= TARGET))
+                        f"{cost:+.1%} ({means['pp-hardened']:.1f} vs {means['pp']:.1f}, {n_seeds}{_interval(data, task, cost)})",
+                        cost <= TARGET))
     n = sum(len(v) for v in data.values())
     source = (f"{n} finished runs of `ppprops experiment benchmarks/hardened.toml` under `{out}`"
               f"{' (reused as recorded, nothing started)' if ctx.collect else ''}; each row holds the seeds finished in both arms")
