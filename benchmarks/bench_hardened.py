@@ -75,7 +75,9 @@ def run(ctx: Context) -> Section:
         s = run_summary(run_dir)
         if s["status"] == "finished" and s.get("final_eval"):
             runs[(s["env"], s["method"], int(s["seed"]))] = _measure(run_dir, s)
-    rows, data, targets = [], {}, []
+    rows: list[list[Any]] = []
+    data: dict[str, list[dict[str, Any]]] = {}
+    targets: list[tuple[str, str, bool | None]] = []
     for task in TASKS:
         seeds = sorted({seed for (t, _, seed) in runs if t == task and all((task, arm, seed) in runs for arm, _ in ARMS)})
         if not seeds:
