@@ -13,8 +13,8 @@ hardened arm relative to pp (the difference of the means over the absolute pp me
 5%), the search phase's wall time (from the last warm-up candidate to the last proposal), the LLM's
 share of it (the sum of request latencies), the time between an answer and the next request (the
 gap the pacer pads), and ``ppprops audit``'s verdicts. Tasks are benchmark 6's, cheapest first
-(Acrobot's requests take about 3 times Pendulum-v1's, Ant-Ultra's about 10 times; Ant-Ultra has one
-seed, as in benchmark 6).
+(a request of the embedded model on one llama.cpp thread here: Pendulum-v1 and CartPole a few
+seconds, Acrobot about 12 s, Ant-Ultra about 30 s, so an Ant-Ultra run takes about half an hour).
 
 ``--keep`` reuses the grid recorded under ``--out``/hardened (finished runs kept, the rest resumed);
 ``--keep --collect`` starts nothing and reports the seeds finished in both arms.
