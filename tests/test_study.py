@@ -84,7 +84,12 @@ def test_tell_refuses_bad_feedback_and_stores_nothing(study: Study) -> None:
         ({"returns": 1.0, "diagnostics": {"speed": 3.0}}, "unknown diagnostic 'speed'"),
         ({"returns": 1.0, "components": {"reward_x": 1.0}}, "unknown component 'reward_x'"),
         ({"returns": [1.0, 2.0], "diagnostics": {"episode_length": 3.0}}, "one mapping per episode"),
-        ({"returns": 1.0, "diagnostics": {"episode_length": float("nan")}}, "neither a finite number nor a text"),
+        ({"returns": 1.0, "diagnostics": {"termination": float("nan")}}, r"^diagnostic 'termination' = nan is neither a finite number nor a text$"),
+        ({"returns": 1.0, "diagnostics": {"termination": [1]}}, "neither a finite number nor a text"),
+        # episode_length is the episode's steps (the audit's clock reads it): a word, NaN or a negative count is refused
+        ({"returns": 1.0, "diagnostics": {"episode_length": "abc"}}, r"^diagnostic 'episode_length' = 'abc' is not a number of steps$"),
+        ({"returns": 1.0, "diagnostics": {"episode_length": float("nan")}}, "'episode_length' = nan is not a number of steps"),
+        ({"returns": 1.0, "diagnostics": {"episode_length": -3}}, "'episode_length' = -3 is not a number of steps"),
     ]
     for kwargs, message in bad:
         with pytest.raises(ConfigError, match=message):

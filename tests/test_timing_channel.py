@@ -83,6 +83,10 @@ def test_gaps_that_follow_the_episodes_are_reported_and_pacing_removes_them(tmp_
     timing = [f for f in plain.findings if f.kind in ("request_timing", "request-timing")]
     assert len(timing) == 1 and "Spearman" in timing[0].detail and "episode steps" in timing[0].detail, plain.format()
     assert _rho(plain) > 0.9  # the gaps follow the steps told
+    # pp's verdict says what closes the channels it keeps: pp-hardened, and pacing for the clock when the clock is among them
+    clock_exposed = timing[0].severity == "exposed"
+    tail = ", with --pace-requests on for the request timing" if clock_exposed else ""
+    assert plain.verdict().startswith("EXPOSED") and plain.verdict().endswith(f"(pp-hardened closes them{tail})."), plain.verdict()
 
     t0 = time.monotonic()
     paced_dir = _run(tmp_path, pace=True)

@@ -81,6 +81,11 @@ def _the_endpoint_saw_what_the_store_holds(server: FaultServer, run_dir: Path, u
 def _audit_reads_each(run_dir: Path, n: int) -> None:
     report = audit_run(run_dir, attacks=False)
     assert report.requests == n, report.format()
+    with open_store(run_dir) as store:
+        never = [int(c["id"]) for c in store.llm_calls() if not c["answered"]]
+    assert never and report.unanswered == never, report.format()  # named, in the text and the JSON
+    assert f"({len(never)} never answered: call {', '.join(map(str, never))})" in report.format()
+    assert report.to_json()["unanswered"] == never
     assert not report.leaks and not report.unverified, report.format()  # every request read and accounted for
 
 
@@ -134,6 +139,34 @@ def test_shell_ask_killed_mid_request(tmp_path: Path) -> None:
     assert shown.returncode == 0 and "1 request(s) sent and never answered" in shown.stdout, shown.stdout + shown.stderr
     audit = _ppprops(["audit", "s", "--no-simulate"], tmp_path)
     assert "2 requests" in audit.stdout, audit.stdout + audit.stderr
+
+
+def test_a_run_killed_in_a_round_of_parallel_requests_then_resumed(tmp_path: Path) -> None:
+    """``ppprops run --parallel 4``: the first round's four requests answered, the second round's four
+    held, then SIGKILL. The store holds the eight the endpoint received (four unanswered), the audit
+    reads and names each; ``resume`` finishes the run and the counts still agree."""
+    args = ["run", "--env", "CartPole", "--method", "pp-hardened", "--warmup", "2", "--iterations", "12", "--parallel", "4",
+            "--seed", "4", "--final-episodes", "0", "--select-top", "0", "--prompt-form", "chat", "--retries", "0", "--out", "r"]
+    with FaultServer(FaultConfig(fault_rate=0.0, hold_after=4, record=True, seed=3)) as server:
+        proc = _launch([sys.executable, "-m", "ppprops", *args, "--base-url", server.base_url, "--model", "m"], tmp_path)
+        _kill_once(proc, server, arrived=8)
+        raw = _raw_bodies(server.received())
+        calls = _stored(tmp_path / "r")
+        # the same eight bodies, byte for byte (a round's four leave in any order)
+        assert sorted(raw) == sorted(str(c["request"]).encode("utf-8") for c in calls) and len(calls) == 8
+        assert [c["answered"] for c in calls] == [True] * 4 + [False] * 4
+        _audit_reads_each(tmp_path / "r", 8)
+        server.release()
+        resumed = _ppprops(["resume", "r"], tmp_path)
+        assert resumed.returncode == 0, resumed.stderr
+        raw = _raw_bodies(server.received())
+    calls = _stored(tmp_path / "r")
+    assert sorted(raw) == sorted(str(c["request"]).encode("utf-8") for c in calls) and len(calls) == len(raw) >= 12
+    with open_store(tmp_path / "r") as store:
+        assert store.status() == "finished" and sum(c.source == "llm" for c in store.candidates()) == 12
+    report = audit_run(tmp_path / "r", attacks=False)
+    assert report.requests == len(raw) and not report.leaks and not report.unverified, report.format()
+    assert report.unanswered == [int(c["id"]) for c in calls if not c["answered"]]  # the four left by the kill
 
 
 def test_requests_in_flight_together_killed(tmp_path: Path) -> None:

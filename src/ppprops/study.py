@@ -380,7 +380,7 @@ class Study:
         Nothing is stored when this raises ConfigError: a trial that is not pending or was already
         told, one another worker holds, one no worker has been handed yet (the rest of a round, a
         retried trial: ask for it first), an empty ``failed`` reason, a non-finite value, a missing or unknown
-        component, an unknown diagnostic, a mismatch between the episodes given, or fewer returns than the
+        component, an unknown diagnostic, an ``episode_length`` that is not a number of steps, a mismatch between the episodes given, or fewer returns than the
         trial asked episodes for (more are welcome: the mean of all is used).
         """
         number = trial if isinstance(trial, int) else trial.number
@@ -523,10 +523,13 @@ class Study:
             if unknown:
                 raise ConfigError(f"unknown diagnostic {unknown[0]!r}; task {self.task.name} declares: {', '.join(sorted(declared_d))}")
             for k, v in d.items():
-                if isinstance(v, str):
+                steps = k == "episode_length"  # the one diagnostic whose meaning is fixed: the episode's steps
+                if isinstance(v, str) and not steps:
                     continue
-                if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
-                    raise ConfigError(f"diagnostic {k!r} = {v!r} is neither a finite number nor a text")
+                if (isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v))
+                        or (steps and float(v) < 0)):
+                    what = "a number of steps" if steps else "neither a finite number nor a text"
+                    raise ConfigError(f"diagnostic {k!r} = {v!r} is {'not ' if steps else ''}{what}")
             episodes.append(Episode(ret=float(r), components={k: float(v) for k, v in c.items()},
                                     diagnostics={k: (v if isinstance(v, str) else float(v)) for k, v in d.items()}))
         return aggregate(episodes)

@@ -78,6 +78,7 @@ from .tokens import renders, token_value
 from .view import Estimate, same_marker, view_of
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
+TIMING_KINDS = ("request-timing", "request_timing")  # the clock exposed (its calibration gives the best raw return), and as a channel
 # Every top-level field the client may send in some state of its request shape (``RequestShape``),
 # besides the sampling fields the forms choose; and the fields the shape alone decides.
 SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
@@ -113,7 +114,9 @@ class Finding:
 class AuditReport:
     """The outcome of ``audit_run``: what was read, and every finding, worst severity first.
 
-    ``requests`` and ``entries`` count the requests and the history entries read; ``checked``
+    ``requests`` and ``entries`` count the requests and the history entries read (``unanswered``:
+    the ids of the requests recorded before they were sent and never answered, read like the
+    others); ``checked``
     counts the printed values compared, by kind (params, return, components, diagnostics);
     ``coincidences`` counts printed values equal to both the raw and the encoded value. The paper's
     promise it checks: only theta~ = A theta and r~ = c r (Sec. II-B, II-C, Eq. 5, 7, 8) reach the LLM.
@@ -123,6 +126,7 @@ class AuditReport:
     method: str
     mechanisms: dict[str, bool]
     requests: int = 0
+    unanswered: list[int] = field(default_factory=list)
     entries: int = 0
     checked: dict[str, int] = field(default_factory=lambda: {"params": 0, "return": 0, "components": 0, "diagnostics": 0})
     coincidences: int = 0
@@ -192,7 +196,8 @@ class AuditReport:
         if self.exposed:
             what = ", ".join(dict.fromkeys(f"{f.kind} ({f.detail.split(':')[0]})" for f in self.exposed))
             paper = all(f.by_design for f in self.exposed)
-            why = (" These are channels PP-ProPS keeps as the paper defines it (pp-hardened closes them)."
+            clock = ", with --pace-requests on for the request timing" if any(f.kind in TIMING_KINDS for f in self.exposed) else ""
+            why = (f" These are channels PP-ProPS keeps as the paper defines it (pp-hardened closes them{clock})."
                    if paper and self.method == "pp" else "")
             return f"EXPOSED: no raw value was sent, but attacks on the transcript recover secrets or raw values within 1%: {what}.{why}"
         n = len(self.channels)
@@ -208,7 +213,7 @@ class AuditReport:
     def to_json(self, strict: bool = False) -> dict[str, Any]:
         """The ``ppprops audit --json`` object: the counts, the verdict, the exit code and every finding."""
         return {"run_dir": self.run_dir, "method": self.method, "mechanisms": self.mechanisms, "requests": self.requests,
-                "entries": self.entries, "checked": self.checked, "coincidences": self.coincidences,
+                "unanswered": self.unanswered, "entries": self.entries, "checked": self.checked, "coincidences": self.coincidences,
                 "verdict": self.verdict(strict), "exit_code": self.exit_code(strict),
                 "findings": [f.to_json() for f in self.findings], "notes": self.notes,
                 "not_run": [{"attack": a, "why": w} for a, w in self.not_run], "simulator_bound": self.sim_bound,
@@ -217,8 +222,10 @@ class AuditReport:
     def format(self, strict: bool = False) -> str:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
         c = self.checked
+        ids = ", ".join(map(str, self.unanswered))
+        never = f" ({len(self.unanswered)} never answered: call {ids})" if self.unanswered else ""
         lines = [
-            f"audit of {self.run_dir} (method {self.method}): {self.requests} requests, {self.entries} history entries; "
+            f"audit of {self.run_dir} (method {self.method}): {self.requests} requests{never}, {self.entries} history entries; "
             f"checked {c['params']} parameters, {c['return']} returns, {c['components']} components, {c['diagnostics']} diagnostics "
             f"({self.coincidences} coincidental equalities of raw and encoded values)",
             f"verdict: {self.verdict(strict)}",
@@ -405,10 +412,10 @@ class _Auditor:
                         f"reward component {key}", where)
         # diagnostics are not rewards; one that prints a raw reward-valued number is a known channel
         for key, tok in e.diagnostics:
+            self.report.checked["diagnostics"] += 1  # a word too: the anchor check reads those
             parsed_d = token_value(tok)
             if parsed_d is None:
                 continue
-            self.report.checked["diagnostics"] += 1
             if not rewards:
                 continue
             v, tol = parsed_d
@@ -833,6 +840,8 @@ class _Auditor:
     def run(self) -> AuditReport:
         for row, req in zip(self.calls, self.requests, strict=True):  # in the order sent: the client's state follows it
             self.report.requests += 1
+            if not row.get("answered", True):
+                self.report.unanswered.append(int(row["id"]))
             self.body(row, req)
         if self.replay.changes != self.adaptations:
             self.finding("unverified", "request", "the run's recorded endpoint adaptations are not the ones its recorded "
