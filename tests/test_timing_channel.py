@@ -155,3 +155,24 @@ def test_pacing_is_a_switch_of_every_preset(pace: bool) -> None:
     from ppprops.methods import resolve
 
     assert resolve("pp", pace_requests=pace).pace_requests and not resolve("pp-hardened").pace_requests
+
+
+def test_a_resumed_run_does_not_take_its_downtime_for_an_evaluation(tmp_path: Path) -> None:
+    """A paced study whose process stopped an hour ago, driven on by ``optimize`` (what ``resume``
+    runs): the hour is not a gap to pad every later request to (``Pacer.restart``)."""
+    run_dir = tmp_path / "r"
+    with offline_llm(), ppprops.create_study("CartPole", storage=run_dir, method="pp", warmup=3, iterations=4, seed=1,
+                                             prompt={"form": "chat"}, evaluation={"final_episodes": 0, "select_top": 0},
+                                             privacy={"pace_requests": True}) as study:
+        for _ in range(5):  # the warm-up and two LLM trials, told by hand
+            trial = study.ask()
+            study.tell(trial, 20.0, diagnostics={"episode_length": 20, "termination": "pole_fell"})
+    with open_store(run_dir) as store:  # the process stopped an hour ago
+        state = store.pacing_state()
+        store.set_pacing_state({**state, "last_answer": state["last_answer"] - 3600.0})
+    with offline_llm(), ppprops.load_study(run_dir) as study:
+        study.optimize()
+        assert study.done
+    with open_store(run_dir) as store:
+        after = store.pacing_state()
+    assert after["requests"] == 4 and after["longest_gap"] < 60.0, after  # 3600 s without the restart

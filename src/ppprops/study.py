@@ -594,6 +594,9 @@ class Study:
         status, _ = store.run_status()
         if status is not RunStatus.STOPPED:
             store.set_status(RunStatus.RUNNING)
+        pacer = self._pacer()
+        if pacer is not None:  # this loop's clock starts now: the time since another process's last answer is no evaluation
+            pacer.restart()
         done = store.candidates()
         settled = len(done) + store.failed_count()  # a failed trial holds its place in the plan
         events.on_start(settled, self.total if status is not RunStatus.STOPPED else settled)

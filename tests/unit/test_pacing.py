@@ -61,6 +61,29 @@ def test_a_gap_longer_than_the_pad_leaves_as_it_is_and_raises_the_pad() -> None:
     assert np.allclose(gaps, [0.6, 0.9, 1.8, 1.8])
 
 
+def test_a_pause_leaves_as_it_is_and_leaves_the_pad_alone() -> None:
+    # 894 s: a run resumed a quarter of an hour after its process died (a gap of more than PAUSE pads)
+    gaps = _gaps([0.1, 894.0, 0.2, 0.3], floor=0.3)
+    assert np.allclose(gaps, [0.6, 894.0, 0.6, 0.6])  # not 1788 s for every request after it
+    gaps = _gaps([0.1, 5.9, 0.2], floor=0.3)  # 5.9 s < PAUSE x 0.6 s: an evaluation longer than ever, which raises the pad
+    assert np.allclose(gaps, [0.6, 5.9, 11.8])
+
+
+def test_restart_lets_a_new_loop_send_its_first_request_at_once() -> None:
+    clock, state = Clock(), State()
+    pacer = Pacer(state, lambda n: np.random.default_rng(n), floor=lambda: 0.5, jitter=0.0, clock=lambda: clock.now, sleep=clock.sleep)
+    pacer.before_request()
+    pacer.answered()
+    clock.now += 3.0  # the process dies; resume starts another three seconds later
+    again = Pacer(state, lambda n: np.random.default_rng(n), floor=lambda: 0.5, jitter=0.0, clock=lambda: clock.now, sleep=clock.sleep)
+    again.restart()
+    assert again.before_request() == 0.0 and state.state.get("longest_gap", 0.0) == 0.0 and state.state["requests"] == 2
+    again.answered()
+    clock.now += 0.1
+    assert again.before_request() == pytest.approx(0.9)  # then paced as before: 2 x the floor
+    assert clock.slept == [pytest.approx(0.9)]
+
+
 def test_the_jitter_is_drawn_per_request_from_the_keyed_stream() -> None:
     gaps = _gaps([0.1] * 4, floor=0.5, jitter=0.25)
     want = [1.0 + 0.25 * 1.0 * np.random.default_rng(n).uniform() for n in range(1, 5)]

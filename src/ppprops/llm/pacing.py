@@ -13,10 +13,15 @@ plus a jitter drawn uniformly in [0, jitter x pad] from a stream keyed by the ru
 (``seeding.PACING``). Every gap shorter than the pad leaves at pad + jitter, whatever the
 evaluation took; a gap longer than the pad leaves as it is and raises the pad (with ``headroom``
 2, that happens only when the client's time more than doubles the longest seen: a few times per
-run at most, each telling the provider "longer than ever"). The state (the last answer's time,
-the longest gap, the number of requests paced) is kept in the store, so processes that drive
-one study in turn (``ppprops ask``) pace as one. Cost: each request waits pad + jitter - gap;
-``benchmarks/`` measures it.
+run at most, each telling the provider "longer than ever"). A gap longer than ``PAUSE`` pads is
+a pause, not an evaluation (a robot taken off-line, a process restarted by ``resume``, the night
+between two sessions of a shell loop): it leaves as it is and leaves the pad alone, so one pause
+does not slow every later request to twice its length. A driving loop that starts
+(``Study.optimize``: ``run``, ``resume``) starts the clock afresh with ``restart``: its first
+request leaves at once, as a run's first does. The state (the last answer's time, the longest
+gap, the number of requests paced) is kept in the store, so processes that drive one study in
+turn (``ppprops ask``) pace as one. Cost: each request waits pad + jitter - gap; ``benchmarks/``
+measures it.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import numpy as np
 
 HEADROOM = 2.0
 JITTER = 0.25
+PAUSE = 10.0  # a gap of more than PAUSE pads is a pause: unpadded, and the pad stays
 
 
 class PacingState(Protocol):
@@ -77,13 +83,22 @@ class Pacer:
             gap = max(0.0, self.clock() - float(last))
             longest = max(float(st.get("longest_gap", 0.0)), float(self.floor()))
             pad = self.headroom * longest
-            target = max(gap, pad) + self.jitter * pad * float(self.rng(n).uniform())
-            self.state.set_pacing_state({**st, "longest_gap": max(longest, gap), "requests": n + 1})
+            paused = pad > 0 and gap > PAUSE * pad
+            target = gap if paused else max(gap, pad) + self.jitter * pad * float(self.rng(n).uniform())
+            self.state.set_pacing_state({**st, "longest_gap": longest if paused else max(longest, gap), "requests": n + 1})
         wait = target - gap
         if wait > 0:
             self.sleep(wait)
             self.waited_s += wait
         return max(wait, 0.0)
+
+    def restart(self) -> None:
+        """Forget the last answer's time: a driving loop starts, and its first request leaves at once
+        (the time since a previous process's last answer is a pause, not an evaluation)."""
+        with self._lock:
+            st = self.state.pacing_state()
+            if st.get("last_answer") is not None:
+                self.state.set_pacing_state({k: v for k, v in st.items() if k != "last_answer"})
 
     def answered(self) -> None:
         """Note that an answer (or a request's final failure) came back now."""
