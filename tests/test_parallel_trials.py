@@ -98,7 +98,10 @@ def test_four_drivers_on_one_study_and_one_killed_between_ask_and_tell(tmp_path:
     assert [c.index for c in cands] == list(range(12))  # every candidate recorded once
     assert len(calls) == sum(c.source in ("llm", "fallback") for c in cands) == 8  # one LLM call per LLM candidate
     assert sorted(int(c["iteration"]) for c in calls) == list(range(8))
-    audit = _ppprops(["audit", "s"], tmp_path)
+    # the transcript's checks and attacks (the simulator fits on CartPole's shown entries are
+    # tests/test_simulator_attacks.py's matter: on fresh secrets they read the best shown raw return, or c,
+    # within 1% in a few runs of a hundred, most often when it is the cap of 500, and the audit says EXPOSED)
+    audit = _ppprops(["audit", "s", "--no-simulate"], tmp_path)
     assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
 
 

@@ -95,7 +95,10 @@ def test_the_shell_loop_gives_the_same_run_as_search(tmp_path: Path, method: str
     shell, loop = _record(tmp_path / "shell"), _record(tmp_path / "loop")
     assert shell == loop
     assert [c[1] for c in shell["candidates"]] == ["warmup"] * 4 + ["llm"] * 4
-    audit = _ppprops(["audit", "shell"], tmp_path)
+    # the transcript's checks and attacks: the simulator fits on a public env's few shown entries are
+    # tests/test_simulator_attacks.py's matter; on this run's fresh secrets they read the best shown raw
+    # return (most often when it is the cap of 500) or c within 1% in a few runs of a hundred (EXPOSED)
+    audit = _ppprops(["audit", "shell", "--no-simulate"], tmp_path)
     if method == "pp-hardened":
         assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
     else:
@@ -112,6 +115,7 @@ def test_bad_tells_are_one_line_and_store_nothing(tmp_path: Path) -> None:
         (["tell", "s", "0", "--return", "x"], "argument --return: expected a number, got 'x'"),
         (["tell", "s", "3", "--return", "1"], "trial 3 has not been asked yet: ask hands out the next trial (1)"),
         (["tell", "s", "0", "--return", "1", "--diagnostic", "speed=3"], "unknown diagnostic 'speed'"),
+        (["tell", "s", "0", "--return", "1", "--diagnostic", "episode_length=abc"], "diagnostic 'episode_length' = 'abc' is not a number of steps"),
         (["tell", "s", "0", "--return", "1", "--component", "x"], "--component must be NAME=VALUE, got 'x'"),
         (["tell", "s", "0", "--return", "1", "--component", "x=fast"], "--component x='fast': expected a number"),
         (["tell", "s", "0", "--stdin"], "stdin is not a JSON object"),
