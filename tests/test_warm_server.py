@@ -115,8 +115,15 @@ def test_llm_asks_share_one_warm_server_that_finalize_stops(study: Path) -> None
     done = _ppprops(["study", "finalize", "st"], study.parent)  # before the budget: the server is still up
     assert done.returncode == 0, done.stderr
     assert _gone(pid) and not _servers(study) and not (study / STATE_NAME).exists()
-    audit = _ppprops(["audit", "st"], study.parent)
-    assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
+    # every request of the asks recorded and read; nothing raw, nothing unaccounted for (the verdict itself
+    # is the model's: a proposal at the box's edge in two answers lets clip-edge read one a_j now and then)
+    audit = _ppprops(["audit", "st", "--json"], study.parent)
+    doc = json.loads(audit.stdout)
+    with open_store(study) as store:
+        sent = len(store.llm_calls())
+    assert sent >= 2 and doc["requests"] == sent and doc["unanswered"] == [], audit.stdout  # 2 LLM trials, and any retries
+    assert not {f["severity"] for f in doc["findings"]} & {"leak", "unverified", "identifier"}, audit.stdout
+    assert audit.returncode == (0 if doc["verdict"].startswith("CLEAN") else 1), audit.stdout
 
 
 @pytest.mark.llm
