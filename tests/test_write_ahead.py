@@ -84,7 +84,7 @@ def _audit_reads_each(run_dir: Path, n: int) -> None:
     with open_store(run_dir) as store:
         never = [int(c["id"]) for c in store.llm_calls() if not c["answered"]]
     assert never and report.unanswered == never, report.format()  # named, in the text and the JSON
-    assert f"({len(never)} never answered: call {', '.join(map(str, never))})" in report.format()
+    assert f"({len(never)} never answered: call{'s' if len(never) > 1 else ''} {', '.join(map(str, never))})" in report.format()
     assert report.to_json()["unanswered"] == never
     assert not report.leaks and not report.unverified, report.format()  # every request read and accounted for
 

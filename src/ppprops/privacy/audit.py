@@ -114,12 +114,12 @@ class Finding:
 class AuditReport:
     """The outcome of ``audit_run``: what was read, and every finding, worst severity first.
 
-    ``requests`` and ``entries`` count the requests and the history entries read (``unanswered``:
-    the ids of the requests recorded before they were sent and never answered, read like the
-    others); ``checked``
-    counts the printed values compared, by kind (params, return, components, diagnostics);
-    ``coincidences`` counts printed values equal to both the raw and the encoded value. The paper's
-    promise it checks: only theta~ = A theta and r~ = c r (Sec. II-B, II-C, Eq. 5, 7, 8) reach the LLM.
+    ``requests`` and ``entries`` count the requests and the history entries read; ``unanswered``
+    lists the call ids of those recorded before they were sent and never answered (read like the
+    others); ``checked`` counts the printed values compared, by kind (params, return, components,
+    diagnostics); ``coincidences`` counts printed values equal to both the raw and the encoded
+    value. The paper's promise it checks: only theta~ = A theta and r~ = c r (Sec. II-B, II-C,
+    Eq. 5, 7, 8) reach the LLM.
     """
 
     run_dir: str
@@ -223,7 +223,7 @@ class AuditReport:
         """The text ``ppprops audit`` prints: counts, verdict, what is not checked, one line per finding."""
         c = self.checked
         ids = ", ".join(map(str, self.unanswered))
-        never = f" ({len(self.unanswered)} never answered: call {ids})" if self.unanswered else ""
+        never = f" ({len(self.unanswered)} never answered: call{'s' if len(self.unanswered) > 1 else ''} {ids})" if self.unanswered else ""
         lines = [
             f"audit of {self.run_dir} (method {self.method}): {self.requests} requests{never}, {self.entries} history entries; "
             f"checked {c['params']} parameters, {c['return']} returns, {c['components']} components, {c['diagnostics']} diagnostics "
