@@ -31,6 +31,7 @@ SEARCH = [int(x) for x in np.random.default_rng(0).permutation(np.linspace(10, 1
 # range), three short ones
 ROUND_LONGEST = [int(x) for x in np.random.default_rng(1).permutation(np.linspace(20, 190, 12)).round()]
 WIDE_WARMUP = [40, 200, 90, 150]
+JITTER_SEED = 9  # the fixed stream of the pacer's jitter (``fixed_jitter``)
 
 
 @pytest.fixture(autouse=True)
@@ -45,9 +46,6 @@ def fixed_jitter(monkeypatch: pytest.MonkeyPatch) -> None:
         return np.random.default_rng([JITTER_SEED, index]) if stream == seeding.PACING else real(self, stream, index)
 
     monkeypatch.setattr(seeding.Streams, "rng", rng)
-
-
-JITTER_SEED = 9
 
 
 def test_the_fixed_jitter_is_uncorrelated_with_the_steps() -> None:
@@ -105,8 +103,6 @@ def test_gaps_that_follow_the_episodes_are_reported_and_pacing_removes_them(tmp_
     assert runs[1].timing == "" and runs[1].paced
     text = format_report(runs)
     assert "| CartPole | pp, paced | 1 |" in text and "| 0/1 / 0/1 | 0/1 |" in text, text
-
-
 
 
 def _run_wide(tmp_path: Path, pace: bool) -> Path:

@@ -380,8 +380,9 @@ class Study:
         Nothing is stored when this raises ConfigError: a trial that is not pending or was already
         told, one another worker holds, one no worker has been handed yet (the rest of a round, a
         retried trial: ask for it first), an empty ``failed`` reason, a non-finite value, a missing or unknown
-        component, an unknown diagnostic, an ``episode_length`` that is not a number of steps, a mismatch between the episodes given, or fewer returns than the
-        trial asked episodes for (more are welcome: the mean of all is used).
+        component, an unknown diagnostic, an ``episode_length`` that is not a number of steps, a mismatch
+        between the episodes given, or fewer returns than the trial asked episodes for (more are welcome:
+        the mean of all is used).
         """
         number = trial if isinstance(trial, int) else trial.number
         teller = worker if worker is not None else (None if isinstance(trial, int) else trial.worker)
@@ -528,8 +529,8 @@ class Study:
                     continue
                 if (isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v))
                         or (steps and float(v) < 0)):
-                    what = "a number of steps" if steps else "neither a finite number nor a text"
-                    raise ConfigError(f"diagnostic {k!r} = {v!r} is {'not ' if steps else ''}{what}")
+                    what = "not a number of steps" if steps else "neither a finite number nor a text"
+                    raise ConfigError(f"diagnostic {k!r} = {v!r} is {what}")
             episodes.append(Episode(ret=float(r), components={k: float(v) for k, v in c.items()},
                                     diagnostics={k: (v if isinstance(v, str) else float(v)) for k, v in d.items()}))
         return aggregate(episodes)
