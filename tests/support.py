@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import threading
+import time
+import types
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -42,6 +45,58 @@ def offline_llm(spread: float = 0.5) -> Iterator[None]:
 
     with mock.patch("ppprops.llm.client.connect", lambda llm, **kw: EchoOptimizer(llm, spread=spread)):
         yield
+
+
+class VirtualClock:
+    """Unix seconds that move only when the test says: ``sleep(s)`` (a rig's episode, the pacer's
+    wait) adds ``s`` at once, and each reading adds ``TICK`` (as a real clock moves between two
+    events: a trial told and the request it lets leave are not at one instant). ``install`` makes it the clock of what a run's request timing is read
+    from: the store's stamps (candidates told, requests sent and answered) and the request pacer
+    (``Pacer``'s clock and its wait). What the audit then measures is the same on every run of a
+    test, whatever the load of the machine: no gap moves with the scheduler.
+
+    Sleeps add up, so two threads that sleep side by side take the sum: a test whose rigs run
+    trials at once orders their episodes (``turn``), and ``serial_requests`` sends a round's
+    requests one at a time (each paced in turn), so that the order of the stamps is fixed too."""
+
+    TICK = 1e-6  # seconds
+
+    def __init__(self, start: float = 1.8e9) -> None:
+        self.now = float(start)
+        self._lock = threading.Lock()
+        self.turn = threading.Condition()  # rigs that take their episodes in trial order wait on it
+
+    def time(self) -> float:
+        """Virtual Unix seconds now."""
+        with self._lock:
+            self.now += self.TICK
+            return self.now
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` pass (at once)."""
+        with self._lock:
+            self.now += max(0.0, float(seconds))
+
+    def install(self, monkeypatch: Any, *, serial_requests: bool = False) -> None:
+        """Make this the clock of the store's stamps and of the request pacer (see the class docstring)."""
+        import ppprops.store
+        from ppprops.llm import recording
+        from ppprops.llm.pacing import Pacer
+
+        stamps = types.SimpleNamespace(**{k: getattr(time, k) for k in dir(time) if not k.startswith("_")})
+        stamps.time = self.time  # the store's busy waits keep the real monotonic clock and sleep
+        monkeypatch.setattr(ppprops.store, "time", stamps)
+        monkeypatch.setitem(Pacer.__init__.__kwdefaults__, "clock", self.time)
+        monkeypatch.setitem(Pacer.__init__.__kwdefaults__, "sleep", self.sleep)
+        if serial_requests:
+            one = threading.Lock()
+            send = recording.RecordingLLM.send
+
+            def serial(llm: Any, request: Any, **kw: Any) -> Any:
+                with one:
+                    return send(llm, request, **kw)
+
+            monkeypatch.setattr(recording.RecordingLLM, "send", serial)
 
 
 def chat_request(messages: list[dict[str, str]], D: int, *, iteration: int = 0, attempt: int = 0, temperature: float | None = None):  # type: ignore[no-untyped-def]
