@@ -7,8 +7,8 @@ seeded per run, and prints per run and in median the relative error of c
 (``privacy.matrix._rel``: exp|ln(est/true)| - 1) for:
 
 - ``sim-marginal`` and ``sim-marginal-lattice``: the product's marginal fit on the run's
-  transcript (a and m searched, within the audit's step bound; the wall-clock guard lifted so
-  results repeat on a loaded machine), its c by the closed form and by the lattice posterior;
+  transcript (a and m searched, within the audit's step budget, which makes results repeat on
+  a loaded machine), its c by the closed form and by the lattice posterior;
 - ``bound`` (``--bound``): an attacker handed the TRUE raw parameters of every shown entry, so
   that only the reward map is left to fit from the printed returns. Each shown policy is
   simulated on ``--episodes`` public initial states; c is then estimated by the closed form of
@@ -92,7 +92,7 @@ def bound(run: Path, task: Task, method: str, secrets: Secrets, episodes: int) -
             rows.append((cands[int(np.argmax(near))].params, e.ret))
     theta = np.array([r[0] for r in rows])
     y = np.array([r[1] for r in rows])
-    sim, why = simulator_for(task, Budget(10**12, math.inf))
+    sim, why = simulator_for(task, Budget(10**12))
     if sim is None:
         raise SystemExit(why)
     draws = np.random.default_rng(simfit.MARGINAL_SEED).integers(0, 2**31, size=episodes)
@@ -160,7 +160,7 @@ def main() -> None:
         note = ""
         if not a.no_fit:
             v = view_of(load_requests(run), task, BOX)
-            v.memo["sim_limits"] = simfit.SimLimits(vector_steps=int(a.steps), seconds=math.inf)
+            v.memo["sim_limits"] = simfit.SimLimits(vector_steps=int(a.steps))
             t0 = time.process_time()
             fit = simfit.fit_view(v, "marginal")
             row["sim-marginal"] = float(_rel(fit.c if not isinstance(fit, str) else PRIOR, s.c))

@@ -119,7 +119,7 @@ def test_the_attacks_only_read_the_transcript(runs: dict[tuple[str, str, int], P
 
 def test_privacy_report_table_and_command(runs: dict[tuple[str, str, int], Path], tmp_path: Path,
                                           capsys: pytest.CaptureFixture[str]) -> None:
-    small = SimLimits(vector_steps=1_000_000, env_steps=5_000, seconds=120.0)
+    small = SimLimits(vector_steps=1_000_000, env_steps=5_000)
     text, analyses = privacy_report([runs["CartPole", "pp", 0], runs["CartPole", "pp-hardened", 0]], small)
     assert "| CartPole pp | CartPole pp-hardened, paced |" in text  # these pp-hardened runs pace their requests
     for row in ("diagnostic", "lattice", "known-cap", "warmup-range", "stated-range", "clip-edge", "seed-replay", "sim-exact",

@@ -97,7 +97,7 @@ def build_run(root: Path, method: str, *, name: str | None = None, a_one: bool =
 @pytest.fixture(autouse=True)
 def small_simulations(monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulator attacks (tests/test_simulator_attacks.py) run within a small bound here: these tests are about the rest."""
-    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000, seconds=60.0))
+    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000))
 
 
 def _last_request(run_dir: Path) -> tuple[int, str]:

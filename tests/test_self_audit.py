@@ -25,7 +25,7 @@ PAPER = "they usually find pp EXPOSED by design (pp-hardened closes its channels
 @pytest.fixture(autouse=True)
 def small_simulations(monkeypatch: pytest.MonkeyPatch) -> None:
     """The simulator attacks of the full audit within a small bound (tests/test_simulator_attacks.py covers them)."""
-    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000, seconds=60.0))
+    monkeypatch.setattr(simfit, "DEFAULT_LIMITS", simfit.SimLimits(vector_steps=500_000, env_steps=2_000))
 
 
 def _run(out: Path, capsys: pytest.CaptureFixture[str], *args: str) -> str:

@@ -16,6 +16,7 @@ import dataclasses
 import sqlite3
 import sys
 import textwrap
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,10 +25,13 @@ import numpy as np
 import pytest
 from test_attacks import seeded_secrets
 
+from ppprops.cli import build_parser
 from ppprops.client.secrets import Secrets
+from ppprops.errors import ConfigError
 from ppprops.privacy import simfit
 from ppprops.privacy.attacks import run_attacks
 from ppprops.privacy.audit import audit_run
+from ppprops.privacy.commands import _limits
 from ppprops.privacy.requests import load_requests
 from ppprops.privacy.runseed import find_run_seed
 from ppprops.privacy.simulator import Budget, EnvSim, OverBudget, env_is_public, simulator_for
@@ -38,8 +42,8 @@ from ppprops.tasks import get_task
 
 from support import make_config, offline_llm, tamper_call
 
-SMALL = simfit.SimLimits(vector_steps=3_000_000, env_steps=20_000, seconds=300.0)
-MEDIUM = simfit.SimLimits(vector_steps=10_000_000, env_steps=20_000, seconds=300.0)  # the audit's default bound
+SMALL = simfit.SimLimits(vector_steps=3_000_000, env_steps=20_000)
+MEDIUM = simfit.SimLimits(vector_steps=10_000_000, env_steps=20_000)  # the audit's default vectorised budget
 
 
 @pytest.fixture(autouse=True)
@@ -79,8 +83,8 @@ def err(est: float | np.ndarray, true: float | np.ndarray) -> np.ndarray:
 def test_the_vectorised_simulators_reproduce_the_real_env(task: str) -> None:
     """The numpy dynamics give the real env's returns and diagnostics, episode by episode."""
     t = get_task(task)
-    fast, _ = simulator_for(t, Budget(10**8, 600.0))
-    exact = EnvSim(t, Budget(10**8, 600.0))
+    fast, _ = simulator_for(t, Budget(10**8))
+    exact = EnvSim(t, Budget(10**8))
     assert fast is not None and fast.kind == "vector"
     rng = np.random.default_rng(3)
     thetas = rng.uniform(-6, 6, size=(12, t.D)) * rng.uniform(0.02, 1.0, size=(12, 1))
@@ -94,7 +98,26 @@ def test_the_vectorised_simulators_reproduce_the_real_env(task: str) -> None:
             else:
                 np.testing.assert_allclose(a.diagnostics[k].astype(float), v, atol=1e-9, err_msg=k)
     with pytest.raises(OverBudget, match="budget of 100 simulated steps"):  # a bound, not a hang
-        simulator_for(t, Budget(100, 600.0))[0].rollout(thetas, seeds)  # type: ignore[union-attr]
+        simulator_for(t, Budget(100))[0].rollout(thetas, seeds)  # type: ignore[union-attr]
+
+
+def test_the_budget_counts_simulated_steps_and_a_wall_clock_cap_is_opt_in() -> None:
+    """An attack stops on its step budget, whatever time has passed; only a cap asked for
+    (``--sim-seconds``) reads the clock, and none is set by default."""
+    long_ago = time.monotonic() - 3600.0
+    b = Budget(100, started=long_ago)
+    b.charge(100)
+    with pytest.raises(OverBudget, match="budget of 100 simulated steps"):
+        b.charge(1)
+    with pytest.raises(OverBudget, match="wall-clock cap of 1 s"):
+        Budget(100, seconds=1.0, started=long_ago).charge(1)
+    assert simfit.SimLimits().seconds is None and "wall clock" not in simfit.SimLimits().describe()
+    assert _limits(build_parser().parse_args(["audit", "d"])).seconds is None
+    capped = _limits(build_parser().parse_args(["audit", "d", "--sim-seconds", "30"]))
+    assert capped.seconds == 30.0 and capped.describe().endswith("and at most 30 s of wall clock, per attack")
+    for bad in ("0", "nan"):
+        with pytest.raises(ConfigError, match="--sim-seconds > 0"):
+            _limits(build_parser().parse_args(["audit", "d", "--sim-seconds", bad]))
 
 
 def test_finding_1_the_run_seed_is_read_off_a_hardened_transcript_and_the_audit_warns(tmp_path: Path) -> None:

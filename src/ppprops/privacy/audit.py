@@ -133,7 +133,7 @@ class AuditReport:
     findings: list[Finding] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     not_run: list[tuple[str, str]] = field(default_factory=list)  # (attack, why it could not run)
-    sim_bound: str = ""  # the time bound of the simulator attacks, in words
+    sim_bound: str = ""  # the budget of the simulator attacks, in words
     public_dynamics: str = ""  # the line naming a task whose env the provider can simulate
     estimates: list[Estimate] = field(default_factory=list, repr=False)  # every attack's estimate (not in the JSON)
     attacked: bool = True  # the attacks ran (``audit_run(attacks=False)``: the transcript checks only)

@@ -64,14 +64,15 @@ def _sim_options(p: argparse.ArgumentParser) -> None:
                    help=f"simulated steps each simulator attack may use with a vectorised simulator (default {d.vector_steps:.3g}; "
                         f"the real env gets N/{d.vector_steps // d.env_steps})")
     p.add_argument("--sim-seconds", type=float, default=d.seconds, metavar="S",
-                   help=f"wall-clock guard of each simulator attack (default {d.seconds:g})")
+                   help="optional wall-clock cap of each simulator attack, in seconds (default: none; with a cap the "
+                        "result can depend on the machine's load)")
     p.add_argument("--no-simulate", action="store_true", help="skip the simulator attacks (listed as not run)")
 
 
 def _limits(a: argparse.Namespace) -> SimLimits:
     from .simfit import DEFAULT_LIMITS, SimLimits
 
-    if a.sim_steps < 1 or a.sim_seconds <= 0:
+    if a.sim_steps < 1 or (a.sim_seconds is not None and not a.sim_seconds > 0):
         raise ConfigError("--sim-steps must be >= 1 and --sim-seconds > 0")
     ratio = DEFAULT_LIMITS.vector_steps // DEFAULT_LIMITS.env_steps
     return SimLimits(vector_steps=a.sim_steps, env_steps=max(1, a.sim_steps // ratio), seconds=a.sim_seconds)

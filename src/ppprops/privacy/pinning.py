@@ -119,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = p.parse_args(argv)
     shown = [int(x) for x in a.shown.split(",")]
     ratio = DEFAULT_LIMITS.vector_steps // DEFAULT_LIMITS.env_steps
-    limits = SimLimits(vector_steps=a.sim_steps, env_steps=max(1, a.sim_steps // ratio), seconds=DEFAULT_LIMITS.seconds)
+    limits = SimLimits(vector_steps=a.sim_steps, env_steps=max(1, a.sim_steps // ratio))
     envs = [e.strip() for e in a.envs.split(",") if e.strip()]
     rows = measure(a.out, envs, a.seeds, shown, a.warmup, a.iterations, limits, log=lambda s: print(s, file=sys.stderr))
     text = table(rows, shown)

@@ -22,8 +22,9 @@ with the printed ones. Two attacks:
 Both search the parameter secrets (a, and the offsets m under ``pp-hardened``) with CMA-ES inside
 their public prior, and, for each hypothesis, solve the reward map (c; s and p when the prompt
 says rewards are warped) in closed form on a grid of exponents. Both stop at a budget of
-simulated steps (``SimLimits``; the step count makes them deterministic) or a wall-clock guard,
-and report what they had by then. Each needs only the ``View``.
+simulated steps (``SimLimits``: the same transcript gives the same fit whatever the machine's
+load), or at a wall-clock cap when one is set, and report what they had by then. Each needs only
+the ``View``.
 
 Assumptions (public defaults the provider is taken to know): one episode per candidate (the
 default ``episodes``), the warm-up first, one new candidate per iteration, and that a candidate
@@ -64,14 +65,18 @@ MAX_RESTARTS = 6  # CMA-ES restarts (doubling the population) after a fit that d
 
 @dataclass(frozen=True)
 class SimLimits:
-    """The time bound of each simulator attack on one run: at most ``vector_steps`` simulated
-    steps with a vectorised simulator (classic control), ``env_steps`` with the real env, and
-    ``seconds`` of wall clock (a guard; the step budget is what keeps the result deterministic).
+    """The budget of each simulator attack on one run, in simulated env steps (one step of one
+    episode): at most ``vector_steps`` with a vectorised simulator (classic control), ``env_steps``
+    with the real env. The step budget alone decides where a fit stops, so its result does not
+    depend on the machine or its load.
+
+    ``seconds``: an optional wall-clock cap per attack, in seconds (None, the default: none). A fit
+    stopped by it depends on the machine's speed and load; it only keeps a slow env from running long.
     """
 
     vector_steps: int = 10_000_000
     env_steps: int = 100_000
-    seconds: float = 60.0
+    seconds: float | None = None
 
     def budget(self, kind: str) -> Budget:
         """A fresh Budget for a simulator of ``kind`` ("vector" or "env")."""
@@ -79,8 +84,9 @@ class SimLimits:
 
     def describe(self) -> str:
         """The bound in words, for the audit's output."""
+        cap = f", and at most {self.seconds:g} s of wall clock" if self.seconds is not None else ""
         return (f"{self.vector_steps:.3g} simulated steps (vectorised classic control) or {self.env_steps:.3g} steps of the "
-                f"real env, and at most {self.seconds:g} s, per attack")
+                f"real env{cap}, per attack")
 
 
 DEFAULT_LIMITS = SimLimits()
@@ -738,7 +744,7 @@ def _finish(v: View, d: Data, sim: Simulator, seeds: NDArray[np.int64], episodes
     if known.any():
         theta[:, known, :] = d.raw[known][None]
     sim.budget.steps += len(seeds) * 100_000  # the final decoding is always simulated, past the budget if need be
-    sim.budget.seconds = math.inf
+    sim.budget.seconds = None
     out = sim.rollout(np.repeat(theta[0], episodes, axis=0), seeds.tolist())
     R = out.returns.reshape(1, len(d.y), episodes)
     fit = fit_rewards(R, d.y, space.scheme, prior, refine=40)
@@ -836,7 +842,7 @@ def _run_fit(v: View, mode: str) -> Fit | str:
     if len(v.entries) < 3:
         return f"only {len(v.entries)} shown entries"
     limits: SimLimits = v.memo.get("sim_limits") or DEFAULT_LIMITS  # type: ignore[assignment]
-    probe = Budget(1, 1.0)
+    probe = Budget(1)
     sim, why = simulator_for(task, probe)
     if sim is None:
         return why
@@ -858,7 +864,7 @@ def _run_fit(v: View, mode: str) -> Fit | str:
             seeds = np.tile(draws, len(d.y))
             fit = search(v, d, sim, seeds, MARGINAL_EPISODES, schemes, exact=False, prior=prior)
     except OverBudget as e:
-        return f"over its time bound before a first fit ({e.what})"
+        return f"over its budget before a first fit ({e.what})"
     finally:
         sim.close()
     fit.notes.append(how)

@@ -16,10 +16,11 @@ Two kinds of simulator, one interface (``Simulator.rollout``):
   with the task's own recorder (exact, but thousands of times slower per episode).
 
 Every rollout is charged to a ``Budget`` of simulated steps (one step of one episode; a
-vectorised batch charges its width times its length) and a wall-clock guard: past either,
-``OverBudget`` is raised and the attack reports that it stopped, never hangs. The step budget is
-what makes an attack's outcome deterministic; the clock only guards a machine much slower than
-assumed.
+vectorised batch charges its width times its length): past it, ``OverBudget`` is raised and the
+attack reports that it stopped, never hangs. The step budget does not depend on the machine or
+its load, so the same transcript gives the same attack result anywhere. A wall-clock cap can be
+added (``Budget.seconds``, the audit's ``--sim-seconds``); none is set by default, since a fit
+cut short by the clock depends on the load.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ _PRIVATE_PREFIXES = ("__main__",)
 
 
 class OverBudget(Exception):
-    """A simulation ran past its budget (simulated steps or wall-clock seconds)."""
+    """A simulation ran past its budget (simulated steps, or the optional wall-clock cap)."""
 
     def __init__(self, what: str) -> None:
         super().__init__(what)
@@ -52,23 +53,24 @@ class OverBudget(Exception):
 @dataclass
 class Budget:
     """How much an attack may simulate: ``steps`` simulated env steps in all (one step of one
-    episode; a vectorised batch of N episodes of T steps costs N T) and ``seconds`` of wall clock.
+    episode; a vectorised batch of N episodes of T steps costs N T), and optionally ``seconds``
+    of wall clock from ``started`` (None: no cap; a cap makes the outcome depend on the machine).
 
     ``charge`` raises ``OverBudget`` once either is spent. ``used`` counts the steps charged.
     """
 
     steps: int
-    seconds: float
+    seconds: float | None = None
     used: int = 0
     started: float = field(default_factory=time.monotonic)
 
     def charge(self, steps: int) -> None:
-        """Count ``steps`` more simulated steps; raises OverBudget past the step or time bound."""
+        """Count ``steps`` more simulated steps; raises OverBudget past the step budget or the wall-clock cap."""
         self.used += int(steps)
         if self.used > self.steps:
             raise OverBudget(f"over its budget of {self.steps:.3g} simulated steps")
-        if time.monotonic() - self.started > self.seconds:
-            raise OverBudget(f"over its time bound of {self.seconds:g} s")
+        if self.seconds is not None and time.monotonic() - self.started > self.seconds:
+            raise OverBudget(f"over its wall-clock cap of {self.seconds:g} s")
 
     def left(self) -> int:
         """Simulated steps still allowed."""

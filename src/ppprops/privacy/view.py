@@ -95,7 +95,7 @@ class Estimate:
     detail: str = ""
     extras: dict[str, float] = field(default_factory=dict)  # other secrets it estimated (s, p)
     # why the attack could not run at all (env private, a fact unknown, initial states unknown, over
-    # its time bound); empty when it ran (then value None means it ran and found nothing)
+    # its budget); empty when it ran (then value None means it ran and found nothing)
     not_run: str = ""
     raw: tuple[RawGuess, ...] = ()  # raw values it decodes for shown entries (simulator attacks)
 
