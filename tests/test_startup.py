@@ -107,13 +107,13 @@ with open(sys.argv[1], "w") as f:
 """
 
 # Never for ask (a stored trial) or tell: the attacks and the audit, the experiment grids, the settings
-# table, the LLM clients and the embedded model, the prompt forms and proposers, the worker pool, the
+# table, the LLM clients and the embedded model, the prompt forms and proposers, the env loop, the worker pool, the
 # optional extras; tell loads the run's schema (pydantic), its task and codec, nothing more.
 NEVER = ("ppprops.privacy.simfit", "ppprops.privacy.attacks", "ppprops.privacy.audit", "ppprops.privacy.commands",
          "ppprops.experiments", "ppprops.settings", "ppprops.api", "ppprops.runner", "ppprops.llm.client", "ppprops.llm.embedded",
          "ppprops.llm.recording", "ppprops.proposers.llm", "ppprops.strategies", "ppprops.wire.forms", "ppprops.wire.parse",
-         "ppprops.wire.document", "ppprops.policy_file", "ppprops.baselines.rl", "ppprops.tasks.commands", "multiprocessing",
-         "concurrent.futures", "urllib.request", "http.client", "openai", "httpx", "torch", "gymnasium", "scipy", "yaml", "ray",
+         "ppprops.wire.document", "ppprops.policy_file", "ppprops.baselines.rl", "ppprops.tasks.commands", "ppprops.env_loop",
+         "multiprocessing", "concurrent.futures", "urllib.request", "http.client", "openai", "httpx", "torch", "gymnasium", "scipy", "yaml", "ray",
          "xllamacpp")  # fmt: skip
 # ask re-prints a stored trial from the store: not even the schema, the task, the codec or the study.
 NEVER_ASK = (*NEVER, "pydantic", "ppprops.config", "ppprops.methods", "ppprops.tasks", "ppprops.study", "ppprops.client.codec",

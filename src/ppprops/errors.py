@@ -27,6 +27,25 @@ class LLMError(PPPropsError):
     """The LLM endpoint could not be reached or kept failing past the retry bound."""
 
 
+class StudyComplete(ConfigError):
+    """``Study.ask`` after the budget is spent (or after the search stopped on purpose): finalize
+    instead. ``finalized``: the study is already finalized (nothing left to do)."""
+
+    def __init__(self, message: str, *, finalized: bool = False) -> None:
+        super().__init__(message)
+        self.finalized = finalized
+
+
+class TrialsOut(ConfigError):
+    """``Study.ask`` cannot hand out a trial now: ``--parallel`` trials are out, or a round, a phase
+    or a CMA-ES generation waits for trials that are out (``ppprops ask`` exits 4 with this line).
+    ``out``: how many trials are out."""
+
+    def __init__(self, message: str, *, out: int) -> None:
+        super().__init__(message)
+        self.out = out
+
+
 class MissingExtraError(PPPropsError, ImportError):
     """An optional dependency group is not installed; the message names the pip extra."""
 

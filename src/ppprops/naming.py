@@ -13,10 +13,14 @@ from __future__ import annotations
 import re
 import time
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .values import Trial
 
 WORKER_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
@@ -43,3 +47,13 @@ def check_worker(name: str) -> str:
         raise ConfigError(f"worker name {name!r} is not a plain name: use letters, digits, '.', '_' and '-' "
                           "(up to 64, starting with a letter or digit), e.g. robot-2")
     return name
+
+
+def holder(trial: Trial) -> str:
+    """Who holds a trial that is out: its worker's name, ``unnamed worker`` or ``nobody yet``."""
+    return "nobody yet" if trial.worker is None else (trial.worker or "unnamed worker")
+
+
+def holders(trials: Sequence[Trial]) -> str:
+    """``trial 3 (robot-1), trial 4 (nobody yet)``: which trials are out and who holds them."""
+    return ", ".join(f"trial {t.number} ({holder(t)})" for t in trials)

@@ -44,18 +44,18 @@ from .client.codec import Codec, encode_feedback
 from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
-from .errors import ConfigError, LLMError, StoreError, interrupted_by_user
-from .evaluation import Episode, EpisodeError, EpisodeLimitError, Evaluator, Fleet, PoolError, WorkerError, aggregate
+from .errors import ConfigError, StoreError, StudyComplete, TrialsOut
+from .evaluation import Episode, Evaluator, Fleet, aggregate
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
-from .locks import RUNNING_LOCK, STUDY_LOCK, file_lock
+from .locks import STUDY_LOCK, file_lock
 from .loop import locate, pooled_returns, search_candidates, select_best
 from .methods import Method, get_method
-from .naming import check_worker
+from .naming import check_worker, holder, holders
 from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
 from .status import RunStatus
 from .store import RunStore
-from .tasks import FeedbackKeyError, Task
+from .tasks import Task
 from .values import Candidate, Feedback, FinalEval, Trial
 
 # What only asking a new trial, the env-driven loop or the policy needs (the proposers, the prompt
@@ -69,19 +69,7 @@ if TYPE_CHECKING:
     from .proposers.base import Phase
     from .wire.forms import PromptForm
 
-# Errors of an env that breaks its task's declaration mid-run: the run stops (not resumable as is).
-BROKEN_TASK = (FeedbackKeyError, EpisodeLimitError, WorkerError)
-
 Callback = Callable[[Candidate, "Study"], "bool | None"]
-
-class StudyComplete(ConfigError):
-    """``ask`` after the budget is spent (or after the search stopped on purpose): finalize instead.
-    ``finalized``: the study is already finalized (nothing left to do)."""
-
-    def __init__(self, message: str, *, finalized: bool = False) -> None:
-        super().__init__(message)
-        self.finalized = finalized
-
 
 class Study:
     """One search in one run directory, with a public ask/tell (module docstring).
@@ -302,11 +290,11 @@ class Study:
                        else f"all {self.total} trials are told" if not out and not failed
                        else f"all {self.total} trials are settled: {told} told, {failed} failed (ppprops study retry "
                             f"{self.run_dir} TRIAL asks a failed one again)" if not out
-                       else f"every trial is asked; {_holders(out)} still out")
+                       else f"every trial is asked; {holders(out)} still out")
                 raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it"
                                     + (" once they are told" if out else ""))
             if len(out) >= self.parallel:
-                return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {_holders(out)}; tell one first"
+                return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {holders(out)}; tell one first"
             from .proposers.base import StopSearch
 
             self._sync()
@@ -314,21 +302,21 @@ class Study:
             first = n - iteration  # the phase's first trial
             earlier = [t for t in out if t.number < first]
             if earlier:
-                return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {_holders(earlier)} still out")
+                return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {holders(earlier)} still out")
             if phase.name == "selection" and self.store.candidate_count() == 0:
                 raise ConfigError(self._all_failed())
             end = phase.budget
             if self.parallel > 1 and getattr(phase.proposer, "rounds", False):  # one shown history per round of P
                 start = (iteration // self.parallel) * self.parallel
                 if out:
-                    return f"the next round of {self.parallel} starts when the last one is told: {_holders(out)} still out"
+                    return f"the next round of {self.parallel} starts when the last one is told: {holders(out)} still out"
                 end = min(end, start + self.parallel)
             iterations = list(range(iteration, min(end, iteration + self.parallel - len(out))))
             ready = getattr(phase.proposer, "ready", None)
             if ready is not None:
                 iterations = list(itertools.takewhile(ready, iterations))
                 if not iterations:
-                    return f"the {phase.name} phase waits for its trials that are out: {_holders(out)}"
+                    return f"the {phase.name} phase waits for its trials that are out: {holders(out)}"
             t0 = time.perf_counter()
             try:
                 proposals = ask_many(phase.proposer, iterations)
@@ -478,7 +466,7 @@ class Study:
             if number not in failed:
                 held = next((t for t in self.store.pending_trials() if t.number == number), None)
                 state = ("it was told" if self.store.trial_state(number) == "told"
-                         else f"it is out, held by {_who(held)}" if held is not None
+                         else f"it is out, held by {holder(held)}" if held is not None
                          else "it was never asked")
                 raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
             out_n = len(self.store.pending_trials())
@@ -576,117 +564,16 @@ class Study:
                 declaration (status ``stopped: ...``).
             ConfigError: another process runs this study, or the task has no env.
         """
-        events = events if events is not None else self.events
+        from .env_loop import optimize
+
         if not self.has_env:  # refused before any lock file is made
             raise self._no_env()
-        try:
-            with file_lock(self.run_dir, RUNNING_LOCK, wait=False):
-                return self._optimize(callbacks, events, fleet)
-        except BlockingIOError:
-            raise ConfigError(f"another process is running {self.run_dir}; wait for it, or stop it first") from None
-
-    def _optimize(self, callbacks: Sequence[Callback], events: RunEvents, fleet: Fleet | None = None) -> FinalEval | None:
-        from .proposers.base import StopSearch
-
-        store = self.store
-        evaluator = self.evaluator
-        runner: Fleet = fleet if fleet is not None else evaluator
-        fail_trials = self.config.on_episode_error == "fail-trial"
-        status, _ = store.run_status()
-        if status is not RunStatus.STOPPED:
-            store.set_status(RunStatus.RUNNING)
-        pacer = self._pacer()
-        if pacer is not None:  # this loop's clock starts now: the time since another process's last answer is no evaluation
-            pacer.restart()
-        done = store.candidates()
-        settled = len(done) + store.failed_count()  # a failed trial holds its place in the plan
-        events.on_start(settled, self.total if status is not RunStatus.STOPPED else settled)
-        best = [max((c.ret for c in done if math.isfinite(c.ret)), default=-np.inf)]
-        try:
-            while not self.done:
-                if self.parallel == 1 and fleet is None and not fail_trials:
-                    try:
-                        trials = [self.ask()]
-                    except StopSearch:
-                        break
-                else:
-                    try:
-                        trials = self._round()
-                    except StopSearch:
-                        break
-                t0 = time.perf_counter()
-                if len(trials) == 1 and fleet is None and not fail_trials:
-                    results: list[Feedback | EpisodeError] = [evaluator.evaluate(trials[0].theta, trials[0].seeds)]
-                else:
-                    results = list(runner.evaluate_each([t.theta for t in trials], [t.seeds for t in trials]))
-                eval_s = time.perf_counter() - t0
-                stop = False
-                for trial, fb in zip(trials, results, strict=True):
-                    if isinstance(fb, EpisodeError):
-                        if not fail_trials:
-                            raise fb
-                        self.tell(trial, failed=str(fb))
-                        events.on_failed(trial.number, str(fb))
-                        continue
-                    cand = self.tell(trial, feedback=fb, eval_s=eval_s)
-                    if math.isfinite(cand.ret):  # a numerical fault is never the best so far
-                        best[0] = max(best[0], cand.ret)
-                    latency = self._last_latency() if cand.source not in ("warmup", "reeval") else None
-                    events.on_candidate(cand, latency, best[0])
-                    if any(cb(cand, self) is False for cb in callbacks):
-                        stop = True
-                if stop:
-                    store.set_status(RunStatus.STOPPED, "stopped by a callback")
-                    break
-            fe = self.finalize(events=events)
-        except KeyboardInterrupt:
-            self._mark(RunStatus.INTERRUPTED)
-            raise
-        except LLMError as e:  # the endpoint stayed down past the retry bound: resumable
-            self._mark(RunStatus.FAILED, str(e))
-            raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from e
-        except BROKEN_TASK as e:  # the env broke its declaration
-            store.set_status(RunStatus.STOPPED, str(e))
-            raise
-        except (EpisodeError, PoolError) as e:  # the user's env raised or returned nonsense, or the workers died: fix it, then resume
-            self._mark(RunStatus.FAILED, str(e))
-            raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {self.run_dir}'") from None
-        except Exception as e:  # nothing above foresaw it: the status says so (not "interrupted"), and the error goes on
-            if interrupted_by_user(e):  # a Ctrl-C that Python wrapped (a lazy import it landed in): still a Ctrl-C
-                self._mark(RunStatus.INTERRUPTED)
-                raise KeyboardInterrupt from e
-            self._mark(RunStatus.FAILED, f"{type(e).__name__}: {e}".splitlines()[0])
-            raise
-        if fe is not None:
-            events.on_final(fe)
-        return fe
-
-    def _round(self) -> list[Trial]:
-        """The trials ``optimize`` evaluates next: each of its workers' (``run-0`` ...) held trial,
-        or a new one, as many as can be out now. Raises ConfigError when none can be had because
-        other workers hold every trial out."""
-        got: dict[int, Trial] = {}
-        for i in range(self.parallel):
-            try:
-                t = self.ask(worker=f"run-{i}", wait=False)
-            except (TrialsOut, StudyComplete):
-                continue
-            got.setdefault(t.number, t)
-        if not got:
-            raise ConfigError(f"every trial out is held by another worker ({_holders(self.out)}): tell them (or wait for them), "
-                              "then run again")
-        return [got[k] for k in sorted(got)]
+        return optimize(self, callbacks, events if events is not None else self.events, fleet=fleet,
+                        fail_trials=self.config.on_episode_error == "fail-trial", pacer=self._pacer(), llm_latency=self._last_latency)
 
     def _last_latency(self) -> float | None:
         phases = [p for p in self._phases or [] if p.name not in ("warmup", "selection")]
         return getattr(phases[0].proposer, "last_latency", None) if phases else None
-
-    def _mark(self, status: RunStatus, reason: str = "") -> None:
-        """Best effort: the stored status says how the run ended (a store that fails is left as it is)."""
-        try:
-            self.store.set_status(status, reason)
-        except (StoreError, KeyboardInterrupt):
-            pass
 
     # -- the result ---------------------------------------------------------------------------
     def finalize(self, returns: Sequence[float] | None = None, *, events: RunEvents | None = None) -> FinalEval | None:
@@ -890,32 +777,12 @@ class Study:
         return form
 
 
-class TrialsOut(ConfigError):
-    """``ask`` cannot hand out a trial now: ``--parallel`` trials are out, or a round, a phase or
-    a CMA-ES generation waits for trials that are out (``ppprops ask`` exits 4 with this line).
-    ``out``: how many trials are out."""
-
-    def __init__(self, message: str, *, out: int) -> None:
-        super().__init__(message)
-        self.out = out
-
-
 def ask_many(proposer: Any, iterations: Sequence[int]) -> list[Any]:
     """``proposer``'s proposals for ``iterations`` (one round): its own ``ask_many`` when it has
     one (the LLM proposer: concurrent requests from one shown history), else one ``ask`` each."""
     if len(iterations) > 1 and hasattr(proposer, "ask_many"):
         return list(proposer.ask_many(list(iterations)))
     return [proposer.ask(it) for it in iterations]
-
-
-def _who(t: Trial) -> str:
-    """Who holds the trial that is out: its worker's name, ``unnamed worker`` or ``nobody yet``."""
-    return "nobody yet" if t.worker is None else (t.worker or "unnamed worker")
-
-
-def _holders(trials: Sequence[Trial]) -> str:
-    """``trial 3 (robot-1), trial 4 (nobody yet)``: which trials are out and who holds them."""
-    return ", ".join(f"trial {t.number} ({_who(t)})" for t in trials)
 
 
 def _returns(returns: Any) -> list[Any]:
