@@ -30,7 +30,7 @@ import dataclasses
 import itertools
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
 from dataclasses import replace
 from functools import partial
@@ -45,7 +45,7 @@ from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, StoreError, StudyComplete, TrialsOut
-from .evaluation import Episode, Evaluator, Fleet, aggregate
+from .evaluation import Evaluator, Fleet
 from .events import NO_EVENTS, RunEvents
 from .fileio import write_json_atomic
 from .locks import STUDY_LOCK, file_lock
@@ -56,6 +56,7 @@ from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_pat
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
+from .told import check_episode_count, failure_reason, told_feedback
 from .values import Candidate, Feedback, FinalEval, Trial
 
 # What only asking a new trial, the env-driven loop or the policy needs (the proposers, the prompt
@@ -377,9 +378,7 @@ class Study:
         if teller:
             check_worker(teller)
         if failed is not None:
-            failed = " ".join(str(failed).split())
-            if not failed:
-                raise ConfigError("a failed trial needs a reason (what went wrong, e.g. 'e-stop at 3.2 s')")
+            failed = failure_reason(failed)
         with file_lock(self.run_dir, STUDY_LOCK):
             out = self.store.pending_trials()
             pending = next((t for t in out if t.number == number), None)
@@ -403,12 +402,10 @@ class Study:
                     self._sync()
                 return None
             if feedback is None and returns is not None and pending.seeds:
-                given_n = len(_returns(returns))
-                if 0 < given_n < len(pending.seeds):  # more is welcome (their mean is used), fewer is less evidence than asked
-                    raise ConfigError(f"trial {number} asked for {len(pending.seeds)} episodes (its seeds) and {given_n} "
-                                      f"return(s) were told: tell one return per episode (ppprops tell --stdin: "
-                                      '{"returns": [...]}), or create the study with the --episodes you run')
-            fb = feedback if feedback is not None else self._feedback(returns, components, diagnostics)
+                check_episode_count(number, len(pending.seeds), returns)
+            fb = feedback if feedback is not None else told_feedback(
+                returns, components, diagnostics, task=self.task.name, declared_components=self.task.components,
+                declared_diagnostics=self.task.diagnostics)
             cand = Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
                              params_enc=self.codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(self.codec, fb),
                              clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s,
@@ -482,46 +479,6 @@ class Study:
     def failed(self) -> list[tuple[Trial, str]]:
         """The failed trials (not asked again), by number, each with its reason."""
         return self.store.failed_trials()
-
-    def _feedback(self, returns: float | Sequence[float] | None, components: Any, diagnostics: Any) -> Feedback:
-        """Told values as one Feedback (the mean over the episodes given), checked against the task."""
-        if returns is None:
-            raise ConfigError("tell needs the episode return(s) (or a Feedback)")
-        rets = _returns(returns)
-        if not rets:
-            raise ConfigError("tell needs at least one episode return")
-        n = len(rets)
-        comps = _per_episode(components, n, "components")
-        diags = _per_episode(diagnostics, n, "diagnostics")
-        declared_c, declared_d = set(self.task.components), set(self.task.diagnostics)
-        episodes = []
-        for i, r in enumerate(rets):
-            if isinstance(r, bool) or not isinstance(r, (int, float, np.floating, np.integer)) or not math.isfinite(float(r)):
-                raise ConfigError(f"episode return {r!r} is not a finite number")
-            c = dict(comps[i])
-            missing, unknown = sorted(declared_c - set(c)), sorted(set(c) - declared_c)
-            if unknown:
-                raise ConfigError(f"unknown component {unknown[0]!r}; task {self.task.name} declares: {', '.join(sorted(declared_c)) or 'none'}")
-            if missing:
-                raise ConfigError(f"component {missing[0]!r} is missing; task {self.task.name} declares: {', '.join(sorted(declared_c))}")
-            for k, v in c.items():
-                if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v)):
-                    raise ConfigError(f"component {k!r} = {v!r} is not a finite number")
-            d = dict(diags[i])
-            unknown = sorted(set(d) - declared_d)
-            if unknown:
-                raise ConfigError(f"unknown diagnostic {unknown[0]!r}; task {self.task.name} declares: {', '.join(sorted(declared_d))}")
-            for k, v in d.items():
-                steps = k == "episode_length"  # the one diagnostic whose meaning is fixed: the episode's steps
-                if isinstance(v, str) and not steps:
-                    continue
-                if (isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(float(v))
-                        or (steps and float(v) < 0)):
-                    what = "not a number of steps" if steps else "neither a finite number nor a text"
-                    raise ConfigError(f"diagnostic {k!r} = {v!r} is {what}")
-            episodes.append(Episode(ret=float(r), components={k: float(v) for k, v in c.items()},
-                                    diagnostics={k: (v if isinstance(v, str) else float(v)) for k, v in d.items()}))
-        return aggregate(episodes)
 
     # -- the env-driven loop ------------------------------------------------------------------
     def _no_env(self) -> ConfigError:
@@ -783,30 +740,6 @@ def ask_many(proposer: Any, iterations: Sequence[int]) -> list[Any]:
     if len(iterations) > 1 and hasattr(proposer, "ask_many"):
         return list(proposer.ask_many(list(iterations)))
     return [proposer.ask(it) for it in iterations]
-
-
-def _returns(returns: Any) -> list[Any]:
-    """``returns`` as a list: one value (a number, or anything that is not a sequence of them: a text
-    is one value, not its characters), or the values of a sequence."""
-    if isinstance(returns, (str, bytes, Mapping)) or not isinstance(returns, Iterable):
-        return [returns]
-    if isinstance(returns, np.ndarray) and returns.ndim == 0:
-        return [returns.item()]
-    return list(returns)
-
-
-def _per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
-    """``values`` (None, one mapping, or one mapping per episode) as ``n`` mappings."""
-    if values is None:
-        return [{}] * n
-    if isinstance(values, Mapping):
-        if n != 1:
-            raise ConfigError(f"{n} episode returns but one set of {what}: give one mapping per episode")
-        return [values]
-    out = list(values)
-    if len(out) != n or not all(isinstance(v, Mapping) for v in out):
-        raise ConfigError(f"{what}: give one mapping per episode ({n} episode returns)")
-    return out
 
 
 __all__ = ["Study", "StudyComplete", "Trial", "TrialsOut", "check_worker"]

@@ -1,0 +1,119 @@
+"""The told-feedback check: what a robot tells about a trial, checked against the task and made one
+``Feedback`` (``Study.tell``, as Optuna keeps ``_tell.py`` beside its study).
+
+A tell gives raw values: one episode's return or one per episode (reward units), and per episode
+the declared reward components (each one's sum over the episode, by name) and diagnostics (each
+one's value at the end, or a text). The candidate's feedback is their mean over the episodes
+(paper Sec. II-C). Everything here is a function of the told values and the task's facts (its
+name, its declared components and diagnostics); every refusal is one ``ConfigError`` line, raised
+before anything is stored.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Collection, Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+from .evaluation import Episode, aggregate
+from .values import Feedback
+
+
+def failure_reason(failed: Any) -> str:
+    """The reason of ``tell(failed=...)`` on one line (runs of white space made one space).
+    Raises ConfigError when nothing is left."""
+    reason = " ".join(str(failed).split())
+    if not reason:
+        raise ConfigError("a failed trial needs a reason (what went wrong, e.g. 'e-stop at 3.2 s')")
+    return reason
+
+
+def check_episode_count(number: int, asked: int, returns: Any) -> None:
+    """Refuse fewer returns than the ``asked`` episodes (the trial's seeds) of trial ``number``:
+    less evidence than the study planned. More are welcome: their mean is used."""
+    given = len(returns_list(returns))
+    if 0 < given < asked:
+        raise ConfigError(f"trial {number} asked for {asked} episodes (its seeds) and {given} "
+                          f"return(s) were told: tell one return per episode (ppprops tell --stdin: "
+                          '{"returns": [...]}), or create the study with the --episodes you run')
+
+
+def told_feedback(returns: float | Sequence[float] | None, components: Any, diagnostics: Any, *, task: str,
+                  declared_components: Collection[str], declared_diagnostics: Collection[str]) -> Feedback:
+    """The told values as one ``Feedback``: the mean over the episodes given (module docstring).
+
+    ``returns``: a number or one per episode; ``components`` / ``diagnostics``: None, one mapping
+    (one episode), or one mapping per episode. ``task`` names the task in the errors. Raises
+    ConfigError for no return, a return, component or diagnostic that is not a finite number (a
+    diagnostic may be a text, but ``episode_length`` is a number of steps, >= 0), a declared
+    component missing, an undeclared component or diagnostic, or a count of mappings that is not
+    the count of returns."""
+    if returns is None:
+        raise ConfigError("tell needs the episode return(s) (or a Feedback)")
+    rets = returns_list(returns)
+    if not rets:
+        raise ConfigError("tell needs at least one episode return")
+    n = len(rets)
+    comps = per_episode(components, n, "components")
+    diags = per_episode(diagnostics, n, "diagnostics")
+    declared_c, declared_d = set(declared_components), set(declared_diagnostics)
+    episodes = []
+    for i, r in enumerate(rets):
+        if not _finite_number(r):
+            raise ConfigError(f"episode return {r!r} is not a finite number")
+        c = dict(comps[i])
+        missing, unknown = sorted(declared_c - set(c)), sorted(set(c) - declared_c)
+        if unknown:
+            raise ConfigError(f"unknown component {unknown[0]!r}; task {task} declares: {', '.join(sorted(declared_c)) or 'none'}")
+        if missing:
+            raise ConfigError(f"component {missing[0]!r} is missing; task {task} declares: {', '.join(sorted(declared_c))}")
+        for k, v in c.items():
+            if not _finite_number(v):
+                raise ConfigError(f"component {k!r} = {v!r} is not a finite number")
+        d = dict(diags[i])
+        unknown = sorted(set(d) - declared_d)
+        if unknown:
+            raise ConfigError(f"unknown diagnostic {unknown[0]!r}; task {task} declares: {', '.join(sorted(declared_d))}")
+        for k, v in d.items():
+            steps = k == "episode_length"  # the one diagnostic whose meaning is fixed: the episode's steps
+            if isinstance(v, str) and not steps:
+                continue
+            if not _finite_number(v) or (steps and float(v) < 0):
+                what = "not a number of steps" if steps else "neither a finite number nor a text"
+                raise ConfigError(f"diagnostic {k!r} = {v!r} is {what}")
+        episodes.append(Episode(ret=float(r), components={k: float(v) for k, v in c.items()},
+                                diagnostics={k: (v if isinstance(v, str) else float(v)) for k, v in d.items()}))
+    return aggregate(episodes)
+
+
+def returns_list(returns: Any) -> list[Any]:
+    """``returns`` as a list: one value (a number, or anything that is not a sequence of them: a text
+    is one value, not its characters), or the values of a sequence."""
+    if isinstance(returns, (str, bytes, Mapping)) or not isinstance(returns, Iterable):
+        return [returns]
+    if isinstance(returns, np.ndarray) and returns.ndim == 0:
+        return [returns.item()]
+    return list(returns)
+
+
+def per_episode(values: Any, n: int, what: str) -> list[Mapping[str, Any]]:
+    """``values`` (None, one mapping, or one mapping per episode) as ``n`` mappings; ``what`` names
+    them in the error. Raises ConfigError when their count is not ``n``."""
+    if values is None:
+        return [{}] * n
+    if isinstance(values, Mapping):
+        if n != 1:
+            raise ConfigError(f"{n} episode returns but one set of {what}: give one mapping per episode")
+        return [values]
+    out = list(values)
+    if len(out) != n or not all(isinstance(v, Mapping) for v in out):
+        raise ConfigError(f"{what}: give one mapping per episode ({n} episode returns)")
+    return out
+
+
+def _finite_number(v: Any) -> bool:
+    """A finite int or float (numpy's too), not a bool."""
+    return not isinstance(v, bool) and isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(float(v))
