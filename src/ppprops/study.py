@@ -56,7 +56,7 @@ from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_pat
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
-from .told import check_episode_count, failure_reason, told_feedback
+from .told import check_episode_count, check_teller, failure_reason, not_pending, told_feedback
 from .values import Candidate, Feedback, FinalEval, Trial
 
 # What only asking a new trial, the env-driven loop or the policy needs (the proposers, the prompt
@@ -383,17 +383,8 @@ class Study:
             out = self.store.pending_trials()
             pending = next((t for t in out if t.number == number), None)
             if pending is None:
-                self._not_pending(number, out)
-            assert pending is not None
-            if pending.worker is None:  # made by a round (or a retry) and handed to nobody: no worker evaluated it
-                raise ConfigError(f"trial {number} has not been handed to a worker yet: ask for it first "
-                                  f"(ppprops ask {self.run_dir} --worker NAME; study.ask(worker=...))")
-            if pending.worker and teller != pending.worker:  # a tell that names no worker is the unnamed worker's
-                who = f"not {teller!r}" if teller else "and this tell names no worker"
-                raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, {who}: each worker tells the trials "
-                                  f"it asked for (ppprops tell --worker {pending.worker}; in Python the Trial that ask returned)")
-            if not isinstance(trial, int) and not np.array_equal(np.asarray(trial.theta, dtype=np.float64), pending.theta):
-                raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
+                raise not_pending(self.store, number, out, run_dir=self.run_dir, total=self.total)
+            check_teller(pending, teller, None if isinstance(trial, int) else trial.theta, run_dir=self.run_dir)
             if failed is not None:
                 if returns is not None or feedback is not None or components is not None or diagnostics is not None:
                     raise ConfigError(f"trial {number}: tell either its feedback or that it failed, not both")
@@ -422,32 +413,6 @@ class Study:
         return (f"every search trial failed ({len(failed)} of {self.store.next_number()}{first}): there is no candidate to "
                 f"re-evaluate or hand over; 'ppprops show {self.run_dir}' lists each reason, and once the evaluation is "
                 f"fixed 'ppprops study retry {self.run_dir} TRIAL' asks a failed trial again")
-
-    def _not_pending(self, number: int, out: list[Trial]) -> None:
-        """Raise the ConfigError that says why trial ``number`` cannot be told (it is not pending)."""
-        recorded = self.store.candidate_count()
-        if number < 0:
-            raise ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
-        if self.store.trial_state(number) == "told":
-            raise ConfigError(f"trial {number} was already told; each trial is told once")
-        failed = dict((t.number, why) for t, why in self.store.failed_trials())
-        if number in failed:
-            raise ConfigError(f"trial {number} failed ({failed[number]}); ask it again with 'ppprops study retry {self.run_dir} "
-                              f"{number}' (study.retry) first")
-        if not out:
-            status, _ = self.store.run_status()
-            if status is RunStatus.FINISHED:
-                raise ConfigError(f"study {self.run_dir} is finalized ({recorded} of {self.total} trials told): "
-                                  "nothing more can be told")
-            if status is RunStatus.STOPPED or self.store.next_number() >= self.total:
-                raise ConfigError(f"no trial is pending and study {self.run_dir} has nothing more to ask ({recorded} of "
-                                  f"{self.total} trials told): finalize it")
-        if number >= self.store.next_number():
-            raise ConfigError(f"trial {number} has not been asked yet: ask hands out the next trial ({self.store.next_number()})")
-        if len(out) > 1:
-            raise ConfigError(f"trial {number} is not pending (the study waits for trials {', '.join(str(t.number) for t in out)})")
-        waiting = "no trial is pending: ask first" if not out else f"the study waits for trial {out[0].number}"
-        raise ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
 
     def retry(self, trial: Trial | int) -> Trial:
         """Ask a failed trial again: the same parameters and seeds, under its own number, pending

@@ -4,22 +4,75 @@
 A tell gives raw values: one episode's return or one per episode (reward units), and per episode
 the declared reward components (each one's sum over the episode, by name) and diagnostics (each
 one's value at the end, or a text). The candidate's feedback is their mean over the episodes
-(paper Sec. II-C). Everything here is a function of the told values and the task's facts (its
-name, its declared components and diagnostics); every refusal is one ``ConfigError`` line, raised
-before anything is stored.
+(paper Sec. II-C). Before the values, the tell itself: the trial must be pending, held by the
+worker that tells it, with the parameters the study asked for (``not_pending``, ``check_teller``).
+Everything here is a function of the told values, the trial and the task's facts (its name, its
+declared components and diagnostics); every refusal is one ``ConfigError`` line, raised before
+anything is stored.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Collection, Iterable, Mapping, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import ConfigError
 from .evaluation import Episode, aggregate
-from .values import Feedback
+from .status import RunStatus
+from .values import Feedback, Trial
+
+if TYPE_CHECKING:
+    from .store import RunStore
+
+
+def not_pending(store: RunStore, number: int, out: Sequence[Trial], *, run_dir: Path, total: int) -> ConfigError:
+    """The one line that says why trial ``number`` cannot be told: it is not among ``out`` (the
+    trials pending in ``store``, a study of ``total`` trials in ``run_dir``). It does not exist, was
+    told, failed, the study is finalized or has nothing more to ask, it was never asked, or the
+    study waits for other trials."""
+    recorded = store.candidate_count()
+    if number < 0:
+        return ConfigError(f"trial {number} does not exist: trials are numbered from 0 (ask gives the next one)")
+    if store.trial_state(number) == "told":
+        return ConfigError(f"trial {number} was already told; each trial is told once")
+    failed = dict((t.number, why) for t, why in store.failed_trials())
+    if number in failed:
+        return ConfigError(f"trial {number} failed ({failed[number]}); ask it again with 'ppprops study retry {run_dir} "
+                           f"{number}' (study.retry) first")
+    if not out:
+        status, _ = store.run_status()
+        if status is RunStatus.FINISHED:
+            return ConfigError(f"study {run_dir} is finalized ({recorded} of {total} trials told): nothing more can be told")
+        if status is RunStatus.STOPPED or store.next_number() >= total:
+            return ConfigError(f"no trial is pending and study {run_dir} has nothing more to ask ({recorded} of "
+                               f"{total} trials told): finalize it")
+    if number >= store.next_number():
+        return ConfigError(f"trial {number} has not been asked yet: ask hands out the next trial ({store.next_number()})")
+    if len(out) > 1:
+        return ConfigError(f"trial {number} is not pending (the study waits for trials {', '.join(str(t.number) for t in out)})")
+    waiting = "no trial is pending: ask first" if not out else f"the study waits for trial {out[0].number}"
+    return ConfigError(f"trial {number} is not the study's pending trial ({waiting})")
+
+
+def check_teller(pending: Trial, teller: str | None, theta: Any, *, run_dir: Path) -> None:
+    """Refuse a tell of ``pending`` by another than the worker holding it (``teller``; None: the
+    unnamed worker), of a trial handed to no worker yet (the rest of a round, a retried trial), or
+    of ``theta`` (the told ``Trial``'s parameters, shape (D,); None for a tell by number) other
+    than the parameters the study asked for. ``run_dir`` is named in the errors."""
+    number = pending.number
+    if pending.worker is None:  # made by a round (or a retry) and handed to nobody: no worker evaluated it
+        raise ConfigError(f"trial {number} has not been handed to a worker yet: ask for it first "
+                          f"(ppprops ask {run_dir} --worker NAME; study.ask(worker=...))")
+    if pending.worker and teller != pending.worker:  # a tell that names no worker is the unnamed worker's
+        who = f"not {teller!r}" if teller else "and this tell names no worker"
+        raise ConfigError(f"trial {number} is held by worker {pending.worker!r}, {who}: each worker tells the trials "
+                          f"it asked for (ppprops tell --worker {pending.worker}; in Python the Trial that ask returned)")
+    if theta is not None and not np.array_equal(np.asarray(theta, dtype=np.float64), pending.theta):
+        raise ConfigError(f"trial {number} does not hold the parameters the study asked for: tell the trial that ask returned")
 
 
 def failure_reason(failed: Any) -> str:
