@@ -207,12 +207,12 @@ def test_full_disk_during_a_run_is_one_line_and_resumable(capsys, tmp_path: Path
 def test_no_space_for_the_policy_file_is_one_line_and_resumable(capsys, tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     import errno
 
-    import ppprops.runner
+    import ppprops.finalizing
 
     def full(path: Path, doc: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(ppprops.study, "write_json_atomic", full)
+    monkeypatch.setattr(ppprops.finalizing, "write_json_atomic", full)
     out = tmp_path / "r"
     code, err = _call(capsys, RUN + ["--warmup", "2", "--iterations", "0", "--final-episodes", "2", "--out", str(out)])
     assert code == 2 and err.count("\n") == 1 and "No space left on device" in err and "ppprops resume" in err

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
@@ -44,15 +43,15 @@ from .client.codec import Codec, encode_feedback
 from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
-from .errors import ConfigError, StoreError, StudyComplete, TrialsOut
+from .errors import ConfigError, StudyComplete, TrialsOut
 from .evaluation import Evaluator, Fleet
 from .events import NO_EVENTS, RunEvents
-from .fileio import write_json_atomic
+from .finalizing import all_failed, final_evaluation, finish_status, provenance, write_policy
 from .locks import STUDY_LOCK, file_lock
-from .loop import locate, pooled_returns, search_candidates, select_best
+from .loop import locate, search_candidates, select_best
 from .methods import Method, get_method
 from .naming import check_worker, holder, holders
-from .rundir import POLICY_NAME, create_run, final_returns, load_run, policy_path
+from .rundir import create_run, final_returns, load_run
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
@@ -305,7 +304,7 @@ class Study:
             if earlier:
                 return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {holders(earlier)} still out")
             if phase.name == "selection" and self.store.candidate_count() == 0:
-                raise ConfigError(self._all_failed())
+                raise ConfigError(all_failed(self.store, self.run_dir))
             end = phase.budget
             if self.parallel > 1 and getattr(phase.proposer, "rounds", False):  # one shown history per round of P
                 start = (iteration // self.parallel) * self.parallel
@@ -406,14 +405,6 @@ class Study:
                 self._sync()
             return cand
 
-    def _all_failed(self) -> str:
-        """One line for a search whose every trial failed: nothing to re-evaluate or hand over."""
-        failed = self.store.failed_trials()
-        first = f"; the first, trial {failed[0][0].number}: {failed[0][1]}" if failed else ""
-        return (f"every search trial failed ({len(failed)} of {self.store.next_number()}{first}): there is no candidate to "
-                f"re-evaluate or hand over; 'ppprops show {self.run_dir}' lists each reason, and once the evaluation is "
-                f"fixed 'ppprops study retry {self.run_dir} TRIAL' asks a failed trial again")
-
     def retry(self, trial: Trial | int) -> Trial:
         """Ask a failed trial again: the same parameters and seeds, under its own number, pending
         again for the next worker that asks (its place in the budget is kept). Returns it.
@@ -511,31 +502,15 @@ class Study:
         when the policy file cannot be written (the study stays resumable).
         """
         events = events if events is not None else self.events
-        store = self.store
-        if store.pending_trial() is not None and store.run_status()[0] is not RunStatus.STOPPED:
-            raise ConfigError(f"trial {store.pending_trial().number} is pending: tell it before finalizing")  # type: ignore[union-attr]
-        done = store.candidates()
-        if not search_candidates(done):
-            raise ConfigError(self._all_failed() if store.failed_count() else "no trial has been told: nothing to finalize")
-        best = select_best(done)
-        fe = store.final_eval()
-        if returns is not None:
-            values = tuple(float(r) for r in returns)
-            if not values or not all(math.isfinite(r) for r in values):
-                raise ConfigError("final returns must be one or more finite numbers")
-            fe = FinalEval(candidate_index=best.index, returns=values, seeds=())
-            store.set_final_eval(fe)
-        elif self.has_env and (fe is None or fe.candidate_index != best.index):
+
+        def run_episodes(best: Candidate) -> FinalEval:
             seeds = seeding.final_eval_seeds(self.config.seed, self.config.final_episodes)
-            fe = FinalEval(candidate_index=best.index, returns=final_returns(self.evaluator, best.params, seeds, events),
-                           seeds=tuple(seeds))
-            store.set_final_eval(fe)
-        self._write_policy(best, fe)
-        status, reason = store.run_status()
-        if status is RunStatus.STOPPED:
-            store.set_status(RunStatus.STOPPED, reason)
-        else:
-            store.set_status(RunStatus.FINISHED)
+            return FinalEval(candidate_index=best.index, returns=final_returns(self.evaluator, best.params, seeds, events),
+                             seeds=tuple(seeds))
+
+        best, fe = final_evaluation(self.store, self.run_dir, returns, run_episodes if self.has_env else None)
+        write_policy(self.run_dir, self.policy_document(best, fe))
+        finish_status(self.store)
         from .llm.embedded import stop_warm_server
 
         if self._warm_llm:  # let go of the warm server first: stopping it waits for every process using it
@@ -551,12 +526,7 @@ class Study:
         best = best if best is not None else self.best
         if best is None:
             raise ConfigError("no trial has been told: there is no policy yet")
-        final = {"mean": fe.mean, "std": fe.std, "episodes": len(fe.returns), "seed": self.config.seed} if fe is not None and fe.returns else None
-        search: dict[str, Any] = {"run_id": self.store.run_id(), "method": self.config.method, "seed": self.config.seed, "return": best.ret,
-                                  "candidate": best.index}
-        pooled = pooled_returns(self.store.candidates()).get(best.index)
-        if pooled:
-            search["selection"] = {"mean": float(np.mean(pooled)), "episodes": len(pooled)}
+        search, final = provenance(self.store, best, fe, method=self.config.method, seed=self.config.seed)
         env = None if self.task.discrete or not self.has_env else self.evaluator.env
         return policy_document(self.task, best.params, env=env, search=search, final_eval=final)
 
@@ -565,15 +535,6 @@ class Study:
         from .policy_file import Policy
 
         return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
-
-    def _write_policy(self, best: Candidate, fe: FinalEval | None) -> None:
-        path = policy_path(self.run_dir)
-        for stale in self.run_dir.glob(f".{POLICY_NAME}.*.tmp"):  # left by a run killed mid-write
-            stale.unlink(missing_ok=True)
-        try:
-            write_json_atomic(path, self.policy_document(best, fe))
-        except OSError as e:
-            raise StoreError(f"cannot write {path}: {e.strerror or e}; then continue with 'ppprops resume {self.run_dir}'") from None
 
     # -- the proposers ------------------------------------------------------------------------
     def _sync(self) -> None:
