@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from ppprops import rundir
+from ppprops.client import hardening
 from ppprops.client.context import prompt_context
 from ppprops.client.hardening import codec_for
 from ppprops.config import LLMConfig, RunConfig
@@ -164,7 +166,12 @@ def test_threads_leave_busy_cores_alone(cores: int, load: float, threads: int) -
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("doc") / "run"
-    start(_config(), out)
+    # fixed secrets and run id (which keys the streams) for the audit's findings: on fresh ones an attack
+    # reads a value by chance now and then
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(hardening, "os_rng", lambda: np.random.default_rng(3))
+        mp.setattr(rundir, "new_run_id", lambda config: f"{config.task}__{config.method}__{config.seed}__20261204-000000-0000")
+        start(_config(), out)
     return out
 
 

@@ -98,11 +98,15 @@ def test_four_drivers_on_one_study_and_one_killed_between_ask_and_tell(tmp_path:
     assert [c.index for c in cands] == list(range(12))  # every candidate recorded once
     assert len(calls) == sum(c.source in ("llm", "fallback") for c in cands) == 8  # one LLM call per LLM candidate
     assert sorted(int(c["iteration"]) for c in calls) == list(range(8))
-    # the transcript's checks and attacks (the simulator fits on CartPole's shown entries are
-    # tests/test_simulator_attacks.py's matter: on fresh secrets they read the best shown raw return, or c,
-    # within 1% in a few runs of a hundred, most often when it is the cap of 500, and the audit says EXPOSED)
-    audit = _ppprops(["audit", "s", "--no-simulate"], tmp_path)
-    assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
+    # the transcript's checks and attacks, on fresh secrets: four racing drivers take the fault server's
+    # answers in no fixed order, so fixed secrets would not fix the transcript either. What holds for every
+    # draw: every request read, nothing raw, nothing unaccounted for; the verdict is the draw's (an attack
+    # reads a value by chance in a few runs of a hundred: EXPOSED, as it should be)
+    audit = _ppprops(["audit", "s", "--no-simulate", "--json"], tmp_path)
+    doc = json.loads(audit.stdout)
+    assert doc["requests"] == 8 and doc["unanswered"] == [] and doc["entries"] > 0, audit.stdout
+    assert not {f["severity"] for f in doc["findings"]} & {"leak", "unverified", "identifier"}, audit.stdout
+    assert audit.returncode == (0 if doc["verdict"].startswith("CLEAN") else 1), audit.stdout
 
 
 def test_workers_failed_trials_and_retry_from_the_shell(tmp_path: Path) -> None:
@@ -212,8 +216,11 @@ def test_the_fault_server_serves_requests_side_by_side_with_a_fixed_latency(widt
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             list(pool.map(one, range(4)))
         wall = time.monotonic() - t0
-        assert server.stats()["most_in_flight"] == 4
-    assert (1.9 < wall < 3.0) if width == 1 else (0.45 < wall < 1.2), wall
+        stats = server.stats()
+    assert stats["most_in_flight"] == 4  # all four sent at once; at width 1 three of them wait in line
+    assert stats["most_served"] == width  # the order of events: at width 1 one at a time, at width 4 all four at once
+    # lower bounds only (a loaded machine takes longer, not less): one after another, or all four at once
+    assert wall >= (4 * 0.5 if width == 1 else 0.5) - 0.01, wall
 
 
 def test_the_fleet_example_runs_two_rigs_to_the_end(tmp_path: Path) -> None:
@@ -232,8 +239,14 @@ def test_the_fleet_example_runs_two_rigs_to_the_end(tmp_path: Path) -> None:
     with open_store(tmp_path / "study") as store:
         assert store.status() == "finished" and [c.index for c in store.candidates()] == list(range(8))
         assert [c.source for c in store.candidates()].count("llm") == 4 and len(store.llm_calls()) == 4
-    audit = _ppprops(["audit", "study"], tmp_path)
-    assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
+    # fresh secrets, as a user's run draws them (the verdict of the other example, drive.sh, is asserted on
+    # fixed ones: tests/fixed_secrets): every request read, nothing raw, nothing unaccounted for. The verdict
+    # is the draw's: an attack reads a value by chance in a few runs of a hundred (EXPOSED, as it should be)
+    audit = _ppprops(["audit", "study", "--json"], tmp_path)
+    doc = json.loads(audit.stdout)
+    assert doc["requests"] == 4 and doc["unanswered"] == [] and doc["attacked"] and doc["entries"] > 0, audit.stdout
+    assert not {f["severity"] for f in doc["findings"]} & {"leak", "unverified", "identifier"}, audit.stdout
+    assert audit.returncode == (0 if doc["verdict"].startswith("CLEAN") else 1), audit.stdout
 
 
 @pytest.mark.slow

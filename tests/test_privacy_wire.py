@@ -11,6 +11,7 @@ same check must flag a vanilla run, which sends raw values by design.
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ppprops.client.hardening import generate_secrets
 from ppprops.client.secrets import Secrets
 from ppprops.config import LLMConfig
 from ppprops.llm.embedded import MODEL_ALIAS
@@ -31,6 +33,7 @@ from support import make_config
 
 pytestmark = pytest.mark.llm
 
+HARDENED_SECRETS_SEED = 154  # the run id is fixed too (privacy-pp-hardened); see _proxied_run
 ENTRY = re.compile(r"params: \[([^\]]*)\]\nreturn: (\S+)(?:\ncomponents: ([^\n]*))?")
 
 
@@ -42,7 +45,24 @@ def _renderings(x: float, decimals: int) -> set[str]:
     return {s[1:] if s.startswith("-") and float(s) == 0 else s for s in out}
 
 
+NUMBER = re.compile(r"-?\d*(?:\.(\d*))?(?:[eE]([+-]?\d+))?")
+COMPONENT = re.compile(r"([^\s=,]+)=([^\s,]+)")
+
+
+def _prints(x: float, tok: str) -> bool:
+    """Could x be printed as the number ``tok``, rounded at tok's own precision (the prompt writes
+    encoded params to a few significant digits, not to a fixed number of decimals)?"""
+    m = NUMBER.fullmatch(tok.strip())
+    if m is None:
+        return False
+    half = 0.5 * 10.0 ** (int(m.group(2) or 0) - len(m.group(1) or ""))
+    return abs(float(x) - float(tok)) <= half * (1 + 1e-9)
+
+
 def leaks(requests: list[bytes], run_dir: Path, optimum: float | None) -> list[str]:
+    """What the requests print raw: a candidate's raw params, return or component in its history
+    entry, and the optimal return anywhere but where a shown entry prints its own encoded value
+    (an encoded value may print as the optimum by chance; the raw value in its place is a leak)."""
     store = open_store(run_dir)
     cands = store.candidates()
     decimals = int(store.config()["decimals"])
@@ -53,8 +73,18 @@ def leaks(requests: list[bytes], run_dir: Path, optimum: float | None) -> list[s
         if not body:
             continue
         text = "\n".join(m["content"] for m in json.loads(body)["messages"])
+        encoded: list[tuple[int, int]] = []  # spans that print a shown candidate's own encoded values
         for m in ENTRY.finditer(text):
-            shown = [float(v) for v in m.group(1).split(",")]
+            tokens = m.group(1).split(",")
+            shown = [float(v) for v in tokens]
+            own = [c for c in cands if _same_entry(c, tokens)]  # the candidates this entry shows
+            if own:
+                encoded.append(m.span(1))
+                if any(_prints(c.feedback_enc.ret, m.group(2)) for c in own):
+                    encoded.append(m.span(2))
+                for comp in COMPONENT.finditer(m.group(3) or ""):
+                    if any(_prints(c.feedback_enc.components.get(comp.group(1), math.nan), comp.group(2)) for c in own):
+                        encoded.append((m.start(3) + comp.start(2), m.start(3) + comp.end(2)))
             for c in cands:
                 # zero maps to zero under any diagonal scaling (the scheme keeps signs and zeros
                 # by design), so only nonzero coordinates can reveal a magnitude
@@ -62,19 +92,18 @@ def leaks(requests: list[bytes], run_dir: Path, optimum: float | None) -> list[s
                 same = sum(f"{p:.{decimals}f}" == f"{s:.{decimals}f}" for p, s in nonzero)
                 if nonzero and same > len(nonzero) // 2:
                     found.append(f"raw params of candidate {c.index}")
-                if any(m.group(2) == r for r in _renderings(c.ret, decimals)) and _same_entry(c, shown, decimals):
+            for c in own:
+                if any(m.group(2) == r for r in _renderings(c.ret, decimals)):
                     found.append(f"raw return of candidate {c.index}")
-            if m.group(3):
-                for c in cands:
-                    if _same_entry(c, shown, decimals):
-                        for k, v in c.feedback.components.items():
-                            if re.search(rf"\b{re.escape(k)}=({'|'.join(map(re.escape, _renderings(v, decimals)))})\b", m.group(3)):
-                                found.append(f"raw component {k} of candidate {c.index}")
+                for k, v in c.feedback.components.items():
+                    if m.group(3) and re.search(rf"\b{re.escape(k)}=({'|'.join(map(re.escape, _renderings(v, decimals)))})\b", m.group(3)):
+                        found.append(f"raw component {k} of candidate {c.index}")
         if optimum is not None:
             for r in _renderings(optimum, decimals):
                 # the episode_length diagnostic is the one known channel that can print this number
                 hits = [h for h in re.finditer(rf"(?<![\w.]){re.escape(r)}(?![\w.])", text)
-                        if not text[: h.start()].endswith("episode_length=")]
+                        if not text[: h.start()].endswith("episode_length=")
+                        and not any(a <= h.start() and h.end() <= b for a, b in encoded)]
                 if hits:
                     found.append(f"optimal return {r}")
             if "optimal return" in text:
@@ -82,8 +111,9 @@ def leaks(requests: list[bytes], run_dir: Path, optimum: float | None) -> list[s
     return found
 
 
-def _same_entry(c, shown: list[float], decimals: int) -> bool:  # type: ignore[no-untyped-def]
-    return all(f"{p:.{decimals}f}" == f"{s:.{decimals}f}" for p, s in zip(c.params_enc, shown))
+def _same_entry(c, tokens: list[str]) -> bool:  # type: ignore[no-untyped-def]
+    """The entry's printed params are candidate c's encoded ones."""
+    return len(tokens) == len(c.params_enc) and all(_prints(p, t) for p, t in zip(c.params_enc, tokens))
 
 
 def _proxied_run(  # type: ignore[no-untyped-def]
@@ -91,7 +121,6 @@ def _proxied_run(  # type: ignore[no-untyped-def]
 ) -> tuple[list[bytes], Path]:
     t = get_task(task)
     rng = np.random.default_rng(11)
-    secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193) if method != "pp-hardened" else None
     with FaultServer(FaultConfig(fault_rate=0.0, upstream=embedded_server.base_url, record=True, max_seconds=3600)) as proxy:
         llm = LLMConfig(base_url=proxy.base_url, model=MODEL_ALIAS, structured="grammar")
         if method == "r2po":
@@ -99,6 +128,13 @@ def _proxied_run(  # type: ignore[no-untyped-def]
                           method="r2po")
         else:
             cfg = make_config(task, method, warmup=warmup, iterations=iterations, final_episodes=0, llm=llm, **settings)
+        if method == "pp-hardened":
+            # its own kind of secrets (offsets, warps), drawn by the routine every run uses, from a fixed seed: on fresh
+            # ones an attack reads a value by chance now and then; on this draw no a_j is within 2% of what a proposal
+            # repeated at an integer or at the warm-up's edge gives clip-edge, nor c of what a tie at the top gives known-cap
+            secrets = generate_secrets(f"privacy-{method}", t, cfg.encoding, rng=np.random.default_rng(HARDENED_SECRETS_SEED))
+        else:
+            secrets = Secrets(run_id=f"privacy-{method}", a=rng.uniform(1.7, 4.3, t.D), c=3.7193)
         start(cfg, tmp_path / method, secrets=secrets)
         captured = proxy.received()
     return captured, tmp_path / method

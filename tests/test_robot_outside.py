@@ -30,10 +30,14 @@ from ppprops.testing.fault_server import FaultConfig, FaultServer
 ROOT = Path(__file__).resolve().parents[1]
 SRC = str(ROOT / "src")
 EXAMPLE = ROOT / "examples" / "robot_outside"
+# tests/fixed_secrets: a child process with this folder first on PYTHONPATH and the variable set draws
+# its secrets from default_rng(seed) and takes a fixed run id
+FIXED_SECRETS = str(ROOT / "tests" / "fixed_secrets")
+SECRETS_SEED = "PPPROPS_TEST_SECRETS_SEED"
 
 
-def _ppprops(args: list[str], cwd: Path, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+def _ppprops(args: list[str], cwd: Path, stdin: str | None = None, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    env = env if env is not None else {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
     return subprocess.run([sys.executable, "-m", "ppprops", *args], cwd=cwd, input=stdin, capture_output=True, text=True, env=env,
                           timeout=300)  # fmt: skip
 
@@ -67,7 +71,8 @@ def test_the_shell_loop_gives_the_same_run_as_search(tmp_path: Path, method: str
     flags = ["--env", "CartPole", "--method", method, "--warmup", "4", "--iterations", "4", "--seed", "7", "--final-episodes", "3", "--select-top", "0",
              "--episodes", "2", "--model", "m", "--retries", "0"]  # fmt: skip
     with FaultServer(FaultConfig(fault_rate=0.0, seed=5)) as server:
-        made = _ppprops(["study", "create", *flags, "--base-url", server.base_url, "--out", "shell"], tmp_path)
+        # fixed secrets and run id for the verdict below (tests/fixed_secrets): the secrets are drawn here, at create
+        made = _ppprops(["study", "create", *flags, "--base-url", server.base_url, "--out", "shell"], tmp_path, env=_fixed_secrets_env(11))
         assert made.returncode == 0 and made.stdout.strip() == "study directory: shell", made.stderr
         transcript = []
         while True:
@@ -87,6 +92,7 @@ def test_the_shell_loop_gives_the_same_run_as_search(tmp_path: Path, method: str
     with open_store(tmp_path / "shell") as store:
         config = RunConfig.from_json(store.config())
         run_id = store.run_id()
+    assert run_id.endswith("__20261204-000000-0000")  # the seam's: fixed secrets
     secrets = Secrets.load(tmp_path / "shell" / "secrets.key", run_id=run_id, D=10)
     with FaultServer(FaultConfig(fault_rate=0.0, seed=5)) as server:  # the same answers, in the same order
         from dataclasses import replace
@@ -96,8 +102,8 @@ def test_the_shell_loop_gives_the_same_run_as_search(tmp_path: Path, method: str
     assert shell == loop
     assert [c[1] for c in shell["candidates"]] == ["warmup"] * 4 + ["llm"] * 4
     # the transcript's checks and attacks: the simulator fits on a public env's few shown entries are
-    # tests/test_simulator_attacks.py's matter; on this run's fresh secrets they read the best shown raw
-    # return (most often when it is the cap of 500) or c within 1% in a few runs of a hundred (EXPOSED)
+    # tests/test_simulator_attacks.py's matter (on fresh secrets they read the best shown raw return, most
+    # often when it is the cap of 500, or c within 1% in a few runs of a hundred: EXPOSED)
     audit = _ppprops(["audit", "shell", "--no-simulate"], tmp_path)
     if method == "pp-hardened":
         assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout
@@ -180,10 +186,33 @@ def test_a_task_without_env_is_driven_by_ask_tell_and_refused_by_run(tmp_path: P
     assert evaluated.returncode == 2 and "no env" in evaluated.stderr
 
 
+def _fixed_secrets_env(seed: int) -> dict[str, str]:
+    """The environment of a child process that draws fixed secrets and a fixed run id (tests/fixed_secrets)."""
+    path = os.pathsep.join(p for p in [FIXED_SECRETS, SRC, os.environ.get("PYTHONPATH")] if p)
+    return {**os.environ, "PYTHONPATH": path, SECRETS_SEED: str(seed)}
+
+
+def test_the_fixed_secrets_seam_reaches_the_child_process(tmp_path: Path) -> None:
+    flags = ["study", "create", "--env", "CartPole", "--method", "pp-hardened", "--warmup", "2", "--iterations", "1"]  # no --seed
+    keys = []
+    for name, env in [("a", _fixed_secrets_env(7)), ("b", _fixed_secrets_env(7)), ("c", {**_fixed_secrets_env(7), SECRETS_SEED: ""})]:
+        made = subprocess.run([sys.executable, "-m", "ppprops", *flags, "--out", name], cwd=tmp_path, capture_output=True, text=True,
+                              env=env, timeout=300)  # fmt: skip
+        assert made.returncode == 0, made.stderr
+        keys.append((tmp_path / name / "secrets.key").read_bytes())
+    assert keys[0] == keys[1]  # the same secrets, run id and run seed (the id holds it)
+    task, method, seed, tail = json.loads(keys[0])["run_id"].split("__")
+    assert (task, method, tail) == ("CartPole", "pp-hardened", "20261204-000000-0000") and int(seed) >= 1 << 16
+    assert keys[2] != keys[0]  # the variable unset: fresh ones
+    bad = subprocess.run([sys.executable, "-c", "pass"], env={**_fixed_secrets_env(7), SECRETS_SEED: "x"}, capture_output=True, text=True,
+                         timeout=60)
+    assert bad.returncode != 0 and "cannot fix the secrets" in bad.stderr  # never fresh secrets by mistake
+
+
 @pytest.mark.skipif(shutil.which("awk") is None or shutil.which("bash") is None, reason="the example needs bash and awk")
 def test_the_robot_outside_example_runs_to_the_end(tmp_path: Path) -> None:
-    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""), "PPPROPS_METHOD": "pp-hardened",
-           "PPPROPS_WARMUP": "4", "PPPROPS_ITERATIONS": "3"}  # fmt: skip
+    # fixed secrets and run id (tests/fixed_secrets) for the verdict: on fresh ones an attack reads a value by chance now and then
+    env = {**_fixed_secrets_env(3), "PPPROPS_METHOD": "pp-hardened", "PPPROPS_WARMUP": "4", "PPPROPS_ITERATIONS": "3"}
     bindir = tmp_path / "bin"  # `ppprops` as the installed console script would be, for this interpreter
     bindir.mkdir()
     (bindir / "ppprops").write_text(f"#!/bin/sh\nexec {sys.executable} -m ppprops \"$@\"\n")
@@ -197,5 +226,6 @@ def test_the_robot_outside_example_runs_to_the_end(tmp_path: Path) -> None:
         assert store.status() == "finished" and store.candidate_count() == 7
         assert [c.source for c in store.candidates()].count("llm") == 3 and len(store.llm_calls()) == 3
     assert json.loads((tmp_path / "study" / "best_policy.json").read_text())["W"]
+    assert json.loads((tmp_path / "study" / "secrets.key").read_text())["run_id"].endswith("__20261204-000000-0000")  # the seam's
     audit = _ppprops(["audit", "study"], tmp_path)
     assert audit.returncode == 0 and "verdict: CLEAN" in audit.stdout, audit.stdout

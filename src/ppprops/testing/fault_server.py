@@ -37,7 +37,8 @@ Decisions come from one seeded generator in arrival order, so a serial client se
 fault sequence for the same seed. The server stops by itself after ``max_requests`` requests or
 ``max_seconds`` seconds. ``GET /stats`` returns the counts, among them the most completions
 requests in flight at once (read and not yet answered: a client's concurrency cap, seen from the
-server).
+server) and the most served at once (holding a slot of ``concurrency``: in their latency or being
+answered), which tell how requests overlapped without reading a clock.
 
 For tests of what a client does around a request rather than with its answer:
 
@@ -57,7 +58,8 @@ For tests of what a client does around a request rather than with its answer:
 ``latency_s`` / ``concurrency``
     every completions request takes ``latency_s`` seconds before its answer (a slow model), and at
     most ``concurrency`` are served at once (None: all), the rest waiting in line, as a server with
-    that many slots does: what a round of ``--parallel`` requests gains is measured against it.
+    that many slots does: what a round of ``--parallel`` requests gains is measured against it
+    (``most_served`` in the stats: how many were served side by side).
 
 Command line (prints ``listening URL`` first, the stats as JSON when it stops)::
 
@@ -186,6 +188,8 @@ class _State:
     received: list[bytes] = field(default_factory=list)  # every request, byte for byte (with record)
     in_flight: int = 0
     most_in_flight: int = 0
+    serving: int = 0  # completions requests holding a slot of concurrency (or, without it, past reading)
+    most_served: int = 0
     slots: threading.Semaphore | None = None  # concurrency: the requests served at once
 
     def __post_init__(self) -> None:
@@ -228,6 +232,12 @@ class _State:
         with self.lock:
             self.in_flight -= 1
 
+    def served(self, step: int) -> None:
+        """A completions request starts (+1) or ends (-1) being served: its latency wait and its answer."""
+        with self.lock:
+            self.serving += step
+            self.most_served = max(self.most_served, self.serving)
+
     def stats(self) -> dict[str, Any]:
         with self.lock:
             return {
@@ -237,6 +247,7 @@ class _State:
                 "injected_total": sum(self.injected.values()),
                 "personas": dict(sorted(self.personas.items())),
                 "most_in_flight": self.most_in_flight,
+                "most_served": self.most_served,
                 "elapsed_s": round(time.monotonic() - self.started, 3),
             }
 
@@ -495,6 +506,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         model = str(body.get("model") or "fault-synthetic")
         if st.slots is not None:
             st.slots.acquire()
+        st.served(+1)
         try:
             if cfg.latency_s > 0:
                 st.stop.wait(cfg.latency_s)
@@ -502,6 +514,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         except (BrokenPipeError, ConnectionResetError):
             pass  # the client gave up first (it timed out): nothing to do
         finally:
+            st.served(-1)
             if st.slots is not None:
                 st.slots.release()
 
@@ -654,7 +667,9 @@ class FaultServer:
     def stats(self) -> dict[str, Any]:
         """Counts so far: requests, passed, injected (by kind) and injected_total, personas (replies by
         persona), most_in_flight (the most completions requests in flight at once: read, not yet
-        answered), elapsed_s (seconds since the server was made); the body of ``GET /stats``."""
+        answered), most_served (the most served at once: holding a slot of ``concurrency``, in their
+        latency or being answered; at most ``concurrency``), elapsed_s (seconds since the server was
+        made); the body of ``GET /stats``."""
         return self._state.stats()
 
     def release(self) -> None:
