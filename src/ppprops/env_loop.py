@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, overload
 
@@ -84,15 +84,12 @@ class DrivenStudy(Protocol):
         ...
 
     @overload
-    def tell(self, trial: Trial | int, returns: float | Sequence[float] | None = None, *,
-             components: Mapping[str, float] | Sequence[Mapping[str, float]] | None = None,
-             diagnostics: Mapping[str, float | str] | Sequence[Mapping[str, float | str]] | None = None,
-             feedback: Feedback | None = None, eval_s: float | None = None, failed: None = None,
-             worker: str | None = None) -> Candidate: ...
+    def tell(self, trial: Trial, *, feedback: Feedback, eval_s: float | None = None) -> Candidate:
+        """Tell an evaluated trial (``Study.tell``); returns the recorded candidate."""
 
     @overload
-    def tell(self, trial: Trial | int, returns: None = None, *, components: None = None, diagnostics: None = None,
-             feedback: None = None, eval_s: float | None = None, failed: str, worker: str | None = None) -> None: ...
+    def tell(self, trial: Trial, *, failed: str) -> None:
+        """Tell that a trial could not be evaluated (``Study.tell``)."""
 
     def finalize(self, returns: Sequence[float] | None = None, *, events: RunEvents | None = None) -> FinalEval | None:
         """The final evaluation and the policy file (``Study.finalize``)."""
