@@ -200,7 +200,7 @@ def test_cmaes_population_size_is_an_option_of_the_method(tmp_path: Path) -> Non
     with Study.create(config, tmp_path / "c") as study:
         study.optimize()
         assert study.store.candidate_count() == 16  # 3 warm-up + 8 CMA-ES + 5 re-evaluations
-        assert study._phases is not None and study._phases[1].proposer._es.popsize == 4  # type: ignore[attr-defined]
+        assert study._get_phases()[1].proposer._es.popsize == 4  # type: ignore[attr-defined]
     for options, message in [({"popsize": 1}, "popsize must be >= 2"), ({"pop": 4}, "has no option 'pop'"),
                               ({"popsize": "4"}, "popsize")]:  # fmt: skip
         with pytest.raises(ConfigError, match=message):
@@ -234,7 +234,8 @@ _ASK_AND_DIE = textwrap.dedent("""
         def send(self, *a, **k):
             import time; time.sleep(float(sys.argv[3])); return super().send(*a, **k)
     with Study.load(sys.argv[1]) as s:
-        s._llm_given = Slow(s.config.llm)
+        llm = Slow(s.config.llm)
+    with Study.load(sys.argv[1], llm=llm) as s:
         t = s.ask()
         print(json.dumps(t.to_json()), flush=True)
         if sys.argv[2] == "kill":
@@ -257,8 +258,7 @@ def _warm_up(study: Study) -> None:
 
 def test_kill_between_ask_and_tell_then_ask_again_gives_the_same_trial(tmp_path: Path) -> None:
     config = case_config("pp-chat")
-    with Study.create(config, tmp_path / "k", secrets=case_secrets("pp-chat", config)) as study:
-        study._llm_given = EchoOptimizer(config.llm)
+    with Study.create(config, tmp_path / "k", secrets=case_secrets("pp-chat", config), llm=EchoOptimizer(config.llm)) as study:
         _warm_up(study)
     proc = _ask_in_process(tmp_path / "k", "kill")
     out, err = proc.communicate(timeout=120)
@@ -282,8 +282,7 @@ def test_kill_between_ask_and_tell_then_ask_again_gives_the_same_trial(tmp_path:
 
 def test_two_processes_asking_at_once_make_one_llm_call(tmp_path: Path) -> None:
     config = case_config("pp-chat")
-    with Study.create(config, tmp_path / "t", secrets=case_secrets("pp-chat", config)) as study:
-        study._llm_given = EchoOptimizer(config.llm)
+    with Study.create(config, tmp_path / "t", secrets=case_secrets("pp-chat", config), llm=EchoOptimizer(config.llm)) as study:
         _warm_up(study)
     first = _ask_in_process(tmp_path / "t", "ask", delay=2.0)
     second = _ask_in_process(tmp_path / "t", "ask", delay=2.0)

@@ -14,7 +14,7 @@ from __future__ import annotations
 from .client.context import prompt_context
 from .errors import ConfigError
 from .methods import Method
-from .proposers.base import Bounds, Phase, Proposal, Proposer, SearchSetup
+from .proposers.base import Bounds, Phase, Proposal, SearchProposer, SearchSetup
 from .proposers.llm import LLMSearch
 from .proposers.uniform import UniformSampler
 from .seeding import Streams
@@ -35,7 +35,7 @@ def search_phase(method: Method, setup: SearchSetup) -> Phase:
     return build(setup)  # type: ignore[no-any-return]
 
 
-class RandomSearch:
+class RandomSearch(SearchProposer):
     """Uniform samples that continue the warm-up's stream: sample warmup + i, i.i.d. like the rest."""
 
     def __init__(self, D: int, box: Bounds, streams: Streams, *, offset: int) -> None:
@@ -87,7 +87,7 @@ def r2po_phase(s: SearchSetup) -> Phase:
 def random_phase(s: SearchSetup) -> Phase:
     """Random search: the uniform warm-up stream, continued for the LLM's budget (an MLP's: its scaled
     initialisation, ``SearchSetup.init_bounds``)."""
-    proposer: Proposer = RandomSearch(s.task.D, s.init_bounds, s.streams, offset=s.warmup)
+    proposer = RandomSearch(s.task.D, s.init_bounds, s.streams, offset=s.warmup)
     return Phase("random", proposer, s.iterations)
 
 

@@ -27,10 +27,9 @@ then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import time
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import AbstractContextManager, ExitStack, closing
+from contextlib import AbstractContextManager
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -51,7 +50,9 @@ from .locks import STUDY_LOCK, file_lock
 from .loop import locate, search_candidates, select_best
 from .methods import Method, get_method
 from .naming import check_worker, holder, holders
+from .phases import PhaseSettings, RunPhases
 from .rundir import create_run, final_returns, load_run
+from .scheduling import askable, check_left, held, new_trials, wait_for_earlier
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
@@ -62,12 +63,9 @@ from .values import Candidate, Feedback, FinalEval, Trial
 # forms, the LLM client, the policy file) is imported where it is used: `ppprops tell` and
 # `ppprops ask`, one process per trial, load a study without them (tests/test_startup.py).
 if TYPE_CHECKING:
-    from .llm.pacing import Pacer
     from .llm.protocol import LLM
-    from .llm.recording import RecordingLLM
     from .policy_file import Policy
     from .proposers.base import Phase
-    from .wire.forms import PromptForm
 
 Callback = Callable[[Candidate, "Study"], "bool | None"]
 
@@ -107,17 +105,12 @@ class Study:
         self.codec: Codec = codec_for(secrets, self.task, config.encoding)
         self.streams = seeding.Streams(config.seed, secrets.subkey("streams") if store.streams_keyed() else None)
         self.events = events
-        self._llm_given = llm
-        self._gate = llm_gate
-        self._warm_llm = warm_llm
-        self._stack = ExitStack()
-        self._recording: RecordingLLM | None = None
-        self._phases: list[Phase] | None = None
-        self._told = 0  # every trial before it is settled and told to the proposers
-        self._told_set: set[int] = set()  # candidates the proposers have been told
-        self._failed_seen: set[int] = set()  # failed trials the proposers have heard of
         self._evaluator: Evaluator | None = None
         self._env = env
+        self._warm_llm = warm_llm
+        self._phases = RunPhases(partial(_phase_settings, config, self.has_env), task=self.task, method=self.method, codec=self.codec,
+                                 streams=self.streams, store=store, run_dir=self.run_dir, events=events, llm=llm, llm_gate=llm_gate,
+                                 evaluator=(lambda: self.evaluator) if self.has_env else None, warm_llm=warm_llm)  # fmt: skip
 
     # -- making and opening -------------------------------------------------------------------
     @classmethod
@@ -154,7 +147,7 @@ class Study:
     def close(self) -> None:
         """Close the LLM client (stopping an embedded server), the env and the store."""
         try:
-            self._stack.close()
+            self._phases.close()
             if self._evaluator is not None:
                 self._evaluator.close()
                 self._evaluator = None
@@ -267,72 +260,39 @@ class Study:
             delay = min(delay * 2, 0.5)
 
     def _ask_once(self, name: str) -> Trial | str:
-        """The trial for worker ``name``, or why it must wait (one line)."""
+        """The trial for worker ``name``, or why it must wait (one line; ``scheduling``)."""
         with file_lock(self.run_dir, STUDY_LOCK):
             out = self._pending_trials()
-            mine = [t for t in out if t.worker == name]
-            if mine:
-                return mine[0]
-            free = [t for t in out if t.worker is None]
-            if free:  # the rest of a round, or a failed trial asked again
-                self.store.assign(free[0].number, name)
-                return replace(free[0], worker=name)
-            if self.parallel == 1 and out and not name:  # one at a time: the pending trial again (as before workers had names)
-                return out[0]
-            status, reason = self.store.run_status()
-            n = self.store.next_number()
-            if status is RunStatus.FINISHED:
-                raise StudyComplete(f"study {self.run_dir} is finalized ({self.store.candidate_count()} of {self.total} trials told): "
-                                    "nothing more to ask", finalized=True)
-            if status is RunStatus.STOPPED or n >= self.total:
-                told, failed = self.store.candidate_count(), self.store.failed_count()
-                why = (f"it stopped: {reason}" if status is RunStatus.STOPPED and reason
-                       else f"all {self.total} trials are told" if not out and not failed
-                       else f"all {self.total} trials are settled: {told} told, {failed} failed (ppprops study retry "
-                            f"{self.run_dir} TRIAL asks a failed one again)" if not out
-                       else f"every trial is asked; {holders(out)} still out")
-                raise StudyComplete(f"study {self.run_dir} has nothing more to ask ({why}); finalize it"
-                                    + (" once they are told" if out else ""))
+            got = held(out, name, self.parallel)
+            if got is not None:
+                trial, hand = got
+                if hand:
+                    self.store.assign(trial.number, name)
+                return replace(trial, worker=name) if hand else trial
+            check_left(self.store, self.run_dir, self.total, out)
             if len(out) >= self.parallel:
                 return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {holders(out)}; tell one first"
             from .proposers.base import StopSearch
 
-            self._sync()
+            self._phases.sync()
+            n = self.store.next_number()
             phase, iteration = locate(self._get_phases(), n)
-            first = n - iteration  # the phase's first trial
-            earlier = [t for t in out if t.number < first]
-            if earlier:
-                return (f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {holders(earlier)} still out")
+            wait = wait_for_earlier(phase, n - iteration, out)
+            if wait is not None:
+                return wait
             if phase.name == "selection" and self.store.candidate_count() == 0:
                 raise ConfigError(all_failed(self.store, self.run_dir))
-            end = phase.budget
-            if self.parallel > 1 and getattr(phase.proposer, "rounds", False):  # one shown history per round of P
-                start = (iteration // self.parallel) * self.parallel
-                if out:
-                    return f"the next round of {self.parallel} starts when the last one is told: {holders(out)} still out"
-                end = min(end, start + self.parallel)
-            iterations = list(range(iteration, min(end, iteration + self.parallel - len(out))))
-            ready = getattr(phase.proposer, "ready", None)
-            if ready is not None:
-                iterations = list(itertools.takewhile(ready, iterations))
-                if not iterations:
-                    return f"the {phase.name} phase waits for its trials that are out: {holders(out)}"
+            iterations = askable(phase, iteration, out, self.parallel)
+            if isinstance(iterations, str):
+                return iterations
             t0 = time.perf_counter()
             try:
-                proposals = ask_many(phase.proposer, iterations)
+                proposals = phase.proposer.ask_many(iterations)
             except StopSearch as stop:
                 self.store.set_status(RunStatus.STOPPED, stop.reason)
                 raise
-            ask_s = time.perf_counter() - t0
-            trials = []
-            for k, (it, proposal) in enumerate(zip(iterations, proposals)):
-                number = n + k
-                seeds = proposal.seeds if proposal.seeds is not None else tuple(self.streams.episode_seeds(number, self.config.episodes))
-                trials.append(Trial(number=number, phase=phase.name, iteration=it, source=proposal.source,
-                                    theta=np.asarray(proposal.theta, dtype=np.float64), n_s=self.task.n_s, n_a=self.task.n_a,
-                                    seeds=seeds, clipped=proposal.clipped, note=proposal.note, ask_s=ask_s,
-                                    reevaluates=proposal.reevaluates, worker=name if k == 0 else None,
-                                    policy=None if self.task.policy.is_linear else self.task.policy))  # fmt: skip
+            trials = new_trials(phase, iterations, proposals, first=n, worker=name, ask_s=time.perf_counter() - t0, task=self.task,
+                                episode_seeds=lambda number: tuple(self.streams.episode_seeds(number, self.config.episodes)))
             self.store.add_pending_many(trials, limit=self.parallel)
             return trials[0]
 
@@ -388,8 +348,7 @@ class Study:
                 if returns is not None or feedback is not None or components is not None or diagnostics is not None:
                     raise ConfigError(f"trial {number}: tell either its feedback or that it failed, not both")
                 self.store.fail_trial(number, failed)
-                if self._phases is not None:
-                    self._sync()
+                self._phases.sync()
                 return None
             if feedback is None and returns is not None and pending.seeds:
                 check_episode_count(number, len(pending.seeds), returns)
@@ -401,8 +360,7 @@ class Study:
                              clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s,
                              reevaluates=pending.reevaluates)  # fmt: skip
             self.store.record_trial(cand)
-            if self._phases is not None:
-                self._sync()
+            self._phases.sync()
             return cand
 
     def retry(self, trial: Trial | int) -> Trial:
@@ -417,9 +375,9 @@ class Study:
                                   "retried only before 'ppprops study finalize'")
             failed = {t.number for t, _ in self.store.failed_trials()}
             if number not in failed:
-                held = next((t for t in self.store.pending_trials() if t.number == number), None)
+                holding = next((t for t in self.store.pending_trials() if t.number == number), None)
                 state = ("it was told" if self.store.trial_state(number) == "told"
-                         else f"it is out, held by {holder(held)}" if held is not None
+                         else f"it is out, held by {holder(holding)}" if holding is not None
                          else "it was never asked")
                 raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
             out_n = len(self.store.pending_trials())
@@ -427,14 +385,17 @@ class Study:
                 raise ConfigError(f"{out_n} trials are out, the most at once (--parallel {self.parallel}): tell one before "
                                   f"retrying trial {number}")
             again = self.store.retry_trial(number, limit=self.parallel)
-            if self._phases is not None:
-                self._sync()
+            self._phases.sync()
             return again
 
     @property
     def failed(self) -> list[tuple[Trial, str]]:
         """The failed trials (not asked again), by number, each with its reason."""
         return self.store.failed_trials()
+
+    def _get_phases(self) -> list[Phase]:
+        """The run's phases, their proposers told every settled trial (``phases.RunPhases``)."""
+        return self._phases.phases()
 
     # -- the env-driven loop ------------------------------------------------------------------
     def _no_env(self) -> ConfigError:
@@ -482,11 +443,7 @@ class Study:
         if not self.has_env:  # refused before any lock file is made
             raise self._no_env()
         return optimize(self, callbacks, events if events is not None else self.events, fleet=fleet,
-                        fail_trials=self.config.on_episode_error == "fail-trial", pacer=self._pacer(), llm_latency=self._last_latency)
-
-    def _last_latency(self) -> float | None:
-        phases = [p for p in self._phases or [] if p.name not in ("warmup", "selection")]
-        return getattr(phases[0].proposer, "last_latency", None) if phases else None
+                        fail_trials=self.config.on_episode_error == "fail-trial", pacer=self._phases.pacer(), llm_latency=self._phases.last_latency)
 
     # -- the result ---------------------------------------------------------------------------
     def finalize(self, returns: Sequence[float] | None = None, *, events: RunEvents | None = None) -> FinalEval | None:
@@ -514,8 +471,7 @@ class Study:
         from .llm.embedded import stop_warm_server
 
         if self._warm_llm:  # let go of the warm server first: stopping it waits for every process using it
-            self._stack.close()
-            self._recording = None
+            self._phases.release_llm()
         stop_warm_server(self.run_dir)  # nothing more will be asked: the study's warm server (ppprops ask), if any, stops
         return fe
 
@@ -536,136 +492,14 @@ class Study:
 
         return Policy(self.policy_document(), np.asarray(self.best.params if self.best is not None else [], dtype=np.float64))
 
-    # -- the proposers ------------------------------------------------------------------------
-    def _sync(self) -> None:
-        """Tell every proposer the candidates recorded since it was last told (another process's
-        too), in trial order, up to the first trial still out: a proposer's state is a function of
-        the settled trials before it, the same in every process. A failed trial is never told as a
-        candidate; a proposer with a ``failed`` hook (CMA-ES) hears that it failed."""
-        if self._phases is None:
-            return
-        out = [t.number for t in self.store.pending_trials()]
-        upto = min(out) if out else None
-        new = [c for c in self.store.candidates(since=self._told) if c.index not in self._told_set and (upto is None or c.index < upto)]
-        failed = [t for t, _ in self.store.failed_trials() if t.number not in self._failed_seen and (upto is None or t.number < upto)]
-        proposers = list(dict.fromkeys(ph.proposer for ph in self._phases))
-        events: list[tuple[int, Candidate | Trial]] = sorted([(c.index, c) for c in new] + [(t.number, t) for t in failed],
-                                                             key=lambda e: e[0])
-        for _, item in events:
-            if isinstance(item, Candidate):
-                for p in proposers:
-                    p.tell(item)
-                self._told_set.add(item.index)
-            else:
-                for p in proposers:
-                    hook = getattr(p, "failed", None)
-                    if hook is not None:
-                        hook(item)
-                self._failed_seen.add(item.number)
-        while self._told in self._told_set or self._told in self._failed_seen:  # the settled prefix, read no more
-            self._told += 1
 
-    def _get_phases(self) -> list[Phase]:
-        if self._phases is None:
-            from .proposers.base import Phase, SearchSetup
-            from .proposers.uniform import warmup_sampler
-            from .strategies import search_phase
-            from .wire.forms import FORMS
-
-            config = self.config
-            policy, n_s, n_a = self.task.policy, self.task.n_s, self.task.n_a
-            mlp = {} if policy.is_linear else {"init": policy.init_bounds(n_s, n_a, config.box), "bounds": policy.bounds(n_s, n_a, config.box)}
-            warmup = warmup_sampler(self.task.D, config.box, self.streams, config.mechanisms, self.codec, **mlp)
-            phases = [Phase("warmup", warmup, config.warmup)]
-            if config.iterations > 0:
-                form = self._form() if self.method.uses_llm else FORMS[config.form]
-                notice = self.feedback_notice(form) if self.method.uses_llm else None
-                if notice is not None:
-                    self.events.on_notice(notice)
-                setup = SearchSetup(task=self.task, codec=self.codec, streams=self.streams, box=config.box, warmup=config.warmup,
-                                    iterations=config.iterations, prompt=config.prompt_settings(form.name), llm=config.llm,
-                                    options=self.method.parse_options(config.method_options), on_llm_failure=config.on_llm_failure,
-                                    parse_retries=config.parse_retries, llm_client=self._llm if self.method.uses_llm else None,
-                                    evaluator=self.evaluator if self.has_env else None)  # fmt: skip
-                phases.append(search_phase(self.method, setup))
-            top, episodes = config.selection(self.has_env)
-            if top:
-                from .proposers.selection import SelectionProposer
-
-                phases.append(Phase("selection", SelectionProposer(self.streams, episodes), top))
-            self._phases = phases
-            self._told = 0
-            self._told_set, self._failed_seen = set(), set()
-            self._sync()
-        return self._phases
-
-    def _llm(self) -> RecordingLLM:
-        """The run's recording LLM client, over the model given or the configured one (``llm.client.connect``:
-        nothing is started before the first request)."""
-        if self._recording is None:
-            from .llm.recording import RecordingLLM
-
-            model = self._llm_given
-            if model is None:
-                from .llm.client import connect
-
-                server: Callable[[], AbstractContextManager[Any]] | None = None
-                slots = {"slots": self.parallel} if self.parallel > 1 else {}  # a round's P requests decoded together
-                if self._warm_llm and self.config.llm.embedded:
-                    from .llm.embedded import WarmServer
-
-                    server = partial(WarmServer, self.run_dir, context_size=self.config.llm.context_size, **slots)
-                elif slots and self.config.llm.embedded:
-                    from .llm.embedded import EmbeddedServer
-
-                    server = partial(EmbeddedServer, context_size=self.config.llm.context_size, **slots)
-                model = self._stack.enter_context(closing(connect(self.config.llm, gate=self._gate, on_loading=self.events.on_llm_loading,
-                                                                  on_ready=self.events.on_llm_ready, server=server)))
-            self._recording = RecordingLLM(model, self.store, on_first_use=self.store.begin_llm_session, pacer=self._pacer())
-        return self._recording
-
-    def _pacer(self) -> Pacer | None:
-        """The request pacer when ``pace_requests`` is on (``llm.pacing``): its jitter keyed by the
-        secrets, its floor the longest time between two warm-up trials (told back to back)."""
-        if not self.config.mechanisms.pace_requests:
-            return None
-        from .llm.pacing import Pacer
-
-        def floor() -> float:
-            times = [t[3] for t in self.store.candidate_times() if t[1] == "warmup"]
-            return max(np.diff(times), default=0.0) if len(times) > 1 else 0.0
-
-        return Pacer(self.store, lambda n: self.streams.rng(seeding.PACING, n), floor=floor)
-
-    def feedback_notice(self, form: PromptForm) -> str | None:
-        """The line a run says once when the prompt form will not show the detailed feedback the
-        settings ask for (a form whose entries show returns only)."""
-        declared = self.task.detailed_feedback()
-        if form.shows_feedback or not self.config.mechanisms.detailed_feedback or not declared:
-            return None
-        return (f"the {form.name} form (the embedded model's default) shows the LLM the returns only, not the detailed feedback "
-                f"of this task ({declared}); --prompt-form chat shows it")
-
-    def _form(self) -> PromptForm:
-        """The prompt form the proposer uses: ``config.form``, except that ``auto`` falls back to chat
-        for a model that cannot continue documents (a form it cannot serve, chosen explicitly: ConfigError)."""
-        from .wire.forms import CHAT, ENDPOINT_COMPLETIONS, FORMS
-
-        form = FORMS[self.config.form]
-        if form.endpoint == ENDPOINT_COMPLETIONS and ENDPOINT_COMPLETIONS not in self._llm().endpoints:
-            if self.config.prompt_form == form.name:
-                raise ConfigError(f"--prompt-form {form.name} needs a model that continues documents (the completions "
-                                  "endpoint); this one serves chat only: use --prompt-form chat or auto")
-            return CHAT
-        return form
-
-
-def ask_many(proposer: Any, iterations: Sequence[int]) -> list[Any]:
-    """``proposer``'s proposals for ``iterations`` (one round): its own ``ask_many`` when it has
-    one (the LLM proposer: concurrent requests from one shown history), else one ``ask`` each."""
-    if len(iterations) > 1 and hasattr(proposer, "ask_many"):
-        return list(proposer.ask_many(list(iterations)))
-    return [proposer.ask(it) for it in iterations]
+def _phase_settings(config: RunConfig, has_env: bool) -> PhaseSettings:
+    """What a run's phases depend on of its config (``phases.PhaseSettings``)."""
+    return PhaseSettings(warmup=config.warmup, iterations=config.iterations, selection=config.selection(has_env), box=config.box,
+                         mechanisms=config.mechanisms, form=config.form, form_chosen=config.prompt_form == config.form,
+                         prompt_settings=config.prompt_settings, llm=config.llm,
+                         method_options=config.method_options, on_llm_failure=config.on_llm_failure,
+                         parse_retries=config.parse_retries, parallel=int(config.parallel))  # fmt: skip
 
 
 __all__ = ["Study", "StudyComplete", "Trial", "TrialsOut", "check_worker"]

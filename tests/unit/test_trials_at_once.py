@@ -347,11 +347,11 @@ def test_the_embedded_server_gets_p_slots(tmp_path: Path) -> None:
 
     config = _config(method="pp", parallel=4)
     with Study.create(config, tmp_path / "s") as study:
-        client = study._llm().inner  # connected lazily: nothing is started before the first request
+        client = study._phases.llm().inner  # connected lazily: nothing is started before the first request
         server = client._server  # type: ignore[attr-defined]
         assert (server.func.__name__, server.keywords) == ("EmbeddedServer", {"context_size": 16384, "slots": 4})
     with Study.create(_config(method="pp"), tmp_path / "one") as study:
-        assert study._llm().inner._server.__name__ == "_own_server"  # type: ignore[attr-defined]
+        assert study._phases.llm().inner._server.__name__ == "_own_server"  # type: ignore[attr-defined]
     model = Path("m.gguf")
     assert _command(model, 16384, 1)[-2:] == ["--threads", "1"]
     assert _command(model, 16384, 1, 4)[-4:] == ["--threads", "1", "--slots", "4"]

@@ -3,9 +3,9 @@ method's phase builder is given to build its proposer (``SearchSetup``) and retu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from ..llm.settings import LLMConfig
     from ..seeding import Streams
     from ..tasks.base import Task
-    from ..values import Candidate
+    from ..values import Candidate, Trial
 
 
 class StopSearch(Exception):
@@ -43,19 +43,13 @@ class Proposal:
 
 
 class Proposer(Protocol):
-    """The ask/tell interface of every search (warm-up sampler, LLM, R2PO, random, CMA-ES).
+    """The ask/tell interface every search has (warm-up sampler, LLM, R2PO, random, CMA-ES, yours).
 
     ``ask`` may raise StopSearch to end the run on purpose; the study (``ppprops.study.Study``)
     evaluates and records each proposal and tells every proposer every candidate, in trial order,
-    up to the first trial still out (so a proposer's state is the same in every process).
-
-    With ``--parallel`` P > 1 a proposer may also have (all optional, looked up with ``getattr``):
-    ``rounds = True`` (its P proposals of a round share what it was told when the round began; the
-    study starts a round only when the last one is told: the LLM proposer), ``ask_many(iterations)``
-    (a round's proposals at once, e.g. concurrent requests; default: one ``ask`` each),
-    ``ready(iteration)`` (False while that iteration must wait for trials out: CMA-ES's next
-    generation) and ``failed(trial)`` (a trial of the run failed and will never be told: CMA-ES
-    counts it as the worst member). A failed trial is never told as a candidate.
+    up to the first trial still out (so a proposer's state is the same in every process). A
+    proposer with only these two methods is given ``SearchProposer``'s default hooks
+    (``as_search_proposer``); subclass ``SearchProposer`` to have hooks of its own.
     """
 
     def ask(self, iteration: int) -> Proposal:
@@ -66,6 +60,68 @@ class Proposer(Protocol):
     def tell(self, candidate: Candidate) -> None:
         """Every evaluated candidate of the run, in order (including other proposers')."""
         ...
+
+
+class SearchProposer:
+    """A proposer with every hook the study calls, each with its default (subclass it and override
+    what your search needs; ``ask`` at least).
+
+    The hooks matter with ``--parallel`` P > 1 and with failed trials: ``rounds`` (True: the P
+    proposals of a round share what the proposer was told when the round began, and the study
+    starts a round only when the last one is told: the LLM proposer), ``ask_many`` (a round's
+    proposals at once, e.g. concurrent requests), ``ready`` (False while an iteration must wait for
+    trials out: CMA-ES's next generation), ``failed`` (a trial of the run failed and will never be
+    told: CMA-ES counts it as the worst member), ``latency`` (seconds of its latest LLM call, for the
+    pacer). A failed trial is never told as a candidate.
+    """
+
+    rounds: ClassVar[bool] = False
+
+    def ask(self, iteration: int) -> Proposal:
+        """The next candidate (``Proposer.ask``). Raises StopSearch to end the run on purpose."""
+        raise NotImplementedError(f"{type(self).__name__} has no ask")
+
+    def tell(self, candidate: Candidate) -> None:
+        """Every evaluated candidate of the run, in order (``Proposer.tell``); default: nothing."""
+
+    def ask_many(self, iterations: Sequence[int]) -> list[Proposal]:
+        """The proposals for ``iterations`` (one round); default: one ``ask`` each, in order."""
+        return [self.ask(it) for it in iterations]
+
+    def ready(self, iteration: int) -> bool:
+        """False while ``iteration`` must wait for trials that are out; default: always ready."""
+        return True
+
+    def failed(self, trial: Trial) -> None:
+        """Trial ``trial`` failed and will never be told; default: nothing."""
+
+    def latency(self) -> float | None:
+        """Seconds of this proposer's latest LLM call (None: none yet, or it sends none)."""
+        return None
+
+
+class _AskTell(SearchProposer):
+    """A proposer with only ``ask`` and ``tell`` (``Proposer``), given ``SearchProposer``'s defaults."""
+
+    def __init__(self, proposer: Proposer) -> None:
+        self.proposer = proposer
+
+    def ask(self, iteration: int) -> Proposal:
+        """The wrapped proposer's ``ask``."""
+        return self.proposer.ask(iteration)
+
+    def tell(self, candidate: Candidate) -> None:
+        """The wrapped proposer's ``tell``."""
+        self.proposer.tell(candidate)
+
+    def __repr__(self) -> str:
+        return repr(self.proposer)
+
+
+def as_search_proposer(proposer: Proposer | SearchProposer) -> SearchProposer:
+    """``proposer`` itself when it is a ``SearchProposer``, else ``proposer`` behind an adapter with
+    the default hooks (a user's ask/tell proposer: ``SearchProposer``)."""
+    return proposer if isinstance(proposer, SearchProposer) else _AskTell(proposer)
 
 
 Bounds = tuple[float, float] | tuple[np.ndarray, np.ndarray]  # one (low, high) for every parameter, or one per parameter
@@ -79,16 +135,23 @@ def clip_to_box(theta: np.ndarray, box: Bounds) -> tuple[np.ndarray, int]:
     return np.clip(theta, lo, hi), clipped
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Phase:
     """A stretch of a search: ``budget`` candidates, each asked of ``proposer`` (warm-up, then the search).
 
     ``name`` labels it (``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``); ``budget`` >= 0.
+    ``proposer`` is a ``SearchProposer``, or any ask/tell ``Proposer``, which the phase keeps behind
+    the default hooks (``as_search_proposer``).
     """
 
     name: str
-    proposer: Proposer
+    proposer: SearchProposer
     budget: int
+
+    def __init__(self, name: str, proposer: Proposer | SearchProposer, budget: int) -> None:
+        object.__setattr__(self, "name", name)
+        object.__setattr__(self, "proposer", as_search_proposer(proposer))
+        object.__setattr__(self, "budget", budget)
 
 
 @dataclass(frozen=True)

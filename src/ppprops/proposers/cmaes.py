@@ -21,12 +21,12 @@ import numpy as np
 from ..client.codec import Codec
 from ..errors import MissingExtraError
 from ..values import Candidate, Trial
-from .base import Bounds, Proposal, clip_to_box
+from .base import Bounds, Proposal, SearchProposer, clip_to_box
 
 Space = Literal["raw", "encoded"]
 
 
-class CMAESProposer:
+class CMAESProposer(SearchProposer):
     """CMA-ES (pycma) at the prompted methods' budget, started from the best warm-up policy.
 
     ``space="raw"`` searches theta in the box (initial step 0.3 x box width); ``"encoded"`` searches

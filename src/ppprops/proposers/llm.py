@@ -47,7 +47,7 @@ from ..values import Candidate
 from ..wire import EncodedEntry, PromptContext, top_k
 from ..wire.forms import CHAT, PromptForm
 from ..wire.turns import repeats_history
-from .base import Bounds, Proposal, clip_to_box
+from .base import Bounds, Proposal, SearchProposer, clip_to_box
 
 if TYPE_CHECKING:
     from ..llm.recording import RecordingLLM
@@ -118,7 +118,7 @@ class LLMSearch:
     explore: bool = True
 
 
-class LLMProposer:
+class LLMProposer(SearchProposer):
     """ProPS (paper Algorithm 1): one LLM call per iteration over the top-K encoded history.
 
     The prompt is built on the wire side by the prompt ``form`` (``wire.forms``) from the run's
@@ -192,6 +192,10 @@ class LLMProposer:
         return repeats_history(self.ctx, values, self.shown())
 
     rounds = True  # with --parallel P, the P proposals of a round share one shown history (the study waits for the round)
+
+    def latency(self) -> float | None:
+        """Seconds of this proposer's latest LLM call (None before the first)."""
+        return self.last_latency
 
     def ask(self, iteration: int) -> Proposal:
         """One LLM proposal (raw theta, shape (D,), clipped into the box), or a fallback after unusable answers.

@@ -29,7 +29,7 @@ from ..llm.protocol import Exchange
 from ..values import Candidate
 from ..wire.forms import CHAT, CRITIC
 from ..wire.r2po import Evidence, build_critic_prompt
-from .base import Proposal, StopSearch
+from .base import Proposal, SearchProposer, StopSearch
 from .llm import LLMProposer, LLMSearch
 
 if TYPE_CHECKING:
@@ -57,7 +57,7 @@ class _Critic(LLMProposer):
         return build_critic_prompt(self.ctx, self.evidence)
 
 
-class R2POProposer:
+class R2POProposer(SearchProposer):
     """R2PO's two stages as one proposer: even asks are the Search-LLM's proposal, odd asks the
     Critic-LLM's revision of it (see the module docstring). Raises StopSearch when a prompt would
     not fit ``context_window`` tokens with its answer.
@@ -77,10 +77,9 @@ class R2POProposer:
         self.max_tokens = max_tokens
         self.pending: Candidate | None = None
 
-    @property
-    def last_latency(self) -> float | None:
+    def latency(self) -> float | None:
         """Seconds of the latest LLM call of either stage (None before the first)."""
-        return self.critic.last_latency or self.search.last_latency
+        return self.critic.latency() or self.search.latency()
 
     def _observe(self, ex: Exchange) -> None:
         if ex.prompt_tokens and ex.prompt_chars:

@@ -14,10 +14,10 @@ import math
 
 from .. import seeding
 from ..values import Candidate
-from .base import Proposal
+from .base import Proposal, SearchProposer
 
 
-class SelectionProposer:
+class SelectionProposer(SearchProposer):
     """Ask ``i`` re-evaluates the search candidate ranked ``i`` by search-time mean return (finite
     returns only, the earliest first on a tie; past the last one, the best again), on ``episodes``
     seeds drawn from ``streams``."""

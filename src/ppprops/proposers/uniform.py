@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import seeding
 from ..values import Candidate
-from .base import Bounds, Proposal, clip_to_box
+from .base import Bounds, Proposal, SearchProposer, clip_to_box
 
 if TYPE_CHECKING:
     from ..client.codec import Codec
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 Decode = Callable[[np.ndarray], np.ndarray]
 
 
-class UniformSampler:
+class UniformSampler(SearchProposer):
     """Uniform samples in ``box``, shape (D,) each; sample m comes from its own seeded stream (the
     same whether or not the run was interrupted). The paper's warm-up (Algorithm 1, line 1).
     """

@@ -1,0 +1,100 @@
+"""Which trials a study can hand out now: the one a worker holds already, why nothing more can be
+asked (the budget is spent, the study stopped or is finalized), and which iterations of a phase can
+be asked while others are out (``--parallel`` P, the rounds of the LLM phase, CMA-ES's generations).
+
+Functions of what the store holds and the phase's proposer; ``Study.ask`` calls them under the
+study's lock and makes the trials (``new_trials``).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .errors import StudyComplete
+from .naming import holders
+from .status import RunStatus
+from .store import RunStore
+from .tasks import Task
+from .values import Trial
+
+if TYPE_CHECKING:
+    from .proposers.base import Phase, Proposal
+
+
+def held(out: Sequence[Trial], worker: str, parallel: int) -> tuple[Trial, bool] | None:
+    """The trial out that ``worker`` gets again, and whether it must be handed to it first (True: no
+    worker holds it yet: the rest of a round, or a failed trial asked again); None: none.
+
+    ``worker`` "" is the unnamed worker; at P = 1 it gets the one pending trial whoever holds it
+    (as before workers had names).
+    """
+    mine = [t for t in out if t.worker == worker]
+    if mine:
+        return mine[0], False
+    free = [t for t in out if t.worker is None]
+    if free:
+        return free[0], True
+    if parallel == 1 and out and not worker:
+        return out[0], False
+    return None
+
+
+def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial]) -> None:
+    """Raise StudyComplete, with why, when nothing more can be asked: the study is finalized, it
+    stopped, or all ``total`` trials of its budget are asked (``out`` the trials still out)."""
+    status, reason = store.run_status()
+    if status is RunStatus.FINISHED:
+        raise StudyComplete(f"study {run_dir} is finalized ({store.candidate_count()} of {total} trials told): nothing more to ask",
+                            finalized=True)
+    if status is not RunStatus.STOPPED and store.next_number() < total:
+        return
+    told, failed = store.candidate_count(), store.failed_count()
+    why = (f"it stopped: {reason}" if status is RunStatus.STOPPED and reason
+           else f"all {total} trials are told" if not out and not failed
+           else f"all {total} trials are settled: {told} told, {failed} failed (ppprops study retry "
+                f"{run_dir} TRIAL asks a failed one again)" if not out
+           else f"every trial is asked; {holders(out)} still out")  # fmt: skip
+    raise StudyComplete(f"study {run_dir} has nothing more to ask ({why}); finalize it" + (" once they are told" if out else ""))
+
+
+def wait_for_earlier(phase: Phase, first: int, out: Sequence[Trial]) -> str | None:
+    """Why ``phase`` (whose first trial is number ``first``) cannot start yet: trials of an earlier
+    phase are out (one line); None: it can."""
+    earlier = [t for t in out if t.number < first]
+    if earlier:
+        return f"the {phase.name} phase starts when the {earlier[0].phase} phase is told: {holders(earlier)} still out"
+    return None
+
+
+def askable(phase: Phase, iteration: int, out: Sequence[Trial], parallel: int) -> list[int] | str:
+    """The iterations of ``phase`` to ask now, from ``iteration`` (its next), with ``out`` the trials
+    out: up to P - len(out), within the phase's budget, within one round for a proposer that asks in
+    rounds (``SearchProposer.rounds``: none while the last round is out), and only those the
+    proposer is ready for (``SearchProposer.ready``). Or why none can be asked (one line)."""
+    proposer = phase.proposer
+    end = phase.budget
+    if parallel > 1 and proposer.rounds:  # one shown history per round of P
+        if out:
+            return f"the next round of {parallel} starts when the last one is told: {holders(out)} still out"
+        end = min(end, (iteration // parallel) * parallel + parallel)
+    iterations = list(itertools.takewhile(proposer.ready, range(iteration, min(end, iteration + parallel - len(out)))))
+    if not iterations:
+        return f"the {phase.name} phase waits for its trials that are out: {holders(out)}"
+    return iterations
+
+
+def new_trials(phase: Phase, iterations: Sequence[int], proposals: Sequence[Proposal], *, first: int, worker: str, ask_s: float,
+               task: Task, episode_seeds: Callable[[int], tuple[int, ...]]) -> list[Trial]:  # fmt: skip
+    """The trials of ``proposals`` (one per iteration of ``phase``), numbered from ``first``; the
+    first handed to ``worker``, the rest to whoever asks next. A proposal's own seeds are kept, else
+    trial n's are ``episode_seeds(n)``; ``ask_s`` is the seconds the proposals took."""
+    return [Trial(number=first + k, phase=phase.name, iteration=it, source=p.source, theta=np.asarray(p.theta, dtype=np.float64),
+                  n_s=task.n_s, n_a=task.n_a, seeds=p.seeds if p.seeds is not None else episode_seeds(first + k),
+                  clipped=p.clipped, note=p.note, ask_s=ask_s, reevaluates=p.reevaluates, worker=worker if k == 0 else None,
+                  policy=None if task.policy.is_linear else task.policy)
+            for k, (it, p) in enumerate(zip(iterations, proposals, strict=True))]  # fmt: skip
