@@ -14,17 +14,22 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import ConfigError, StoreError
 from .fileio import write_json_atomic
 from .loop import pooled_returns, search_candidates, select_best
-from .rundir import POLICY_NAME, policy_path
+from .rundir import POLICY_NAME, final_returns, policy_path
+from .seeding import final_eval_seeds
 from .status import RunStatus
 from .store import RunStore
 from .values import Candidate, FinalEval
+
+if TYPE_CHECKING:
+    from .evaluation import Evaluator
+    from .events import RunEvents
 
 
 def all_failed(store: RunStore, run_dir: Path) -> str:
@@ -62,6 +67,19 @@ def final_evaluation(store: RunStore, run_dir: Path, returns: Sequence[float] | 
         fe = run_episodes(best)
         store.set_final_eval(fe)
     return best, fe
+
+
+def env_final_episodes(evaluator: Callable[[], Evaluator], *, seed: int, episodes: int,
+                       events: RunEvents) -> Callable[[Candidate], FinalEval]:  # fmt: skip
+    """The final evaluation of a trial on the task's env (``evaluator()``, made when first needed):
+    ``episodes`` episodes on the fresh seeds of run seed ``seed`` (``seeding.final_eval_seeds``),
+    reported to ``events`` as they come."""
+
+    def run(best: Candidate) -> FinalEval:
+        seeds = final_eval_seeds(seed, episodes)
+        return FinalEval(candidate_index=best.index, returns=final_returns(evaluator(), best.params, seeds, events), seeds=tuple(seeds))
+
+    return run
 
 
 def finish_status(store: RunStore) -> None:

@@ -258,6 +258,15 @@ class RunPhases:
         self._stack.close()
         self._recording = None
 
+    def stop_warm_server(self) -> None:
+        """Stop the embedded model's server kept warm for the run directory (``ppprops ask``), if
+        any, letting go of it first when this run uses it (stopping waits for every process using it)."""
+        from .llm.embedded import stop_warm_server
+
+        if self._warm_llm:
+            self.release_llm()
+        stop_warm_server(self.run_dir)
+
     def close(self) -> None:
         """Close the LLM client, as ``release_llm``."""
         self.release_llm()

@@ -3,20 +3,25 @@ asked (the budget is spent, the study stopped or is finalized), and which iterat
 be asked while others are out (``--parallel`` P, the rounds of the LLM phase, CMA-ES's generations).
 
 Functions of what the store holds and the phase's proposer; ``Study.ask`` calls them under the
-study's lock and makes the trials (``new_trials``).
+study's lock and makes the trials (``new_trials``); ``Study.retry`` asks a failed trial again
+(``check_retry``).
 """
 
 from __future__ import annotations
 
 import itertools
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import StudyComplete
-from .naming import holders
+from .errors import ConfigError, StudyComplete, TrialsOut
+from .finalizing import all_failed
+from .loop import locate
+from .naming import holder, holders
+from .phases import RunPhases
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
@@ -44,6 +49,23 @@ def held(out: Sequence[Trial], worker: str, parallel: int) -> tuple[Trial, bool]
     return None
 
 
+def wait_for(ask_once: Callable[[], Trial | str], *, wait: bool, timeout: float | None, out: Callable[[], int]) -> Trial:
+    """The first trial ``ask_once`` gives (it returns a trial or why it must wait), asked again
+    after waits of 0.02 s doubling up to 0.5 s, for up to ``timeout`` seconds (None: no limit).
+    Raises TrialsOut, with the last reason and ``out()`` trials out, past the timeout or at once
+    when ``wait`` is False."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    delay = 0.02
+    while True:
+        got = ask_once()
+        if isinstance(got, Trial):
+            return got
+        if not wait or (deadline is not None and time.monotonic() >= deadline):
+            raise TrialsOut(got, out=out())
+        time.sleep(delay)
+        delay = min(delay * 2, 0.5)
+
+
 def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial]) -> None:
     """Raise StudyComplete, with why, when nothing more can be asked: the study is finalized, it
     stopped, or all ``total`` trials of its budget are asked (``out`` the trials still out)."""
@@ -60,6 +82,23 @@ def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial])
                 f"{run_dir} TRIAL asks a failed one again)" if not out
            else f"every trial is asked; {holders(out)} still out")  # fmt: skip
     raise StudyComplete(f"study {run_dir} has nothing more to ask ({why}); finalize it" + (" once they are told" if out else ""))
+
+
+def check_retry(store: RunStore, number: int, run_dir: Path, parallel: int) -> None:
+    """Refuse to ask trial ``number`` again unless it failed, the study is not finalized (its
+    policy is handed over) and fewer than P trials are out: ConfigError, one line."""
+    if store.run_status()[0] is RunStatus.FINISHED:
+        raise ConfigError(f"study {run_dir} is finalized (its best policy is handed over): a failed trial can be "
+                          "retried only before 'ppprops study finalize'")
+    out = store.pending_trials()
+    if number not in {t.number for t, _ in store.failed_trials()}:
+        holding = next((t for t in out if t.number == number), None)
+        state = ("it was told" if store.trial_state(number) == "told"
+                 else f"it is out, held by {holder(holding)}" if holding is not None
+                 else "it was never asked")  # fmt: skip
+        raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
+    if len(out) >= parallel:
+        raise ConfigError(f"{len(out)} trials are out, the most at once (--parallel {parallel}): tell one before retrying trial {number}")
 
 
 def wait_for_earlier(phase: Phase, first: int, out: Sequence[Trial]) -> str | None:
@@ -86,6 +125,38 @@ def askable(phase: Phase, iteration: int, out: Sequence[Trial], parallel: int) -
     if not iterations:
         return f"the {phase.name} phase waits for its trials that are out: {holders(out)}"
     return iterations
+
+
+def propose(phases: RunPhases, store: RunStore, run_dir: Path, out: Sequence[Trial], *, worker: str, parallel: int, task: Task,
+            episode_seeds: Callable[[int], tuple[int, ...]]) -> list[Trial] | str:  # fmt: skip
+    """The next trials to hand out (the first to ``worker``), proposed by the phase the store's next
+    trial number falls in, with ``out`` the trials out (fewer than P); or why none can be asked yet
+    (one line: ``wait_for_earlier``, ``askable``). The proposers are told every settled trial first.
+
+    Raises ConfigError when the selection stage is reached and every search trial failed, and the
+    proposer's StopSearch after storing the study's status ``stopped: <reason>``.
+    """
+    from .proposers.base import StopSearch
+
+    phases.sync()
+    n = store.next_number()
+    phase, iteration = locate(phases.phases(), n)
+    wait = wait_for_earlier(phase, n - iteration, out)
+    if wait is not None:
+        return wait
+    if phase.name == "selection" and store.candidate_count() == 0:
+        raise ConfigError(all_failed(store, run_dir))
+    iterations = askable(phase, iteration, out, parallel)
+    if isinstance(iterations, str):
+        return iterations
+    t0 = time.perf_counter()
+    try:
+        proposals = phase.proposer.ask_many(iterations)
+    except StopSearch as stop:
+        store.set_status(RunStatus.STOPPED, stop.reason)
+        raise
+    return new_trials(phase, iterations, proposals, first=n, worker=worker, ask_s=time.perf_counter() - t0, task=task,
+                      episode_seeds=episode_seeds)
 
 
 def new_trials(phase: Phase, iterations: Sequence[int], proposals: Sequence[Proposal], *, first: int, worker: str, ask_s: float,

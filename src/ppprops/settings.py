@@ -337,14 +337,14 @@ def check_fits_context(config: RunConfig, task: Task) -> None:
     Raises:
         ConfigError: one line with D, the tokens needed and the limit.
     """
-    from .wire.forms import answer_budget
+    from .wire.forms import FORMS
 
     if not task.policy.is_linear and get_method(config.method).phase == "r2po_phase":
         raise ConfigError(f"--method {config.method} searches the linear policy only (its critic reads a linear rollout): "
                           f"--policy {task.policy.label().split()[0]} needs --method pp, random or cmaes")
     if task.policy.is_linear or not get_method(config.method).uses_llm or not config.llm.embedded:
         return
-    answer = answer_budget(task.D, labels=config.form == "document")
+    answer = FORMS[config.form].answer_tokens(task.D)
     needed = 2 * answer
     limit = config.llm.context_size
     if needed > limit:

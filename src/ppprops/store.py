@@ -6,24 +6,11 @@ from there. Several processes may write one store at once: WAL, a busy timeout a
 ``BEGIN IMMEDIATE`` serialise the writers without losing a row. Every SQLite failure (a full disk,
 an I/O error, a lock held too long) surfaces as a one-line ``StoreError``.
 
-Schema versions: 1 (initial); 2 adds ``llm_calls.error_kind``, ``retry`` and ``answer_source``
-(transport faults and answers taken from the reasoning text); 3 adds ``candidates.ask_s`` and
-``eval_s`` (where an iteration's time goes); 4 adds the ``pending`` table (the trial a study has
-asked for and not yet been told: stored before ``ask`` returns, so a restart asks nothing twice)
-and ``llm_calls.form`` and ``decisions`` (the prompt form of each call and the public choices it
-made, which the audit reads); 5 names the form of every call (calls recorded before forms were
-named get the form their body shows, ``wire.forms.recorded_form``, once); 6 adds
-``llm_calls.answered``: every try is written before its bytes leave (``begin_llm_call``, answered
-0) and completed with its answer after (``complete_llm_call``, answered 1), so a process killed
-while a request is in flight leaves that request in the store, marked unanswered (calls recorded
-before were recorded after their answer: answered 1), and ``llm_calls.sent``, when each try left
-(Unix seconds; unknown, NULL, for calls recorded before: their ``created`` is when the answer
-came); 7 lets several trials be pending at once (``--parallel P``), each held by a worker
-(``pending.worker``), and keeps the trials that failed with their reason (the ``failed``
-table), out of the candidates. Older stores are migrated in place. Changes the LLM
-client made to its requests (a parameter the endpoint refused, a larger token budget) are kept
-in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client session began
-(a run's start, each resume) in ``llm_sessions``, so no schema change was needed for them.
+The tables, their schema versions and the migration of older stores: ``ppprops.store_schema``.
+Changes the LLM client made to its requests (a parameter the endpoint refused, a larger token
+budget) are kept in the ``meta`` key ``llm_adaptations`` (a JSON list), and where each LLM client
+session began (a run's start, each resume) in ``llm_sessions``, so no schema change was needed for
+them.
 """
 
 from __future__ import annotations
@@ -42,102 +29,12 @@ import numpy as np
 
 from .errors import StoreError
 from .status import RunStatus
+from .store_schema import SCHEMA_VERSION as SCHEMA_VERSION  # re-exported: the schema this ppprops writes
+from .store_schema import create_or_migrate, enable_wal
 from .values import Candidate, Feedback, FinalEval, Trial
 
-SCHEMA_VERSION = 7
 BUSY_TIMEOUT_S = 60.0
 DB_NAME = "run.sqlite"  # the store's file in a run directory (the directory's other files: ppprops.rundir)
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS candidates (
-    idx INTEGER PRIMARY KEY,
-    iteration INTEGER NOT NULL,
-    source TEXT NOT NULL,
-    params TEXT NOT NULL,
-    params_enc TEXT NOT NULL,
-    feedback TEXT NOT NULL,
-    feedback_enc TEXT NOT NULL,
-    clipped INTEGER NOT NULL,
-    seeds TEXT NOT NULL,
-    note TEXT NOT NULL DEFAULT '',
-    created REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS llm_calls (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    iteration INTEGER NOT NULL,
-    attempt INTEGER NOT NULL,
-    request TEXT NOT NULL,
-    response TEXT,
-    content TEXT,
-    reasoning TEXT,
-    prompt_chars INTEGER NOT NULL,
-    prompt_tokens INTEGER,
-    completion_tokens INTEGER,
-    latency_s REAL NOT NULL,
-    ok INTEGER NOT NULL,
-    error TEXT,
-    parse_error TEXT,
-    created REAL NOT NULL,
-    error_kind TEXT,
-    retry INTEGER NOT NULL DEFAULT 0,
-    answer_source TEXT
-);
-CREATE TABLE IF NOT EXISTS pending (
-    idx INTEGER PRIMARY KEY,
-    phase TEXT NOT NULL,
-    iteration INTEGER NOT NULL,
-    source TEXT NOT NULL,
-    params TEXT NOT NULL,
-    seeds TEXT NOT NULL,
-    clipped INTEGER NOT NULL,
-    note TEXT NOT NULL DEFAULT '',
-    ask_s REAL,
-    n_s INTEGER NOT NULL,
-    n_a INTEGER NOT NULL,
-    created REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS failed (
-    idx INTEGER PRIMARY KEY,
-    phase TEXT NOT NULL,
-    iteration INTEGER NOT NULL,
-    source TEXT NOT NULL,
-    params TEXT NOT NULL,
-    seeds TEXT NOT NULL,
-    clipped INTEGER NOT NULL,
-    note TEXT NOT NULL DEFAULT '',
-    ask_s REAL,
-    n_s INTEGER NOT NULL,
-    n_a INTEGER NOT NULL,
-    reevaluates INTEGER,
-    worker TEXT,
-    reason TEXT NOT NULL,
-    created REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS final_eval (
-    id INTEGER PRIMARY KEY CHECK (id = 1),
-    candidate_idx INTEGER NOT NULL,
-    returns TEXT NOT NULL,
-    seeds TEXT NOT NULL,
-    created REAL NOT NULL
-);
-"""
-
-# Columns added after schema 1, with their definitions, in the order they were added.
-_ADDED_COLUMNS: tuple[tuple[str, str, str], ...] = (
-    ("llm_calls", "error_kind", "TEXT"),
-    ("llm_calls", "retry", "INTEGER NOT NULL DEFAULT 0"),
-    ("llm_calls", "answer_source", "TEXT"),
-    ("candidates", "ask_s", "REAL"),
-    ("candidates", "eval_s", "REAL"),
-    ("llm_calls", "form", "TEXT"),
-    ("llm_calls", "decisions", "TEXT"),
-    ("candidates", "reevaluates", "INTEGER"),
-    ("pending", "reevaluates", "INTEGER"),
-    ("llm_calls", "answered", "INTEGER NOT NULL DEFAULT 1"),
-    ("llm_calls", "sent", "REAL"),
-    ("pending", "worker", "TEXT"),
-)
 
 # What a try written ahead holds until its answer completes it: to every reader it is a failed
 # try of this kind, so a process that died with it in flight leaves a try the audit reads and
@@ -175,6 +72,93 @@ class _Rows:
         return self.rows
 
 
+# -- rows -------------------------------------------------------------------------------------
+# How values become rows and rows values, inside a transaction the caller holds. The stamps read
+# this module's ``time`` (the tests' virtual clock replaces it).
+
+_TRIAL_COLUMNS = "idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates, worker"
+
+_CANDIDATE_COLUMNS = ("idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s,"
+                      " reevaluates")
+
+_LLM_CALL_COLUMNS = ("id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
+                     " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions,"
+                     " answered, created, sent")
+
+
+def _trial(row: Any) -> Trial:
+    """The trial of a ``pending`` or ``failed`` row read as ``_TRIAL_COLUMNS``."""
+    return Trial(number=row[0], phase=row[1], iteration=row[2], source=row[3], theta=np.asarray(json.loads(row[4])),
+                 seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10],
+                 reevaluates=row[11], worker=row[12])
+
+
+def _insert_pending(db: sqlite3.Connection, t: Trial) -> None:
+    """Insert the trial ``t`` into ``pending``, stamped now."""
+    db.execute(
+        "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created,"
+        " reevaluates, worker) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
+         t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time(), t.reevaluates, t.worker),
+    )
+
+
+def _candidate(row: Any) -> Candidate:
+    """The candidate of a ``candidates`` row read as ``_CANDIDATE_COLUMNS``."""
+    return Candidate(
+        index=row[0], iteration=row[1], source=row[2],
+        params=np.asarray(json.loads(row[3])), params_enc=np.asarray(json.loads(row[4])),
+        feedback=Feedback.from_json(json.loads(row[5])), feedback_enc=Feedback.from_json(json.loads(row[6])),
+        clipped=row[7], seeds=tuple(json.loads(row[8])), note=row[9], ask_s=row[10], eval_s=row[11], reevaluates=row[12],
+    )
+
+
+def _insert_candidate(db: sqlite3.Connection, c: Candidate) -> None:
+    """Insert the candidate ``c`` into ``candidates``, stamped now (IntegrityError when its index is taken)."""
+    db.execute(
+        "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
+        " created, ask_s, eval_s, reevaluates) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        (
+            c.index, c.iteration, c.source,
+            json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
+            json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
+            c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s, c.reevaluates,
+        ),
+    )
+
+
+def _llm_call(columns: list[str], row: Any) -> dict[str, Any]:
+    """One ``llm_calls`` row as a dict by column name, ``ok`` and ``answered`` as bools and ``decisions`` parsed."""
+    d = dict(zip(columns, row))
+    d["ok"] = bool(d["ok"])
+    d["answered"] = bool(d["answered"])
+    d["decisions"] = json.loads(d["decisions"]) if d["decisions"] else None
+    return d
+
+
+def _exchange_values(ex: Any) -> tuple[Any, ...]:
+    """What an ``Exchange`` (or an older exchange-like object, without error_kind, retry or
+    answer_source) holds for its ``llm_calls`` row: request, response, content, reasoning,
+    prompt_chars, prompt_tokens, completion_tokens, latency_s, ok, error, error_kind, retry,
+    answer_source, in this order."""
+    return (ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars, ex.prompt_tokens, ex.completion_tokens,
+            ex.latency_s, int(ex.ok), ex.error, getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)),
+            getattr(ex, "answer_source", None))
+
+
+def _decisions_json(decisions: Mapping[str, Any] | None) -> str | None:
+    """The ``llm_calls.decisions`` text of a form's public choices (None: none recorded)."""
+    return None if decisions is None else json.dumps(dict(decisions))
+
+
+def _log_adaptation(db: sqlite3.Connection, iteration: int, attempt: int, change: str) -> None:
+    """Append one change of the LLM client's requests to ``llm_adaptations``."""
+    row = db.execute("SELECT value FROM meta WHERE key = 'llm_adaptations'").fetchone()
+    log = json.loads(row[0]) if row else []
+    log.append({"iteration": iteration, "attempt": attempt, "change": change, "created": time.time()})
+    db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
+
+
 class RunStore:
     """The store of one run: ``run.sqlite`` in the run directory (SQLite, WAL).
 
@@ -205,52 +189,16 @@ class RunStore:
         except sqlite3.Error as e:
             raise StoreError(f"run store {self.path} cannot be opened ({e})") from None
         try:
-            self._wal()
+            enable_wal(self._db, BUSY_TIMEOUT_S)
             self._db.execute("PRAGMA synchronous=NORMAL")
             with self._tx() as db:  # one writer creates or migrates; the others wait for it
-                self._create_or_migrate(db)
+                create_or_migrate(db, self.path)
         except StoreError:
             self._db.close()
             raise
         except sqlite3.DatabaseError as e:
             self._db.close()
             raise StoreError(f"run store {self.path} is not a readable SQLite database ({e})") from None
-
-    def _wal(self) -> None:
-        """Switch the store to WAL mode, waiting up to BUSY_TIMEOUT_S while another process holds the
-        lock: SQLite may answer this pragma "database is locked" at once, without its busy handler,
-        while another connection creates the file or recovers its WAL index."""
-        deadline = time.monotonic() + BUSY_TIMEOUT_S
-        delay = 0.005
-        while True:
-            try:
-                self._db.execute("PRAGMA journal_mode=WAL")
-                return
-            except sqlite3.OperationalError as e:
-                if not ("locked" in str(e) or "busy" in str(e)) or time.monotonic() >= deadline:
-                    raise
-            time.sleep(delay)
-            delay = min(delay * 2, 0.2)
-
-    def _create_or_migrate(self, db: sqlite3.Connection) -> None:
-        for stmt in _SCHEMA.split(";"):
-            if stmt.strip():
-                db.execute(stmt)
-        row = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-        version = None if row is None else int(row[0])
-        if version is not None and version > SCHEMA_VERSION:
-            raise StoreError(f"run store {self.path} has schema {version}; this ppprops reads up to {SCHEMA_VERSION}")
-        for table, column, decl in _ADDED_COLUMNS:  # from 1: add what is missing (new stores have it all)
-            have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
-            if column not in have:
-                db.execute(f"ALTER TABLE {table} ADD COLUMN {column} {decl}")
-        if version is not None and version < 5:  # every call names its form from schema 5 on
-            from .wire.forms import recorded_form
-
-            for call_id, request in db.execute("SELECT id, request FROM llm_calls WHERE form IS NULL").fetchall():
-                db.execute("UPDATE llm_calls SET form = ? WHERE id = ?", (recorded_form(str(request)), call_id))
-        if version != SCHEMA_VERSION:
-            db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
 
     # -- plumbing -------------------------------------------------------------------------
     @contextmanager
@@ -383,7 +331,7 @@ class RunStore:
         """Record one evaluated candidate in its own transaction; StoreError if its index is taken."""
         try:
             with self._tx() as db:
-                self._insert_candidate(db, c)
+                _insert_candidate(db, c)
         except sqlite3.IntegrityError:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
@@ -395,32 +343,11 @@ class RunStore:
                 gone = db.execute("DELETE FROM pending WHERE idx = ?", (c.index,)).rowcount
                 if not gone:
                     raise StoreError(f"trial {c.index} is not pending in {self.path}")
-                self._insert_candidate(db, c)
+                _insert_candidate(db, c)
         except sqlite3.IntegrityError:
             raise StoreError(f"candidate {c.index} is already recorded in {self.path}") from None
 
-    @staticmethod
-    def _insert_candidate(db: sqlite3.Connection, c: Candidate) -> None:
-        db.execute(
-            "INSERT INTO candidates (idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note,"
-            " created, ask_s, eval_s, reevaluates) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (
-                c.index, c.iteration, c.source,
-                json.dumps([float(v) for v in c.params]), json.dumps([float(v) for v in c.params_enc]),
-                json.dumps(c.feedback.to_json()), json.dumps(c.feedback_enc.to_json()),
-                c.clipped, json.dumps(list(c.seeds)), c.note, time.time(), c.ask_s, c.eval_s, c.reevaluates,
-            ),
-        )
-
     # -- the pending trials ---------------------------------------------------------------
-    _TRIAL_COLUMNS = "idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, reevaluates, worker"
-
-    @staticmethod
-    def _trial(row: Any) -> Trial:
-        return Trial(number=row[0], phase=row[1], iteration=row[2], source=row[3], theta=np.asarray(json.loads(row[4])),
-                     seeds=tuple(json.loads(row[5])), clipped=row[6], note=row[7], ask_s=row[8], n_s=row[9], n_a=row[10],
-                     reevaluates=row[11], worker=row[12])
-
     def add_pending(self, t: Trial, *, limit: int = 1) -> None:
         """Store a trial a study has asked for (before ``ask`` returns it), held by ``t.worker``.
         StoreError when ``limit`` trials are already pending (``--parallel``; 1: one at a time) or
@@ -441,18 +368,9 @@ class RunStore:
                         if limit == 1:
                             raise StoreError(f"trial {out[0][0]} is already pending in {self.path}")
                         raise StoreError(f"{len(out)} trials are already pending in {self.path} (at most {limit} at once)")
-                    self._insert_pending(db, t)
+                    _insert_pending(db, t)
         except sqlite3.IntegrityError:
             raise StoreError(f"a trial of {[t.number for t in trials]} is already pending in {self.path}") from None
-
-    @staticmethod
-    def _insert_pending(db: sqlite3.Connection, t: Trial) -> None:
-        db.execute(
-            "INSERT INTO pending (idx, phase, iteration, source, params, seeds, clipped, note, ask_s, n_s, n_a, created,"
-            " reevaluates, worker) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-            (t.number, t.phase, t.iteration, t.source, json.dumps([float(v) for v in t.theta]), json.dumps(list(t.seeds)),
-             t.clipped, t.note, t.ask_s, t.n_s, t.n_a, time.time(), t.reevaluates, t.worker),
-        )
 
     def pending_trial(self) -> Trial | None:
         """The first trial asked for and not yet told (lowest number), or None."""
@@ -463,8 +381,8 @@ class RunStore:
         """Every trial asked for and not yet told, by number, each with the worker holding it
         (``Trial.worker``: "" for a trial asked without a worker name, None for one nobody holds
         yet: the rest of a round, or a failed trial asked again)."""
-        rows = self._read(f"SELECT {self._TRIAL_COLUMNS} FROM pending ORDER BY idx").fetchall()
-        return [self._trial(r) for r in rows]
+        rows = self._read(f"SELECT {_TRIAL_COLUMNS} FROM pending ORDER BY idx").fetchall()
+        return [_trial(r) for r in rows]
 
     def assign(self, number: int, worker: str) -> None:
         """Hand the pending trial ``number`` to ``worker`` (a name; "" the unnamed worker); StoreError when it is not pending."""
@@ -478,7 +396,7 @@ class RunStore:
         transaction; StoreError when it is not pending. A failed trial is no candidate: no
         proposer, prompt or selection ever sees it."""
         with self._tx() as db:
-            row = db.execute(f"SELECT {self._TRIAL_COLUMNS} FROM pending WHERE idx = ?", (int(number),)).fetchone()
+            row = db.execute(f"SELECT {_TRIAL_COLUMNS} FROM pending WHERE idx = ?", (int(number),)).fetchone()
             if row is None:
                 raise StoreError(f"trial {number} is not pending in {self.path}")
             db.execute("DELETE FROM pending WHERE idx = ?", (int(number),))
@@ -490,23 +408,23 @@ class RunStore:
 
     def failed_trials(self) -> list[tuple[Trial, str]]:
         """Every failed trial, by number, with its reason."""
-        rows = self._read(f"SELECT {self._TRIAL_COLUMNS}, reason FROM failed ORDER BY idx").fetchall()
-        return [(self._trial(r[:13]), str(r[13])) for r in rows]
+        rows = self._read(f"SELECT {_TRIAL_COLUMNS}, reason FROM failed ORDER BY idx").fetchall()
+        return [(_trial(r[:13]), str(r[13])) for r in rows]
 
     def retry_trial(self, number: int, *, limit: int = 1) -> Trial:
         """Move the failed trial ``number`` back to the pending trials (held by nobody), with the
         same parameters and seeds; returns it. StoreError when it did not fail or ``limit`` trials
         are already pending."""
         with self._tx() as db:
-            row = db.execute(f"SELECT {self._TRIAL_COLUMNS} FROM failed WHERE idx = ?", (int(number),)).fetchone()
+            row = db.execute(f"SELECT {_TRIAL_COLUMNS} FROM failed WHERE idx = ?", (int(number),)).fetchone()
             if row is None:
                 raise StoreError(f"trial {number} did not fail in {self.path}")
             (out,) = db.execute("SELECT COUNT(*) FROM pending").fetchone()
             if out >= limit:
                 raise StoreError(f"{out} trial(s) are pending in {self.path} (at most {limit} at once): tell one first")
-            trial = replace(self._trial(row), worker=None)
+            trial = replace(_trial(row), worker=None)
             db.execute("DELETE FROM failed WHERE idx = ?", (int(number),))
-            self._insert_pending(db, trial)
+            _insert_pending(db, trial)
             return trial
 
     def next_number(self) -> int:
@@ -533,19 +451,8 @@ class RunStore:
     def candidates(self, since: int = 0) -> list[Candidate]:
         """Every recorded candidate from index ``since`` on, by index (``params`` and ``params_enc``:
         float64 arrays of shape (D,))."""
-        rows = self._read(
-            "SELECT idx, iteration, source, params, params_enc, feedback, feedback_enc, clipped, seeds, note, ask_s, eval_s,"
-            " reevaluates FROM candidates WHERE idx >= ? ORDER BY idx", (int(since),)
-        ).fetchall()
-        return [
-            Candidate(
-                index=r[0], iteration=r[1], source=r[2],
-                params=np.asarray(json.loads(r[3])), params_enc=np.asarray(json.loads(r[4])),
-                feedback=Feedback.from_json(json.loads(r[5])), feedback_enc=Feedback.from_json(json.loads(r[6])),
-                clipped=r[7], seeds=tuple(json.loads(r[8])), note=r[9], ask_s=r[10], eval_s=r[11], reevaluates=r[12],
-            )
-            for r in rows
-        ]
+        rows = self._read(f"SELECT {_CANDIDATE_COLUMNS} FROM candidates WHERE idx >= ? ORDER BY idx", (int(since),)).fetchall()
+        return [_candidate(r) for r in rows]
 
     def candidate_times(self) -> list[tuple[int, str, int, float, float | None, float | None]]:
         """(index, source, iteration, created, ask_s, eval_s) per candidate: when each was
@@ -566,7 +473,7 @@ class RunStore:
                 "INSERT INTO llm_calls (iteration, attempt, request, prompt_chars, latency_s, ok, error, created, error_kind, retry,"
                 " form, decisions, answered, sent) VALUES (?, ?, ?, ?, 0.0, 0, ?, ?, ?, ?, ?, ?, 0, ?)",
                 (iteration, attempt, request, prompt_chars, UNANSWERED_ERROR, now, UNANSWERED, int(retry), form,
-                 None if decisions is None else json.dumps(dict(decisions)), now),
+                 _decisions_json(decisions), now),
             )
             return int(cur.lastrowid or 0)
 
@@ -584,23 +491,13 @@ class RunStore:
             if row is None:
                 raise StoreError(f"LLM call {call_id} is not waiting for its answer in {self.path}")
             if adaptation:
-                self._log_adaptation(db, row[0], row[1], adaptation)
+                _log_adaptation(db, row[0], row[1], adaptation)
             db.execute(
                 "UPDATE llm_calls SET request = ?, response = ?, content = ?, reasoning = ?, prompt_chars = ?, prompt_tokens = ?,"
                 " completion_tokens = ?, latency_s = ?, ok = ?, error = ?, error_kind = ?, retry = ?, answer_source = ?,"
                 " answered = 1 WHERE id = ? AND answered = 0",
-                (ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars, ex.prompt_tokens, ex.completion_tokens,
-                 ex.latency_s, int(ex.ok), ex.error, getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)),
-                 getattr(ex, "answer_source", None), int(call_id)),
+                (*_exchange_values(ex), int(call_id)),
             )
-
-    @staticmethod
-    def _log_adaptation(db: sqlite3.Connection, iteration: int, attempt: int, change: str) -> None:
-        """Append one change of the LLM client's requests to ``llm_adaptations`` (inside the caller's transaction)."""
-        row = db.execute("SELECT value FROM meta WHERE key = 'llm_adaptations'").fetchone()
-        log = json.loads(row[0]) if row else []
-        log.append({"iteration": iteration, "attempt": attempt, "change": change, "created": time.time()})
-        db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('llm_adaptations', ?)", (json.dumps(log),))
 
     def add_llm_call(self, iteration: int, attempt: int, ex: Any, parse_error: str | None, *, form: str,
                      decisions: Mapping[str, Any] | None = None) -> int:
@@ -612,17 +509,12 @@ class RunStore:
         adaptation = getattr(ex, "adaptation", None)
         with self._tx() as db:
             if adaptation:
-                self._log_adaptation(db, iteration, attempt, adaptation)
+                _log_adaptation(db, iteration, attempt, adaptation)
             cur = db.execute(
                 "INSERT INTO llm_calls (iteration, attempt, request, response, content, reasoning, prompt_chars,"
-                " prompt_tokens, completion_tokens, latency_s, ok, error, parse_error, created, error_kind, retry,"
-                " answer_source, form, decisions) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                (
-                    iteration, attempt, ex.request, ex.response, ex.content, ex.reasoning, ex.prompt_chars,
-                    ex.prompt_tokens, ex.completion_tokens, ex.latency_s, int(ex.ok), ex.error, parse_error, time.time(),
-                    getattr(ex, "error_kind", None), int(getattr(ex, "retry", 0)), getattr(ex, "answer_source", None),
-                    form, None if decisions is None else json.dumps(dict(decisions)),
-                ),
+                " prompt_tokens, completion_tokens, latency_s, ok, error, error_kind, retry, answer_source, parse_error,"
+                " created, form, decisions) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                (iteration, attempt, *_exchange_values(ex), parse_error, time.time(), form, _decisions_json(decisions)),
             )
             return int(cur.lastrowid or 0)
 
@@ -671,20 +563,9 @@ class RunStore:
         ``answered`` (false: written ahead and never completed), ``sent``: when it left, in Unix
         seconds (None for calls recorded before requests were written ahead: their ``created``
         is when the answer came))."""
-        cur = self._read(
-            "SELECT id, iteration, attempt, request, response, content, reasoning, prompt_chars, prompt_tokens,"
-            " completion_tokens, latency_s, ok, error, parse_error, error_kind, retry, answer_source, form, decisions,"
-            " answered, created, sent FROM llm_calls ORDER BY id"
-        )
+        cur = self._read(f"SELECT {_LLM_CALL_COLUMNS} FROM llm_calls ORDER BY id")
         cols = [d[0] for d in cur.description]
-        out = []
-        for row in cur.fetchall():
-            d = dict(zip(cols, row))
-            d["ok"] = bool(d["ok"])
-            d["answered"] = bool(d["answered"])
-            d["decisions"] = json.loads(d["decisions"]) if d["decisions"] else None
-            out.append(d)
-        return out
+        return [_llm_call(cols, row) for row in cur.fetchall()]
 
     # -- final evaluation -----------------------------------------------------------------
     def set_final_eval(self, fe: FinalEval) -> None:

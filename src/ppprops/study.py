@@ -26,8 +26,6 @@ then gets the same pending trial. Feedback told is raw; encoding (paper Eq. 5, 7
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import replace
@@ -38,25 +36,25 @@ from typing import TYPE_CHECKING, Any, overload
 import numpy as np
 
 from . import seeding
-from .client.codec import Codec, encode_feedback
+from .client.codec import Codec
 from .client.hardening import codec_for
 from .client.secrets import Secrets
 from .config import RunConfig
 from .errors import ConfigError, StudyComplete, TrialsOut
 from .evaluation import Evaluator, Fleet
 from .events import NO_EVENTS, RunEvents
-from .finalizing import all_failed, final_evaluation, finish_status, provenance, write_policy
+from .finalizing import env_final_episodes, final_evaluation, finish_status, provenance, write_policy
 from .locks import STUDY_LOCK, file_lock
-from .loop import locate, search_candidates, select_best
+from .loop import search_candidates, select_best
 from .methods import Method, get_method
-from .naming import check_worker, holder, holders
+from .naming import check_worker, holders
 from .phases import PhaseSettings, RunPhases
-from .rundir import create_run, final_returns, load_run
-from .scheduling import askable, check_left, held, new_trials, wait_for_earlier
+from .rundir import create_run, load_run
+from .scheduling import check_left, check_retry, held, propose, wait_for
 from .status import RunStatus
 from .store import RunStore
 from .tasks import Task
-from .told import check_episode_count, check_teller, failure_reason, not_pending, told_feedback
+from .told import check_failed_alone, check_teller, failure_reason, not_pending, told_candidate
 from .values import Candidate, Feedback, FinalEval, Trial
 
 # What only asking a new trial, the env-driven loop or the policy needs (the proposers, the prompt
@@ -107,7 +105,6 @@ class Study:
         self.events = events
         self._evaluator: Evaluator | None = None
         self._env = env
-        self._warm_llm = warm_llm
         self._phases = RunPhases(partial(_phase_settings, config, self.has_env), task=self.task, method=self.method, codec=self.codec,
                                  streams=self.streams, store=store, run_dir=self.run_dir, events=events, llm=llm, llm_gate=llm_gate,
                                  evaluator=(lambda: self.evaluator) if self.has_env else None, warm_llm=warm_llm)  # fmt: skip
@@ -192,7 +189,7 @@ class Study:
     def _with_policy(self, trial: Trial) -> Trial:
         """A stored trial with the study's policy family (the store keeps theta, n_s and n_a; a
         trial's ``policy`` is None for the paper's linear policy)."""
-        return trial if self.task.policy.is_linear else dataclasses.replace(trial, policy=self.task.policy)
+        return trial if self.task.policy.is_linear else replace(trial, policy=self.task.policy)
 
     @property
     def out(self) -> list[Trial]:
@@ -248,16 +245,7 @@ class Study:
         study is then stopped, with the reason, and can be finalized).
         """
         name = "" if worker is None else check_worker(worker)
-        deadline = None if timeout is None else time.monotonic() + timeout
-        delay = 0.02
-        while True:
-            got = self._ask_once(name)
-            if isinstance(got, Trial):
-                return got
-            if not wait or (deadline is not None and time.monotonic() >= deadline):
-                raise TrialsOut(got, out=len(self.store.pending_trials()))
-            time.sleep(delay)
-            delay = min(delay * 2, 0.5)
+        return wait_for(partial(self._ask_once, name), wait=wait, timeout=timeout, out=lambda: len(self.store.pending_trials()))
 
     def _ask_once(self, name: str) -> Trial | str:
         """The trial for worker ``name``, or why it must wait (one line; ``scheduling``)."""
@@ -272,27 +260,10 @@ class Study:
             check_left(self.store, self.run_dir, self.total, out)
             if len(out) >= self.parallel:
                 return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {holders(out)}; tell one first"
-            from .proposers.base import StopSearch
-
-            self._phases.sync()
-            n = self.store.next_number()
-            phase, iteration = locate(self._get_phases(), n)
-            wait = wait_for_earlier(phase, n - iteration, out)
-            if wait is not None:
-                return wait
-            if phase.name == "selection" and self.store.candidate_count() == 0:
-                raise ConfigError(all_failed(self.store, self.run_dir))
-            iterations = askable(phase, iteration, out, self.parallel)
-            if isinstance(iterations, str):
-                return iterations
-            t0 = time.perf_counter()
-            try:
-                proposals = phase.proposer.ask_many(iterations)
-            except StopSearch as stop:
-                self.store.set_status(RunStatus.STOPPED, stop.reason)
-                raise
-            trials = new_trials(phase, iterations, proposals, first=n, worker=name, ask_s=time.perf_counter() - t0, task=self.task,
-                                episode_seeds=lambda number: tuple(self.streams.episode_seeds(number, self.config.episodes)))
+            trials = propose(self._phases, self.store, self.run_dir, out, worker=name, parallel=self.parallel, task=self.task,
+                             episode_seeds=lambda number: tuple(self.streams.episode_seeds(number, self.config.episodes)))
+            if isinstance(trials, str):
+                return trials
             self.store.add_pending_many(trials, limit=self.parallel)
             return trials[0]
 
@@ -345,20 +316,12 @@ class Study:
                 raise not_pending(self.store, number, out, run_dir=self.run_dir, total=self.total)
             check_teller(pending, teller, None if isinstance(trial, int) else trial.theta, run_dir=self.run_dir)
             if failed is not None:
-                if returns is not None or feedback is not None or components is not None or diagnostics is not None:
-                    raise ConfigError(f"trial {number}: tell either its feedback or that it failed, not both")
+                check_failed_alone(number, returns, feedback, components, diagnostics)
                 self.store.fail_trial(number, failed)
                 self._phases.sync()
                 return None
-            if feedback is None and returns is not None and pending.seeds:
-                check_episode_count(number, len(pending.seeds), returns)
-            fb = feedback if feedback is not None else told_feedback(
-                returns, components, diagnostics, task=self.task.name, declared_components=self.task.components,
-                declared_diagnostics=self.task.diagnostics)
-            cand = Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
-                             params_enc=self.codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(self.codec, fb),
-                             clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s,
-                             reevaluates=pending.reevaluates)  # fmt: skip
+            cand = told_candidate(pending, returns, components, diagnostics, feedback=feedback, eval_s=eval_s, task=self.task,
+                                  codec=self.codec)
             self.store.record_trial(cand)
             self._phases.sync()
             return cand
@@ -370,20 +333,7 @@ class Study:
         over: nothing more is asked), or when ``--parallel`` trials are already out."""
         number = trial if isinstance(trial, int) else trial.number
         with file_lock(self.run_dir, STUDY_LOCK):
-            if self.store.run_status()[0] is RunStatus.FINISHED:
-                raise ConfigError(f"study {self.run_dir} is finalized (its best policy is handed over): a failed trial can be "
-                                  "retried only before 'ppprops study finalize'")
-            failed = {t.number for t, _ in self.store.failed_trials()}
-            if number not in failed:
-                holding = next((t for t in self.store.pending_trials() if t.number == number), None)
-                state = ("it was told" if self.store.trial_state(number) == "told"
-                         else f"it is out, held by {holder(holding)}" if holding is not None
-                         else "it was never asked")
-                raise ConfigError(f"trial {number} did not fail ({state}): only a failed trial can be retried")
-            out_n = len(self.store.pending_trials())
-            if out_n >= self.parallel:
-                raise ConfigError(f"{out_n} trials are out, the most at once (--parallel {self.parallel}): tell one before "
-                                  f"retrying trial {number}")
+            check_retry(self.store, number, self.run_dir, self.parallel)
             again = self.store.retry_trial(number, limit=self.parallel)
             self._phases.sync()
             return again
@@ -458,21 +408,12 @@ class Study:
         stopped. Raises ConfigError before any trial is told or while one is pending, StoreError
         when the policy file cannot be written (the study stays resumable).
         """
-        events = events if events is not None else self.events
-
-        def run_episodes(best: Candidate) -> FinalEval:
-            seeds = seeding.final_eval_seeds(self.config.seed, self.config.final_episodes)
-            return FinalEval(candidate_index=best.index, returns=final_returns(self.evaluator, best.params, seeds, events),
-                             seeds=tuple(seeds))
-
+        run_episodes = env_final_episodes(lambda: self.evaluator, seed=self.config.seed, episodes=self.config.final_episodes,
+                                          events=events if events is not None else self.events)
         best, fe = final_evaluation(self.store, self.run_dir, returns, run_episodes if self.has_env else None)
         write_policy(self.run_dir, self.policy_document(best, fe))
         finish_status(self.store)
-        from .llm.embedded import stop_warm_server
-
-        if self._warm_llm:  # let go of the warm server first: stopping it waits for every process using it
-            self._phases.release_llm()
-        stop_warm_server(self.run_dir)  # nothing more will be asked: the study's warm server (ppprops ask), if any, stops
+        self._phases.stop_warm_server()  # nothing more will be asked
         return fe
 
     def policy_document(self, best: Candidate | None = None, fe: FinalEval | None = None) -> dict[str, Any]:

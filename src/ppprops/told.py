@@ -23,10 +23,12 @@ import numpy as np
 from .errors import ConfigError
 from .evaluation import Episode, aggregate
 from .status import RunStatus
-from .values import Feedback, Trial
+from .values import Candidate, Feedback, Trial
 
 if TYPE_CHECKING:
+    from .client.codec import Codec
     from .store import RunStore
+    from .tasks import Task
 
 
 def not_pending(store: RunStore, number: int, out: Sequence[Trial], *, run_dir: Path, total: int) -> ConfigError:
@@ -82,6 +84,31 @@ def failure_reason(failed: Any) -> str:
     if not reason:
         raise ConfigError("a failed trial needs a reason (what went wrong, e.g. 'e-stop at 3.2 s')")
     return reason
+
+
+def check_failed_alone(number: int, *told: object) -> None:
+    """Refuse feedback told together with ``failed=`` for trial ``number`` (``told``: the returns,
+    feedback, components and diagnostics given; None where not)."""
+    if any(value is not None for value in told):
+        raise ConfigError(f"trial {number}: tell either its feedback or that it failed, not both")
+
+
+def told_candidate(pending: Trial, returns: float | Sequence[float] | None, components: Any, diagnostics: Any, *,
+                   feedback: Feedback | None, eval_s: float | None, task: Task, codec: Codec) -> Candidate:  # fmt: skip
+    """The candidate that trial ``pending`` becomes with the told values (``told_feedback``; or
+    ``feedback``, evaluated already), its parameters and feedback encoded (paper Eq. 5, 7-8).
+    Raises ConfigError as ``check_episode_count`` and ``told_feedback`` do."""
+    from .client.codec import encode_feedback
+
+    if feedback is None and returns is not None and pending.seeds:
+        check_episode_count(pending.number, len(pending.seeds), returns)
+    fb = feedback if feedback is not None else told_feedback(returns, components, diagnostics, task=task.name,
+                                                             declared_components=task.components,
+                                                             declared_diagnostics=task.diagnostics)  # fmt: skip
+    return Candidate(index=pending.number, iteration=pending.iteration, source=pending.source, params=pending.theta,
+                     params_enc=codec.encode(pending.theta), feedback=fb, feedback_enc=encode_feedback(codec, fb),
+                     clipped=pending.clipped, seeds=pending.seeds, note=pending.note, ask_s=pending.ask_s, eval_s=eval_s,
+                     reevaluates=pending.reevaluates)  # fmt: skip
 
 
 def check_episode_count(number: int, asked: int, returns: Any) -> None:

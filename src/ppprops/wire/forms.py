@@ -170,6 +170,10 @@ class PromptForm:
     shows_feedback = True
     describes_encoding = True
 
+    def answer_tokens(self, D: int) -> int:
+        """Tokens an answer of ``D`` numbers in this form needs (``answer_budget``: unlabelled values)."""
+        return answer_budget(D)
+
     def prompt(self, ctx: PromptContext, shown: Sequence[EncodedEntry]) -> str:
         """The prompt of one iteration from the public context and the shown history (lowest return first)."""
         return build_prompt(ctx, shown)
@@ -186,7 +190,7 @@ class PromptForm:
             messages, decisions = correction_messages(prompt, previous, detail, ctx.D), {"correction": detail}
         return FormRequest(self.name, self.endpoint, ctx.D, iteration, attempt, messages=tuple(messages),
                            sampling={"temperature": CHAT_TEMPERATURE if temperature is None else temperature},
-                           answer_tokens=answer_budget(ctx.D), explains=True, json_schema=params_schema(ctx.D, ctx.numbers),
+                           answer_tokens=self.answer_tokens(ctx.D), explains=True, json_schema=params_schema(ctx.D, ctx.numbers),
                            grammar=params_grammar(ctx.D, ctx.numbers), decisions=decisions)
 
     def judge(self, content: str | None, reasoning: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
@@ -234,6 +238,10 @@ class DocumentForm(PromptForm):
     shows_feedback = False
     describes_encoding = False
 
+    def answer_tokens(self, D: int) -> int:
+        """Tokens a continuation of ``D`` labelled values (``0:v,1:v,...]``) needs (``answer_budget``)."""
+        return answer_budget(D, labels=True)
+
     def prompt(self, ctx: PromptContext, shown: Sequence[EncodedEntry]) -> str:
         """The document, ending inside the open block (target return above the best shown)."""
         return build_document(ctx, shown)
@@ -251,7 +259,7 @@ class DocumentForm(PromptForm):
         if attempt > 0 and detail == REPEATS_HISTORY:
             sampling["repeat_penalty"] = REPEAT_PENALTY
         return FormRequest(self.name, self.endpoint, ctx.D, iteration, attempt, prompt=prompt, sampling=sampling,
-                           answer_tokens=answer_budget(ctx.D, labels=True), grammar=continuation_grammar(ctx.D, shown, ctx),
+                           answer_tokens=self.answer_tokens(ctx.D), grammar=continuation_grammar(ctx.D, shown, ctx),
                            stop=("]",), decisions=decisions)
 
     def judge(self, content: str | None, reasoning: str | None, ctx: PromptContext, shown: Sequence[EncodedEntry], *,
