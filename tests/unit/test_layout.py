@@ -141,3 +141,50 @@ def test_no_module_below_the_study_takes_the_whole_run_config() -> None:
     below = sorted(m for m in users if m not in RUN_CONFIG_USERS and not m.startswith(RUN_CONFIG_PACKAGES))
     assert below == [], f"modules below the study that import RunConfig: {below}"
     assert {"study", "runner", "api"} <= users  # the check sees the modules that do
+
+
+# Sizes that hold the layout: the study is the composition root, not the place every feature lands
+# (a new feature gets a module of its own), and no class grows into a second study.
+STUDY_MAX_LINES = 500
+CLASS_MAX_LINES = 450
+# The study's modules: they call the proposers through ``proposers.base.SearchProposer``'s hooks,
+# never by looking an ability up.
+STUDY_MODULES = ("study", "env_loop", "told", "finalizing", "phases", "scheduling")
+
+
+def class_sizes(root: Path, package: str) -> list[tuple[int, str]]:
+    """(lines, "module.Class") of every class in the package, largest first (nested classes too)."""
+    sizes = []
+    for path in sorted((root / package).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                sizes.append((node.end_lineno - node.lineno + 1, f"{module_name(path, root)}.{node.name}"))  # type: ignore[operator]
+    return sorted(sizes, reverse=True)
+
+
+def ability_lookups(path: Path) -> list[str]:
+    """Every ``getattr``/``hasattr`` call in a module, as "name:line"."""
+    return [f"{node.func.id}:{node.lineno}" for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("getattr", "hasattr")]
+
+
+def test_the_study_and_every_class_stay_within_their_size() -> None:
+    study = len((SRC / PACKAGE / "study.py").read_text(encoding="utf-8").splitlines())
+    assert study <= STUDY_MAX_LINES, f"study.py is {study} lines (at most {STUDY_MAX_LINES}): give the feature a module of its own"
+    sizes = class_sizes(SRC, PACKAGE)
+    assert ("ppprops.study.Study" in {name for _, name in sizes}) and sizes[0][0] > 100  # the walk sees the classes
+    over = [f"{name}: {lines} lines" for lines, name in sizes if lines > CLASS_MAX_LINES]
+    assert over == [], f"classes over {CLASS_MAX_LINES} lines: {over}"
+
+
+def test_the_study_looks_up_no_ability_of_a_proposer() -> None:
+    found = {mod: ability_lookups(SRC / PACKAGE / f"{mod}.py") for mod in STUDY_MODULES}
+    assert {mod: hits for mod, hits in found.items() if hits} == {}
+
+
+def test_the_size_and_lookup_checks_can_fail(toy_package: Path) -> None:
+    body = "".join(f"    def m{i}(self) -> int:\n        return {i}\n" for i in range(CLASS_MAX_LINES))
+    (toy_package / "toy" / "big.py").write_text(f"class Big:\n{body}\n\nclass Small:\n    pass\n")
+    assert class_sizes(toy_package, "toy")[:2] == [(1 + 2 * CLASS_MAX_LINES, "toy.big.Big"), (2, "toy.big.Small")]
+    (toy_package / "toy" / "probe.py").write_text("def f(p):\n    return hasattr(p, 'ready') or getattr(p, 'rounds', False)\n")
+    assert ability_lookups(toy_package / "toy" / "probe.py") == ["hasattr:2", "getattr:2"]

@@ -42,48 +42,36 @@ transcript); its report says so and its verdict is never CLEAN.
 """
 from __future__ import annotations
 
-import bisect
-import itertools
 import json
 import math
-import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .. import seeding
 from ..client.secrets import Secrets
 from ..config import RunConfig
 from ..errors import StoreError
 from ..methods import Mechanisms
-from ..proposers.llm import StallCounter
 from ..rundir import open_run
 from ..store import Candidate
-from ..wire.encoded import EncodedEntry
-from ..wire.forms import CHAT, CRITIC, ENDPOINT_COMPLETIONS, FORMS, FormRequest, PromptForm
 from ..wire.transcript import ShownEntry, number_tokens, outside_entries
-from ..wire.turns import REPEATS_HISTORY
 from . import reconstruct as rc
-from . import simfit
-from .exposure import Assessment, assess
-from .knowledge import facts_for
-from .requests import Request, message_text, parse_request
-from .runseed import find_run_seed
+from . import run_checks, simfit
+from .request_body import SENT_FIELDS as SENT_FIELDS  # re-exported: the fields the client may send
+from .request_body import BodyReader
+from .requests import Request, parse_request
+from .run_checks import IGNORED_NAMES as IGNORED_NAMES  # re-exported, with the two below: their home was here
+from .run_checks import env_identifiers as env_identifiers
+from .run_checks import run_grid_factor as run_grid_factor
 from .simfit import SimLimits
-from .simulator import env_is_public
 from .tokens import renders, token_value
-from .view import Estimate, same_marker, view_of
+from .view import Estimate
 
 MAX_LOCATIONS = 5  # locations listed per finding; the count covers all
 TIMING_KINDS = ("request-timing", "request_timing")  # the clock exposed (its calibration gives the best raw return), and as a channel
-# Every top-level field the client may send in some state of its request shape (``RequestShape``),
-# besides the sampling fields the forms choose; and the fields the shape alone decides.
-SENT_FIELDS = frozenset({"model", "messages", "prompt", "temperature", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort",
-                         "response_format", "grammar", "stop", "top_p", "min_p", "top_k"})
-_SHAPE_FIELDS = frozenset({"model", "max_tokens", "max_completion_tokens", "seed", "reasoning_effort"})
 NOT_CHECKED = "request sizes, token counts, and the provider's own answers"
 
 
@@ -249,6 +237,13 @@ class AuditReport:
 
 
 class _Auditor:
+    """One audit of one run: what it has read so far, its checks of printed values, and its findings.
+
+    ``run`` reads every call's body in the order sent (``request_body.BodyReader``, which hands the
+    history entries and any text the client would not produce back to ``entry``, ``free`` and
+    ``spans``), then runs the run-level checks (``run_checks``) and sorts the findings.
+    """
+
     def __init__(self, run_dir: Path, config: RunConfig, candidates: Sequence[Candidate], calls: Sequence[dict[str, Any]],
                  secrets: Secrets | None = None, *, sessions: Sequence[int] | None = None,
                  endpoint_changes: Sequence[dict[str, Any]] = (), adaptations: Sequence[dict[str, Any]] = (),
@@ -268,11 +263,9 @@ class _Auditor:
                                        c.get("form")) for c in self.calls]
         self.secrets = secrets
         self.codec = rc.client_codec(self.task, config, secrets)
-        self._rebuilt: dict[str, rc.Rebuilt] = {}  # per prompt form: its context, and each candidate's entry built once
-        self.rebuilt = self._rebuilt_for(FORMS[config.form])  # that of the call being read (``body``)
-        self.ctx = self.rebuilt.ctx
+        self.problems = 0  # occurrences of findings other than channels so far (``BodyReader.prompt`` flags the entries that add some)
+        self.bodies = BodyReader(self)  # reads each call's body; its prompt contexts are built here, once per form
         self.replay = rc.ClientReplay(config.llm, self.task.D, sessions, endpoint_changes)
-        self.answered: dict[tuple[int, int], dict[str, Any]] = {}  # (iteration, attempt) -> its latest usable answer
         self.adaptations = [str(a.get("change")) for a in adaptations]
         self.report = AuditReport(str(run_dir), config.method, self.mech.to_json(), attacked=attacks)
         self._findings: dict[tuple[str, str, str], Finding] = {}
@@ -281,29 +274,6 @@ class _Auditor:
         self.raw = np.array([c.params for c in self.cands], dtype=np.float64).reshape(len(self.cands), D)
         self.shown: dict[int, Candidate] = {}  # candidates that appeared in some request
         self.shown_diagnostics: dict[int, dict[str, str]] = {}  # candidate -> each diagnostic as some request printed it
-        self._problems = 0  # occurrences of findings other than channels so far (``prompt`` flags the entries that add some)
-        counter = StallCounter()  # stall_count of every prefix of the candidates, counted once
-        self._stalls = [0]
-        for c in self.cands:
-            counter.tell(c)
-            self._stalls.append(counter.count)
-
-    def _rebuilt_for(self, form: PromptForm) -> rc.Rebuilt:
-        """The public prompt context of ``form`` (``reconstruct.context``) and its entries, built once per run."""
-        if form.name not in self._rebuilt:
-            self._rebuilt[form.name] = rc.Rebuilt(self.codec, rc.context(self.task, self.config, self.codec, form), form)
-        return self._rebuilt[form.name]
-
-    def _stall_count(self, n: int) -> int:
-        """``stall_count`` of the candidates numbered below ``n`` (the trials settled when a request
-        at trial ``n`` was built: failed trials are no candidates and never counted)."""
-        return self._stalls[bisect.bisect_left([c.index for c in self.cands], n)]
-
-    def _round_start(self, iteration: int) -> int:
-        """The trial number at which the round of LLM iteration ``iteration`` began: with
-        ``--parallel`` P its P requests share the history told before the round."""
-        parallel = max(1, int(getattr(self.config, "parallel", 1)))
-        return self.config.warmup + (iteration // parallel) * parallel
 
     def finding(self, severity: str, kind: str, detail: str, where: str, *, by_design: bool = False) -> None:
         key = (severity, kind, detail)
@@ -312,7 +282,7 @@ class _Auditor:
             self.report.findings.append(self._findings[key])
         self._findings[key].add(where)
         if severity != "channel":
-            self._problems += 1
+            self.problems += 1
 
     # -- one printed scalar against its raw and encoded value ------------------------------------
     def scalar(self, tok: str, raw: float | None, enc: float | None, protected: bool, kind: str, label: str, where: str) -> None:
@@ -446,348 +416,6 @@ class _Auditor:
                 if optimum is not None and renders(optimum, v, tol) and abs(optimum) >= 1:
                     self.finding("leak", "optimum", f"the optimal return {optimum:g} (printed {tok})", where, by_design=by_design)
 
-    # -- run-level channels -------------------------------------------------------------------
-    def channels(self) -> None:
-        mech, shown = self.mech, list(self.shown.values())
-        if not shown:
-            return
-        if mech.scale_rewards and mech.detailed_feedback:
-            self._determined(shown)
-        if mech.encode_params and not mech.encoded_warmup and any(c.source == "warmup" for c in shown):
-            self.finding("channel", "warmup_scale", "warm-up drawn uniformly from the public box: max|theta~_j| over it estimates "
-                         "a_j times the box bound", f"{sum(c.source == 'warmup' for c in shown)} warm-up entries shown")
-        if mech.encode_params and not mech.encoded_warmup and not self.keyed_streams and any(c.source == "warmup" for c in shown):
-            self.finding("channel", "run_seed", "the raw warm-up is drawn from the run seed: a provider that guesses a small "
-                         "run seed replays it (runs made before streams were keyed by the secrets)",
-                         f"run seed of {self.config.seed.bit_length()} bits")
-        rets = [c.ret for c in shown]
-        if mech.scale_rewards and not mech.warp_rewards and len(set(rets)) >= 3:
-            if facts_for(self.task).integer_returns or all(float(r).is_integer() for r in rets):
-                self.finding("channel", "reward_lattice", "integer returns scaled by c keep a lattice: the gcd of differences of "
-                             "printed returns gives c", f"{len(set(rets))} distinct returns shown")
-        if mech.scale_rewards and not mech.warp_rewards and not mech.secret_offsets:
-            caps = {c.value for c in facts_for(self.task).caps or ()}
-            if self.task.optimal_return is not None:
-                caps.add(float(self.task.optimal_return))
-            for c in shown:
-                if c.ret in caps and c.ret != 0:
-                    self.finding("channel", "known_cap", f"a return at the public cap {c.ret:g} gives c = printed / {c.ret:g}",
-                                 f"candidate {c.index}")
-
-    def anchors(self) -> None:
-        """Shown entries whose shown diagnostic marks an episode end at a public cap (the task's
-        ``privacy.caps``) while their raw return is that cap: the diagnostic pins the raw return
-        exactly (CartPole ``termination=time_limit``: 500; Acrobot ``success=0``: -500), whatever
-        the reward map. Exposed (the best shown one is named), since a raw return is recovered
-        exactly; ``hide_anchors`` withholds those diagnostics."""
-        if not self.mech.scale_rewards or not self.shown:
-            return
-        best = max(self.shown.values(), key=lambda c: c.ret)
-        for cap in facts_for(self.task).caps or ():
-            pinned = [c for c in self.shown.values()
-                      if same_marker(self.shown_diagnostics.get(c.index, {}).get(cap.diagnostic), cap.marker)
-                      and math.isclose(c.ret, cap.value, rel_tol=1e-9, abs_tol=1e-9)]
-            if not pinned:
-                continue
-            which = "the best shown policy's raw return" if best in pinned else "a shown raw return"
-            self.finding("exposed", "anchored_return",
-                         f"recovers {which} exactly: {cap.diagnostic}={cap.marker} marks an episode end at the public cap, "
-                         f"raw return {cap.value:g} ({len(pinned)} of {len(self.shown)} shown entries; --hide-anchors on "
-                         "withholds it)", ", ".join(f"candidate {c.index}" for c in sorted(pinned, key=lambda c: c.index)),
-                         by_design=not self.mech.hardened)
-
-    def timing(self) -> None:
-        """The provider's clock (``privacy.timing``): do the gaps between an answer and the next
-        request follow the candidates' episodes? A channel when significantly so; exposed when the
-        gap, calibrated on the run, gives the best shown raw return within 1%."""
-        if not self.mech.scale_rewards or not self.shown:
-            return
-        from . import timing
-
-        pure = not self.mech.warp_rewards and not self.mech.secret_offsets
-        got = timing.measure(self.calls, self.told, list(self.shown), c=self.secrets.c if self.secrets is not None else None,
-                             pure_scale=pure, width=max(1, int(getattr(self.config, "parallel", 1))))
-        paced = " (requests paced)" if self.mech.pace_requests else ""
-        if isinstance(got, str):
-            self.report.notes.append(f"request timing not measured: {got}")
-            return
-        self.report.notes.append(f"request timing{paced}: Spearman {got.rho_steps:+.2f} with the episode steps, {got.rho_return:+.2f} "
-                                 f"with the raw return over {len(got.gaps)} gaps (p = {got.p:.2g})")
-        if got.best_error is not None and got.best_error <= 0.01 and got.significant:
-            self.finding("exposed", "request-timing", f"recovers the best shown policy's raw return to {100 * got.best_error:.2g}%: "
-                         f"{got.describe()}", "request times", by_design=not self.mech.hardened)
-        elif got.significant:
-            if got.best_error is not None and got.best_error <= 0.02:
-                self.report.near_misses.append(f"request timing: the best shown raw return within {100 * got.best_error:.3g}%")
-            self.finding("channel", "request_timing", got.describe() + (paced or "; --pace-requests on pads the gaps"),
-                         "request times")
-
-    def _determined(self, shown: list[Candidate]) -> None:
-        """Numeric diagnostics that, together, are an exact affine function of the raw return or a component."""
-        names = sorted({k for r in self.requests for e in r.entries for k, t in e.diagnostics if token_value(t) is not None})
-        targets: list[tuple[str, list[float]]] = [("the raw return", [c.ret for c in shown])]
-        for k in sorted({k for c in shown for k in c.feedback.components}):
-            targets.append((f"the raw component {k}", [c.feedback.components.get(k, 0.0) for c in shown]))
-        for label, y in targets:
-            yv = np.asarray(y, dtype=np.float64)
-            if len(set(y)) < 3:
-                continue
-            for size in (1, 2):
-                hits = []
-                for subset in itertools.combinations(names, size):
-                    cols = [[_num(c.feedback.diagnostics.get(n)) for n in subset] for c in shown]
-                    X = np.asarray(cols, dtype=np.float64)
-                    if not np.all(np.isfinite(X)):
-                        continue
-                    A = np.column_stack([X, np.ones(len(shown))])
-                    if np.linalg.matrix_rank(A) < A.shape[1] or len({tuple(r) for r in X}) < size + 2:
-                        continue
-                    coef, *_ = np.linalg.lstsq(A, yv, rcond=None)
-                    if np.max(np.abs(A @ coef - yv)) <= 1e-6 * max(1.0, float(np.max(np.abs(yv)))):
-                        coef = np.round(coef, 6) + 0.0
-                        formula = " + ".join(f"{b:g}*{n}" for b, n in zip(coef[:-1], subset, strict=True)) + f" + {coef[-1]:g}"
-                        hits.append(f"diagnostic{'s' if size > 1 else ''} {', '.join(subset)} determine{'' if size > 1 else 's'} "
-                                    f"{label}: {label.split()[-1]} = {formula}")
-                for h in hits:
-                    self.finding("channel", "diagnostic_determines", h, f"{len(shown)} shown candidates")
-                if hits:
-                    break
-
-    # -- every byte of a request body -----------------------------------------------------------
-    def body(self, row: dict[str, Any], req: Request) -> None:
-        """One recorded call, read as the prompt form it was recorded under (``wire.forms.FORMS``):
-        its payload (the messages or the document) rebuilt and compared (``messages``, ``prompt``),
-        every other field compared with the body the client builds for the request the form makes
-        from public values (``FormRequest``, through the replayed ``RequestShape``), and the
-        decisions recorded with the call checked by the form."""
-        where = req.where
-        form = FORMS.get(str(row.get("form")))
-        self.rebuilt = self._rebuilt_for(form or CHAT)
-        self.ctx = self.rebuilt.ctx
-        try:
-            doc = json.loads(str(row["request"]))
-        except json.JSONDecodeError:
-            doc = None
-        if form is None:
-            self.finding("unverified", "request", f"a call recorded under an unknown prompt form {row.get('form')!r}", where)
-            self.free(doc if doc is not None else str(row["request"]), "", where)
-            self.replay.observe(row, self._request(CHAT, req, []))
-            return
-        if not isinstance(doc, dict):
-            self.free(str(row["request"]), "a request body that is not a JSON object", where)
-            self.replay.observe(row, self._request(form, req, []))
-            return
-        key = "prompt" if form.endpoint == ENDPOINT_COMPLETIONS else "messages"
-        shown: list[Candidate | None] = []
-        if key not in doc:
-            self.finding("unverified", "request", f"a request without {key}", where)
-        elif key == "messages":
-            shown = self.messages(doc[key], req, form)
-        elif isinstance(doc[key], str):
-            shown = self.prompt(doc[key], req, form)
-        else:
-            self.free(doc[key], f"a {form.name} prompt that is not a string", f"{where}, field {key}")
-        verified = bool(shown) and all(c is not None for c in shown)
-        entries = [self.rebuilt.entry(c) for c in shown if c is not None] if verified else []
-        stalled = self._stall_count(self._round_start(req.iteration)) if self.config.explore is not False else 0
-        want = self._request(form, req, entries, stalled)
-        expected = self.replay.fields(want)  # what the client's request shape sends for it at this call
-        decisions = row.get("decisions")
-        if decisions is not None and verified:
-            for problem in form.check_decisions(decisions, self.ctx, entries, iteration=req.iteration, attempt=req.attempt,
-                                                temperature=self.config.llm.temperature, stalled=stalled):
-                self.finding("unverified", "decisions", f"a recorded decision of the {form.name} form: {problem}", where)
-        unrebuilt = "" if verified else " (the history it shows is not verified, so it cannot be rebuilt)"
-        for name, value in doc.items():
-            at = f"{where}, field {name}"
-            if name == key:
-                continue
-            if name == "seed" and name in expected:
-                self.seed(value, req)
-            elif name in expected:
-                if value != expected[name]:
-                    self.free(value, f"field {name} differs from what the client sends{'' if name in _SHAPE_FIELDS else unrebuilt}", at)
-            elif name in SENT_FIELDS:
-                self.free(value, f"field {name}, which the client does not send at this point (its endpoint adaptations)", at)
-            else:
-                self.free(value, f"field {name}, which the client never sends", at)
-        missing = [k for k in expected if k not in doc]
-        if missing:
-            self.finding("unverified", "request", f"a request without the field(s) {', '.join(missing)} the client sends", where)
-        self.replay.observe(row, want)
-        if row.get("ok"):
-            self.answered[(req.iteration, req.attempt)] = row
-
-    def _request(self, form: PromptForm, req: Request, entries: list[EncodedEntry], stalled: int = 0) -> FormRequest:
-        """The request ``form`` makes at this call from what the proposer had: the public context,
-        the entries shown, the settings, the stall count and, on a retry, the previous attempt's
-        answer and the form's verdict on it (its payload is a placeholder: the payload is compared
-        by ``messages`` / ``prompt``)."""
-        previous = self.answered.get((req.iteration, req.attempt - 1)) if req.attempt > 0 else None
-        content, detail = None, ""
-        if previous is not None:
-            finish, _ = rc.response_facts(previous.get("response"))
-            content = previous.get("content")
-            detail = form.judge(content, previous.get("reasoning"), self.ctx, entries, finish_reason=finish).detail
-        return form.request(rc.PROMPT_MARK, ctx=self.ctx, shown=entries, iteration=req.iteration, attempt=req.attempt,
-                            previous=content, detail=detail, temperature=self.config.llm.temperature, stalled=stalled)
-
-    def seed(self, value: object, req: Request) -> None:
-        at = f"{req.where}, field seed"
-        if value is None:
-            return
-        if not isinstance(value, int) or isinstance(value, bool):
-            self.free(value, "field seed that is not an integer", at)
-            return
-        if value == seeding.llm_seed(self.config.seed, req.iteration, req.attempt):
-            self.finding("channel", "run_seed", "the request's sampling seed derives from the run seed (runs made before "
-                         "sampling seeds were keyed by the secrets): trying run seeds finds it", at)
-            return
-        if self.secrets is not None and value != self.codec.sampling_seed(self.config.seed, req.iteration, req.attempt):
-            self.free(value, "field seed that is not the key-derived sampling seed", at)
-        elif self.secrets is None:
-            self.free(value, "", at)  # not verifiable without the key file: still read for raw values
-
-    def messages(self, value: object, req: Request, form: PromptForm) -> list[Candidate | None]:
-        """The messages of a chat-endpoint form, rebuilt as the form builds them (``form.request``):
-        the prompt, or after an unusable answer the prompt, that answer's final text and the
-        correction (or prompt and correction in one user turn). Every message is compared with its
-        rebuilt text and what differs is read; messages in any other arrangement are read whole.
-        Returns the candidates the prompt shows."""
-        if not isinstance(value, list):
-            self.free(value, "messages that are not a list", f"{req.where}, messages")
-            return []
-        sent: list[tuple[int, object, str]] = []  # (position, role, text) of every readable message
-        for i, m in enumerate(value):
-            at = f"{req.where}, message {i + 1}"
-            if not isinstance(m, dict):
-                self.free(m, "a message that is not an object", at)
-                continue
-            role, content = m.get("role"), m.get("content")
-            for k, v in m.items():
-                if k not in ("role", "content"):
-                    self.free(v, f"message field {k}, which the client never sends", at)
-            if isinstance(content, list):
-                self.finding("unverified", "request", "message content sent as a list of parts (the client sends strings)", at)
-                content = message_text(content)
-            elif not isinstance(content, str):
-                self.free(content, "message content that is not a string", at)
-                continue
-            sent.append((i, role, content))
-        want, repeated = self._turns(form, req)
-        if want is None or len(sent) != len(value) or [r for _, r, _ in sent] != [m["role"] for m in want]:
-            return self._unexpected_turns(sent, req, form, want is None)
-        shown: list[Candidate | None] = []
-        for (i, _, text), message in zip(sent, want, strict=True):
-            at = f"{req.where}, message {i + 1}"
-            if rc.PROMPT_MARK in message["content"]:
-                before, after = message["content"].split(rc.PROMPT_MARK)
-                shown = self.prompt(text, req, form, before, after)
-            elif message["role"] == "assistant":
-                self.spans(message["content"], text, [], at, "an assistant turn that is not the provider's own final text")
-            else:
-                self.spans(message["content"], text, [], at, "text the correction template does not produce")
-        if repeated is not None:
-            finish, _ = rc.response_facts(repeated.get("response"))
-            entries = [self.rebuilt.entry(c) for c in shown if c is not None]
-            verdict = form.judge(repeated.get("content"), repeated.get("reasoning"), self.ctx, entries, finish_reason=finish)
-            if verdict.error != "repeats_history":
-                self.finding("unverified", "request", "a correction after an answer the client takes (it repeats no policy "
-                             "of the history shown)", req.where)
-        return shown
-
-    def _turns(self, form: PromptForm, req: Request) -> tuple[list[Mapping[str, str]] | None, dict[str, Any] | None]:
-        """The messages ``form`` sends at this call, with ``rc.PROMPT_MARK`` where the prompt goes:
-        the prompt, or after the recorded answer of the previous attempt the correction with the fault
-        ``form.read`` finds in it, or ``REPEATS_HISTORY`` when it holds a proposal (then that answer
-        is returned too: the correction is the client's only if it repeats the history shown, which
-        the caller checks once it knows the history). None when that answer is not recorded."""
-        previous = self.answered.get((req.iteration, req.attempt - 1)) if req.attempt > 0 else None
-        if req.attempt > 0 and previous is None:
-            return None, None
-        detail, repeated = "", None
-        if previous is not None:
-            finish, _ = rc.response_facts(previous.get("response"))
-            result = form.read(previous.get("content"), self.task.D, reasoning=previous.get("reasoning"), finish_reason=finish)
-            detail, repeated = (REPEATS_HISTORY, previous) if result.ok else (result.detail, None)
-        req_form = form.request(rc.PROMPT_MARK, ctx=self.ctx, shown=[], iteration=req.iteration, attempt=req.attempt,
-                                previous=None if previous is None else previous.get("content"), detail=detail)
-        return list(req_form.messages or ()), repeated
-
-    def _unexpected_turns(self, sent: list[tuple[int, object, str]], req: Request, form: PromptForm,
-                          unknown: bool) -> list[Candidate | None]:
-        """Messages not in the form's arrangement: the first user message is read as the prompt,
-        every other message whole, numbers and all."""
-        if unknown:
-            self.finding("unverified", "request", "a correction after an answer that is not recorded", req.where)
-        prompt_seen = False
-        shown: list[Candidate | None] = []
-        for i, role, text in sent:
-            if role == "user" and not prompt_seen:
-                prompt_seen = True
-                shown = self.prompt(text, req, form)
-            else:
-                self.free(text, f"a {role} message at position {i + 1}, which the client does not send there",
-                          f"{req.where}, message {i + 1}")
-        return shown
-
-    def prompt(self, text: str, req: Request, form: PromptForm, before: str = "", after: str = "") -> list[Candidate | None]:
-        """A prompt of ``form`` (the chat prompt in a message, or a document), with ``before``/``after``
-        what the client puts around it in the same message: each history entry the form prints
-        matched and checked (``entry``), each number the form derives from them checked
-        (``form.derived``), the rest read as prose, and the whole rebuilt from the shown candidates
-        (``reconstruct.prompt_spans``). R2PO's critic prompt is checked by ``critic``. Returns the
-        candidates shown (None for an entry that matches none)."""
-        if form is CRITIC:
-            self.critic(text, req, before, after)
-            return []
-        inner = text[len(before):len(text) - len(after)] if text.startswith(before) and text.endswith(after) \
-            and len(text) >= len(before) + len(after) else text
-        # the entries ``parse_request`` read in the same text with the same form, else read here
-        entries = list(req.entries) if text == req.text and form.name == req.form else form.entries(text)
-        shown: list[Candidate | None] = []
-        flagged: list[tuple[int, int]] = []
-        for k, e in enumerate(entries):
-            before_count = self._problems
-            c = self.entry(req, k, e)
-            shown.append(c)
-            if c is None or self._problems > before_count:
-                flagged.append((e.start, e.end))
-        rebuilt = self._rebuilt_for(form)
-        verified = [rebuilt.entry(c) for c in shown if c is not None] if all(c is not None for c in shown) else []
-        skips = []
-        for d in form.derived(text, verified):
-            parsed = token_value(d.token) if d.token else None
-            if d.value is not None and parsed is not None and renders(d.value, *parsed):
-                skips.append(d.offset)  # derived from the shown encoded values, as the form computes it
-            else:
-                self.finding("unverified", d.kind, d.detail, f"{req.where}, prose at character {d.offset}" if d.token else req.where)
-        self.prose(req, inner, entries if inner == text else form.entries(inner), skips)
-        for a, b in rc.prompt_spans(rebuilt, text, entries, shown, before, after):
-            if any(s <= a and b <= e for s, e in flagged) or any(a <= at < b for at in skips):
-                continue  # inside an entry already reported, or a derived number checked above
-            self.free(text[a:b], f"text the {form.name} form's templates do not produce: {text[a:b][:60]!r}", f"{req.where}, character {a}")
-        return shown
-
-    def critic(self, text: str, req: Request, before: str = "", after: str = "") -> None:
-        printed = rc.critic_params(text)
-        c = None
-        if printed is not None:
-            toks = [token_value(t) for t in printed.strip("[]").split(",")]
-            if toks and all(t is not None for t in toks):
-                vals = np.array([t[0] for t in toks if t])
-                tols = np.array([t[1] for t in toks if t])
-                idx, _ = self.match(vals, tols)
-                c = self.cands[idx] if idx is not None else None
-        if c is None:
-            self.free(text, "a critic prompt whose candidate matches no evaluated candidate", req.where)
-            return
-        self.shown[c.index] = c
-        self.finding("leak", "raw_trajectory", "raw states and the actions taken in them (R2PO's critic evidence)"
-                     + ("" if not self.mech.encode_params else "; beside encoded parameters, a least-squares fit gives A"),
-                     req.where, by_design=not (self.mech.encode_params or self.mech.scale_rewards))
-        self.spans(before + rc.expected_critic(self.ctx, c, text) + after, text, [], req.where)
-
     def spans(self, expected: str, text: str, flagged: list[tuple[int, int]], where: str,
               what: str = "text the prompt templates do not produce") -> None:
         """Read every stretch of ``text`` that the client does not produce (``expected``)."""
@@ -842,139 +470,20 @@ class _Auditor:
             self.report.requests += 1
             if not row.get("answered", True):
                 self.report.unanswered.append(int(row["id"]))
-            self.body(row, req)
+            self.bodies.body(row, req)
         if self.replay.changes != self.adaptations:
             self.finding("unverified", "request", "the run's recorded endpoint adaptations are not the ones its recorded "
                          f"exchanges lead to ({len(self.adaptations)} recorded, {len(self.replay.changes)} replayed)",
                          "llm_adaptations")
-        self.channels()
-        self.anchors()
-        self.timing()
-        self.identifiers()
+        run_checks.channels(self)
+        run_checks.anchors(self)
+        run_checks.timing(self)
+        run_checks.identifiers(self)
         if self.attacks:
-            self.exposure()
+            run_checks.exposure(self)
         order = {"leak": 0, "identifier": 1, "unverified": 2, "exposed": 3, "channel": 4}
         self.report.findings.sort(key=lambda f: order.get(f.severity, 3))
         return self.report
-
-    def exposure(self) -> None:
-        """Run and score every attack (``exposure.assess``): exposures, attacks not run, the
-        public-dynamics line and the run seed read off the transcript."""
-        if not self.requests or not (self.mech.encode_params or self.mech.scale_rewards):
-            return
-        if self.simulate:
-            self.report.sim_bound = self.limits.describe()
-        found = assess(self.requests, self.task, self.config.box, self.mech, self.cands, self.secrets, limits=self.limits,
-                       simulate=self.simulate, grid=run_grid_factor(self.config, self.secrets))
-        for x in found.exposures:
-            if x.target == "c":
-                secret = "c"
-            elif x.target == "a":
-                secret = f"a_j on {x.coords} of {self.task.D} coordinates"
-            elif x.target == "raw params":
-                secret = "the best shown policy's raw parameters (largest error as a share of the box width)"
-            else:
-                secret = f"the best shown policy's {x.target}"
-            self.finding("exposed", x.attack, f"recovers {secret} to {100 * x.error:.2g}%: {x.detail}", "transcript",
-                         by_design=x.paper)
-        self.report.not_run = found.not_run
-        self.report.near_misses += found.near_misses
-        self.report.estimates = found.estimates
-        if found.note:
-            self.report.notes.append(found.note)
-        self.report.public_dynamics = self._public_dynamics(found)
-        self._seed_channel(found)
-
-    def _public_dynamics(self, found: Assessment) -> str:
-        """The line for a task whose env the provider can build: what the simulator fits got here."""
-        if not self.mech.encode_params or not env_is_public(self.task):
-            return ""
-        got = []
-        for x in found.exposures:
-            if x.attack.startswith("sim-"):
-                got.append(f"{x.attack}: {x.target} within {100 * x.error:.2g}%")
-        for o in found.simulated:
-            if o.error is not None and not any(g.startswith(f"{o.attack}: {o.target} ") for g in got):
-                got.append(f"{o.attack}: {o.target} within {100 * o.error:.3g}% (prior {100 * (o.prior_error or 0):.3g}%)")
-        ran = "; here " + ", ".join(got) if got else ""
-        return (f"task {self.task.name} runs the public env {self.task.env_id}, so the provider can simulate it: the encodings "
-                f"protect the secrets only as far as the shown history leaves them undetermined, whatever the preset "
-                f"(docs/threat-model.md, 'What the encoding cannot hide'){ran}")
-
-    def _seed_channel(self, found: Assessment) -> None:
-        """The run seed read off the transcript (any preset that encodes parameters): it replays the warm-up
-        draws and gives every episode's initial state."""
-        if not self.mech.encode_params or not self.requests:
-            return
-        v = view_of(self.requests, self.task, self.config.box)
-        seed, how = find_run_seed(v)
-        if seed is not None:
-            self.finding("channel", "run_seed", f"the run seed is read off the transcript ({how}): it gives every episode's "
-                         "initial state (seeding.episode_seeds) and the warm-up draws", "transcript")
-
-    # -- the user's own names --------------------------------------------------------------------
-    def identifiers(self) -> None:
-        """Names of the task's own env (its module, class, file and folder names, from the stored
-        declaration) must not reach a prompt under a preset that encodes parameters."""
-        if not self.mech.encode_params or env_is_public(self.task):
-            return
-        names = env_identifiers(self.task)
-        if not names:
-            return
-        for req in self.requests:
-            text = req.body or req.text
-            for name in names:
-                if re.search(rf"(?<![A-Za-z0-9_]){re.escape(name)}(?![A-Za-z0-9_])", text):
-                    self.finding("identifier", "identifier", f"the name '{name}' of the task's own env ({names[name]})",
-                                 req.where)
-
-
-IGNORED_NAMES = frozenset({"env", "envs", "environment", "environments", "gym", "gymnasium", "src", "lib", "main",
-                           "__main__", "site-packages", "python", "test", "tests", "make", "ppprops", "home", "user",
-                           "users", "tmp", "robot", "policy", "task"})
-
-
-def env_identifiers(task: Any) -> dict[str, str]:
-    """name -> what it is: the module path and each of its parts, the class or factory name, the
-    imported modules, the folders (and their last two path components) of the task's env, from its
-    stored declaration (``EnvRecipe``: id, entry_point, imports, paths). Names shorter than three
-    characters and generic words (``IGNORED_NAMES``) are left out."""
-    spec = getattr(task, "spec", None)
-    env = getattr(spec, "env", None)
-    found: dict[str, str] = {}
-
-    def add(name: str, what: str) -> None:
-        name = name.strip()
-        if len(name) >= 3 and name.lower() not in IGNORED_NAMES and name not in found:
-            found[name] = what
-
-    def module(ref: str, what: str) -> None:
-        mod, sep, attr = ref.partition(":")
-        if sep:
-            add(mod, f"{what} module")
-            for part in mod.split("."):
-                add(part, f"{what} module")
-            for part in attr.split("."):
-                add(part, f"{what} name")
-        else:
-            add(ref, f"{what} module")
-            for part in ref.split("."):
-                add(part, f"{what} module")
-
-    ids = [getattr(env, "id", None) or task.env_id]
-    for ref in ids:
-        if ref and ":" in ref:
-            module(ref, "env id")
-    if env is not None:
-        if env.entry_point:
-            module(str(env.entry_point), "entry point")
-        for m in env.imports:
-            module(str(m), "imported")
-        for path in env.paths:
-            parts = Path(str(path)).parts
-            for part in parts[-2:]:
-                add(part, "folder")
-    return found
 
 
 def _numbers(value: object, out: list[str]) -> None:
@@ -992,23 +501,6 @@ def _numbers(value: object, out: list[str]) -> None:
     elif isinstance(value, (list, tuple)):
         for v in value:
             _numbers(v, out)
-
-
-def _num(v: object) -> float:
-    try:
-        return float(v)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def run_grid_factor(config: RunConfig, secrets: Secrets | None) -> float:
-    """The secret grid factor g of a run on the grid (``client.codec.grid_factor``), 1 off the grid or
-    without its key file: attacks on a are scored against the effective scale g a_j."""
-    if secrets is None or config.numbers != "grid":
-        return 1.0
-    from ..client.codec import grid_factor
-
-    return grid_factor(secrets, config.box, config.mechanisms.warp_params)
 
 
 def search_config(stored: dict[str, Any], run_dir: Path) -> RunConfig:
