@@ -155,10 +155,16 @@ def test_the_proxy_sees_exactly_the_requests_the_store_holds(tmp_path: Path, emb
 
 def _recorded_is_what_was_sent(requests: list[bytes], run_dir: Path) -> None:
     """Every request that crossed the wire (any method, any path) is a recorded one, byte for byte, and
-    the store holds no request that was not sent: the audit reads exactly what the provider received."""
+    the store holds no request that was not sent: the audit reads exactly what the provider received.
+    The one exception is the endpoint probe before the run (``llm.probe``): first, once, a bodiless
+    ``GET /v1/models`` whose headers name no value of the run."""
     store = open_store(run_dir)
     recorded = [c["request"] for c in store.llm_calls()]
     store.close()
+    probe, requests = requests[0], requests[1:]
+    head, body = probe.split(b"\r\n\r\n", 1)
+    assert head.startswith(b"GET /v1/models ") and body == b"" and b"content-length" not in head.lower()
+    assert not any(r.startswith(b"GET ") for r in requests)
     assert len(requests) == len(recorded) and all(r.startswith(b"POST /v1/chat/completions ") for r in requests)
     assert [r.split(b"\r\n\r\n", 1)[1] for r in requests] == [r.encode("utf-8") for r in recorded]
 

@@ -6,8 +6,9 @@ reader has at hand: the example files (``examples/own_robot/*``, ``examples/robo
 and a ``best_policy.json``; the blocks of one page run in order in one folder, so a later block
 finds what an earlier one wrote. No endpoint is needed: in these processes every LLM a study would
 connect to, the embedded model or any ``base_url``, is the offline stand-in optimizer
-(``ppprops.privacy.simulate.EchoOptimizer``), so a block keeps the method it shows (``pp``) and
-runs in seconds. A block that runs its search under ``if __name__ == "__main__":`` runs as a
+(``ppprops.privacy.simulate.EchoOptimizer``), and the check that an endpoint answers before a run
+starts (``ppprops.llm.probe``) passes, so a block keeps the method it shows (``pp``) and runs in
+seconds. A block that runs its search under ``if __name__ == "__main__":`` runs as a
 script (``__name__`` is ``"__main__"``), worker processes included.
 """
 
@@ -33,7 +34,8 @@ HARNESS = textwrap.dedent('''
     from unittest import mock
     from ppprops.privacy.simulate import EchoOptimizer
 
-    with mock.patch("ppprops.llm.client.connect", lambda llm, **kw: EchoOptimizer(llm, spread=0.5)):
+    with (mock.patch("ppprops.llm.client.connect", lambda llm, **kw: EchoOptimizer(llm, spread=0.5)),
+          mock.patch("ppprops.llm.probe.probe_endpoint", lambda llm, api_key: None)):
         runpy.run_path(sys.argv[1], run_name="__main__")
 ''')
 

@@ -324,8 +324,6 @@ def _cmd_run(a: argparse.Namespace) -> int:
     out = a.out or default_run_dir(config)
     env = check_startable(config, out)  # every check that needs no episode, before anything is written or printed
     a.run_dir = out  # named by the Ctrl-C line
-    if not a.quiet:
-        _say(f"run directory: {out} (seed {config.seed})")
     fleet = None
     if a.ray_address:
         from .ray_fleet import RayFleet
@@ -336,7 +334,8 @@ def _cmd_run(a: argparse.Namespace) -> int:
             env.close()
             raise
     try:
-        with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}") as events:
+        with ProgressEvents(enabled=not a.quiet, label=f"{config.task} {config.method}",
+                            header=f"run directory: {out} (seed {config.seed})") as events:  # once the first episode passed
             start(config, out, events.hooks(), env=env, fleet=fleet)  # the run's episodes use the env the checks made
     finally:
         if fleet is not None:

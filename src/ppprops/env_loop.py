@@ -171,13 +171,13 @@ def _drive(study: DrivenStudy, callbacks: Sequence[Callable[[Candidate, Any], bo
         raise
     except LLMError as e:  # the endpoint stayed down past the retry bound: resumable
         mark(store, RunStatus.FAILED, str(e))
-        raise LLMError(f"{e}; the run is saved: continue with 'ppprops resume {study.run_dir}'") from e
+        raise LLMError(saved(str(e), study.run_dir)) from e
     except BROKEN_TASK as e:  # the env broke its declaration
         store.set_status(RunStatus.STOPPED, str(e))
         raise
     except (EpisodeError, PoolError) as e:  # the user's env raised or returned nonsense, or the workers died: fix it, then resume
         mark(store, RunStatus.FAILED, str(e))
-        raise type(e)(f"{e}; the run is saved: continue with 'ppprops resume {study.run_dir}'") from None
+        raise type(e)(saved(str(e), study.run_dir)) from None
     except Exception as e:  # nothing above foresaw it: the status says so (not "interrupted"), and the error goes on
         if interrupted_by_user(e):  # a Ctrl-C that Python wrapped (a lazy import it landed in): still a Ctrl-C
             mark(store, RunStatus.INTERRUPTED)
@@ -187,6 +187,19 @@ def _drive(study: DrivenStudy, callbacks: Sequence[Callable[[Candidate, Any], bo
     if fe is not None:
         events.on_final(fe)
     return fe
+
+
+def saved(line: str, run_dir: Path) -> str:
+    """``line`` (an error's) with what to do next: the run is kept, and ``resume`` continues it."""
+    return f"{line}{_SAVED.format(run_dir=run_dir)}"
+
+
+def unsaved(line: str, run_dir: Path) -> str:
+    """``line`` without what ``saved`` added (the run was not kept after all: ``runner.start``)."""
+    return line.removesuffix(_SAVED.format(run_dir=run_dir))
+
+
+_SAVED = "; the run is saved: continue with 'ppprops resume {run_dir}'"
 
 
 def next_round(study: DrivenStudy) -> list[Trial]:

@@ -13,13 +13,21 @@ from .values import Candidate, FinalEval
 
 
 class ProgressEvents:
-    """``hooks()`` for ``runner.start``/``resume``; nothing is printed when not ``enabled``."""
+    """``hooks()`` for ``runner.start``/``resume``; no progress is printed when not ``enabled``.
 
-    def __init__(self, *, enabled: bool, label: str) -> None:
+    Nothing is printed before the run's first result (a trial told or failed, the embedded model
+    loading, the final evaluation): ``header`` (e.g. the run directory's line), the notices and the
+    bar wait for it, so a run refused in its first episode prints its one error line alone.
+    """
+
+    def __init__(self, *, enabled: bool, label: str, header: str | None = None) -> None:
         self.enabled = enabled
         self.label = label
         self.bar: Any = None
         self.final_bar: Any = None
+        self._held: list[str] = [header] if header is not None and enabled else []
+        self._plan: tuple[int, int] | None = None  # (settled, total) from on_start, drawn at the first result
+        self._shown = False
 
     def __enter__(self) -> ProgressEvents:
         return self
@@ -37,12 +45,24 @@ class ProgressEvents:
             tqdm.write(text, file=sys.stderr)
 
     def _start(self, done: int, total: int) -> None:
-        if self.enabled:
+        self._plan = (done, total)
+
+    def _show(self, *, bar: bool = True) -> None:
+        """At the first result: the held lines, then the bar (``bar``)."""
+        if self._shown:
+            return
+        self._shown = True
+        for line in self._held:
+            print(line, file=sys.stderr, flush=True)
+        self._held = []
+        if bar and self.enabled and self._plan is not None:
             from tqdm import tqdm
 
+            done, total = self._plan
             self.bar = tqdm(total=total, initial=done, desc=self.label, unit="eval", dynamic_ncols=True, file=sys.stderr)
 
     def _candidate(self, c: Candidate, latency: float | None, best: float) -> None:
+        self._show()
         if self.bar is None:
             return
         post = {"it": f"{c.source}:{c.iteration}", "best": f"{best:.1f}", "last": f"{c.ret:.1f}"}
@@ -52,12 +72,14 @@ class ProgressEvents:
         self.bar.update(1)
 
     def _llm_loading(self) -> None:
+        self._show()
         self._write("loading the embedded model (Gemma 3 270M in a llama.cpp server)...")
 
     def _llm_ready(self, seconds: float) -> None:
         self._write(f"embedded model ready in {seconds:.1f} s")
 
     def _final_start(self, episodes: int) -> None:
+        self._show(bar=False)
         if self.bar is not None:
             self.bar.close()
             self.bar = None
@@ -78,8 +100,10 @@ class ProgressEvents:
         self.bar = self.final_bar = None
 
     def _notice(self, text: str) -> None:
-        """A line the user should read even without progress (``--quiet`` keeps it)."""
-        if self.bar is not None:
+        """A line the user should read even without progress (``--quiet`` keeps it); held until the first result."""
+        if not self._shown:
+            self._held.append(f"note: {text}")
+        elif self.bar is not None:
             from tqdm import tqdm
 
             tqdm.write(f"note: {text}", file=sys.stderr)
@@ -87,6 +111,7 @@ class ProgressEvents:
             print(f"note: {text}", file=sys.stderr, flush=True)
 
     def _failed(self, number: int, reason: str) -> None:
+        self._show()
         self._notice(f"trial {number} failed: {reason}")
         if self.bar is not None:
             self.bar.update(1)

@@ -105,6 +105,36 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     return open_store(run_dir), secrets
 
 
+def discard_empty_run(run_dir: Path, *, keep_dir: bool = False) -> bool:
+    """Remove the run directory ``run_dir`` when its store holds nothing of a search: no trial
+    told, none failed, no LLM request, no final evaluation (a run refused in its first episode).
+    Returns True when it was removed; a directory holding anything more, or none, is left as it is.
+
+    The directory is first renamed to a hidden sibling, so it is gone at once under its own name;
+    with ``keep_dir`` an empty directory is left in its place (one the user made for ``--out``).
+    """
+    run_dir = Path(run_dir)
+    if not is_run_dir(run_dir):
+        return False
+    try:
+        with RunStore(run_dir / DB_NAME) as store:
+            empty = (store.candidate_count() == 0 and store.failed_count() == 0 and not store.llm_calls()
+                     and store.final_eval() is None)  # fmt: skip
+    except StoreError:
+        return False
+    if not empty:
+        return False
+    gone = run_dir.parent / f".{run_dir.name}.{uuid.uuid4().hex[:8]}.discarded"
+    try:
+        os.rename(run_dir, gone)
+    except OSError:
+        return False
+    shutil.rmtree(gone, ignore_errors=True)
+    if keep_dir:
+        run_dir.mkdir(exist_ok=True)
+    return True
+
+
 def check_out(run_dir: Path) -> None:
     """Refuse, in one ConfigError line, an output directory a new run cannot be made in: a file, a
     directory that already holds something (another run, or other files)."""

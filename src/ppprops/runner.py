@@ -17,11 +17,12 @@ from typing import Any
 
 from .client.secrets import Secrets
 from .config import RunConfig
+from .env_loop import unsaved
 from .errors import ConfigError, StoreError
 from .evaluation import Fleet, check_parallel
 from .events import NO_EVENTS, RunEvents
 from .llm.protocol import LLM
-from .rundir import POLICY_NAME, create_run, final_returns, load_run, new_run_id
+from .rundir import POLICY_NAME, create_run, discard_empty_run, final_returns, load_run, new_run_id
 from .store import RunStore
 from .study import Callback, Study
 from .values import FinalEval
@@ -33,10 +34,11 @@ __all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "create_ru
 def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) -> Any:
     """Every check of a new run that needs no episode, before anything is written: the settings
     are valid, the task has an env (a task without one is driven with ask/tell), the output
-    directory is free, worker processes can make the env, the API key variable is set when the
-    method will call the configured endpoint (``endpoint``: False when a model object stands in
-    for it), and the env can be made (a simulator extra that is missing, a module that fails to
-    import, a constructor that raises).
+    directory is free, worker processes can make the env, the API key variable is set and the
+    endpoint answers as an OpenAI-compatible API (``llm.probe``) when the method will call the
+    configured endpoint (``endpoint``: False when a model object stands in for it), and the env
+    can be made (a simulator extra that is missing, a module that fails to import, a constructor
+    that raises).
 
     Returns the env made by the last check, for the run's episodes: hand it to ``start(env=...)``,
     which closes it (or close it yourself).
@@ -57,7 +59,9 @@ def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) 
     if config.workers > 1:
         check_parallel(task)
     if endpoint and get_method(config.method).uses_llm and config.iterations > 0 and not config.llm.embedded:
-        read_api_key(config.llm)
+        from .llm.probe import probe_endpoint
+
+        probe_endpoint(config.llm, read_api_key(config.llm))
     return task.make_env()
 
 
@@ -89,23 +93,40 @@ def start(
         The final evaluation (the best search policy on ``final_episodes`` fresh episodes, raw
         returns), or None when ``final_episodes`` is 0.
 
+    A run refused before it recorded anything (its first episode found the env broken, an
+    undeclared reward component, a malformed value: no trial told, none failed, no LLM request)
+    leaves nothing: its directory is removed (``rundir.discard_empty_run``) and the error is
+    raised without the line that names ``resume``, so the corrected command runs with the same
+    ``run_dir``.
+
     Raises:
-        ConfigError: an invalid config, or ``run_dir`` already holds something or cannot be made
-            (nothing is written then).
+        ConfigError: an invalid config, an endpoint that does not answer as an OpenAI-compatible
+            API, or ``run_dir`` already holds something or cannot be made (nothing is written then).
         LLMError: the endpoint stayed down past the retries (the run is left resumable).
         KeyboardInterrupt: Ctrl-C; the run is marked ``interrupted`` and resumable.
+        EpisodeError, PoolError: the env raised or returned a malformed value (left resumable
+            once something was recorded; nothing is left otherwise).
         FeedbackKeyError, EpisodeLimitError: the env broke its declaration mid-run (status
-            ``stopped: ...``).
+            ``stopped: ...``; nothing is left when it was the first episode).
     """
     if env is None:
         env = check_startable(config, run_dir, endpoint=llm is None)
+    existed = Path(run_dir).is_dir()  # an empty directory given as --out: left empty again on a refusal
     try:
         study = Study.create(config, run_dir, secrets=secrets, llm=llm, llm_gate=llm_gate, events=events, env=env)
     except BaseException:
         env.close()
         raise
-    with study:
-        return study.optimize(callbacks, events, fleet=fleet)
+    try:
+        with study:
+            return study.optimize(callbacks, events, fleet=fleet)
+    except Exception as e:
+        if not discard_empty_run(run_dir, keep_dir=existed):
+            raise
+        line = unsaved(str(e), run_dir)
+        if line == str(e):
+            raise
+        raise type(e)(line) from None
 
 
 @dataclass(frozen=True)
