@@ -15,7 +15,7 @@ import pytest
 
 from ppprops.cli import main
 from ppprops.store import open_store
-from ppprops.testing.fault_server import FaultServer
+from ppprops.testing.fault_server import FaultConfig, FaultServer
 
 RUN = ["run", "--env", "CartPole", "--method", "pp", "--model", "m", "--warmup", "2", "--iterations", "1", "--final-episodes", "1",
        "--select-top", "0", "--audit", "off"]  # fmt: skip
@@ -100,3 +100,78 @@ def test_the_probe_is_no_llm_request_of_the_run(capsys: pytest.CaptureFixture[st
         calls = store.llm_calls()
     assert len(calls) == stats["requests"] == 1  # the one LLM iteration's request; the probe's GET is neither
     assert all("/models" not in c["request"] for c in calls)
+
+
+STUDY = ["study", "create", "--env", "CartPole", "--method", "pp", "--model", "m", "--warmup", "2", "--iterations", "1"]
+
+
+def test_a_study_on_a_closed_port_is_refused_at_create_and_the_corrected_one_is_made(capsys: pytest.CaptureFixture[str],
+                                                                                     tmp_path: Path) -> None:  # fmt: skip
+    out = tmp_path / "study"
+    url = f"http://127.0.0.1:{_free_port()}/v1"
+    assert main([*STUDY, "--base-url", url, "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == (f"ppprops: error: cannot reach the LLM endpoint {url} (--base-url): nothing accepts "
+                                                   "connections there (is the server running, on that host and port?)\n")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []  # found before the warm-up's trials were handed out, not after them
+    with FaultServer() as server:
+        assert main([*STUDY, "--base-url", server.base_url, "--out", str(out)]) == 0
+        assert server.stats()["requests"] == 0  # the probe is no LLM request
+    assert capsys.readouterr().out == f"study directory: {out}\n"
+    with open_store(out) as store:
+        assert store.status() == "open" and store.llm_calls() == []
+
+
+def test_create_study_in_python_probes_the_endpoint_first(tmp_path: Path) -> None:
+    import ppprops
+    from ppprops.errors import ConfigError
+
+    url = f"http://127.0.0.1:{_free_port()}/v1"
+    with pytest.raises(ConfigError, match=r"^cannot reach the LLM endpoint http://127\.0\.0\.1:\d+/v1 \(--base-url\)"):
+        ppprops.create_study("CartPole", storage=tmp_path / "s", method="pp", warmup=2, iterations=1,
+                             llm={"base_url": url, "model": "m"})  # fmt: skip
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_new_endpoint_on_resume_is_probed_before_it_is_stored(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    out = tmp_path / "r"
+    with FaultServer(FaultConfig(fault_rate=1.0, kinds=("http_500",))) as server:  # every LLM request fails: kept after the warm-up
+        code = main([*RUN, "--base-url", server.base_url, "--retries", "0", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.endswith(f"; the run is saved: continue with 'ppprops resume {out}'\n"), err
+    db_before = (out / "run.sqlite").read_bytes()
+    url = f"http://127.0.0.1:{_free_port()}/v1"
+    assert main(["resume", str(out), "--base-url", url, "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"ppprops: error: cannot reach the LLM endpoint {url} (--base-url)")
+    assert (out / "run.sqlite").read_bytes() == db_before  # the endpoint it could not reach is not stored
+
+
+def test_resume_with_an_endpoint_on_a_study_without_env_changes_nothing(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    robot = Path(__file__).resolve().parents[1] / "examples" / "robot_outside" / "robot.toml"
+    out = tmp_path / "study"
+    with FaultServer() as server:
+        assert main(["study", "create", "--task-file", str(robot), "--method", "pp", "--model", "m", "--base-url", server.base_url,
+                     "--out", str(out)]) == 0  # fmt: skip
+    capsys.readouterr()
+    db_before = (out / "run.sqlite").read_bytes()
+    assert main(["resume", str(out), "--base-url", "http://127.0.0.1:9/v1"]) == 2
+    assert capsys.readouterr().err == (f"ppprops: error: {out} is a study of a task without env, which 'ppprops resume' cannot run: "
+                                       f"its next trials come from 'ppprops ask {out}'\n")  # fmt: skip
+    assert (out / "run.sqlite").read_bytes() == db_before
+
+
+def test_an_ask_whose_endpoint_went_down_names_the_study_and_the_ask_to_repeat(capsys: pytest.CaptureFixture[str],
+                                                                               tmp_path: Path) -> None:  # fmt: skip
+    out = tmp_path / "study"
+    with FaultServer() as server:
+        assert main([*STUDY[:-4], "--warmup", "1", "--iterations", "2", "--retries", "0", "--base-url", server.base_url,
+                     "--out", str(out)]) == 0  # fmt: skip
+    # the server is gone: the warm-up trial needs no LLM, the next one does
+    assert main(["ask", str(out)]) == 0 and main(["tell", str(out), "0", "--return", "12"]) == 0
+    capsys.readouterr()
+    assert main(["ask", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ppprops: error: LLM endpoint failed"), err
+    assert err.endswith(f"; the study is kept: ask again once the endpoint answers ('ppprops ask {out}')\n")
+    with open_store(out) as store:
+        assert store.candidate_count() == 1 and store.pending_trials() == []

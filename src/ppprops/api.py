@@ -300,12 +300,15 @@ def create_study(task: TaskLike, *, storage: Pathish | None = None, **options: U
     (``ppprops.study``).
 
     Raises:
-        ConfigError: bad settings or task, an occupied ``storage``.
+        ConfigError: bad settings or task, an occupied ``storage``, an endpoint that does not
+            answer as an OpenAI-compatible API (``llm.probe``; nothing is written then).
     """
     from .naming import default_run_dir
+    from .runner import check_creatable
 
     config, model = _build(task, options, ("storage",))
     run_dir = Path(storage) if storage is not None else default_run_dir(config)
+    check_creatable(config, run_dir, endpoint=model is None)  # a study that cannot start leaves nothing
     return Study.create(config, run_dir, llm=model)
 
 

@@ -27,16 +27,42 @@ from .store import RunStore
 from .study import Callback, Study
 from .values import FinalEval
 
-__all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "create_run", "final_returns", "load_run", "new_run_id", "resume",
-           "start"]
+__all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "check_creatable", "check_startable", "create_run", "final_returns",
+           "load_run", "new_run_id", "resume", "start"]
+
+
+def check_creatable(config: RunConfig, run_dir: Path, *, endpoint: bool = True, task: Any = None) -> Any:
+    """Every check of a new run or study that needs no env, before anything is written: the
+    settings are valid, the output directory is free, the API key variable is set and the endpoint
+    answers as an OpenAI-compatible API (``llm.probe``) when the method will call the configured
+    endpoint (``endpoint``: False when a model object stands in for it). ``ppprops study create``
+    and ``create_study`` run these; ``check_startable`` adds the env's.
+
+    Returns the task (``config.make_task()``, or ``task`` when the caller made it from a
+    validated ``config``).
+
+    Raises:
+        ConfigError: one line saying what to change.
+    """
+    from .llm.client import read_api_key
+    from .methods import get_method
+    from .rundir import check_out
+
+    if task is None:
+        config.validate()
+        task = config.make_task()
+    check_out(run_dir)
+    if endpoint and get_method(config.method).uses_llm and config.iterations > 0 and not config.llm.embedded:
+        from .llm.probe import probe_endpoint
+
+        probe_endpoint(config.llm, read_api_key(config.llm))
+    return task
 
 
 def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) -> Any:
-    """Every check of a new run that needs no episode, before anything is written: the settings
-    are valid, the task has an env (a task without one is driven with ask/tell), the output
-    directory is free, worker processes can make the env, the API key variable is set and the
-    endpoint answers as an OpenAI-compatible API (``llm.probe``) when the method will call the
-    configured endpoint (``endpoint``: False when a model object stands in for it), and the env
+    """Every check of a new run that needs no episode, before anything is written: those of
+    ``check_creatable`` (settings, output directory, API key, endpoint), then the task has an env
+    (a task without one is driven with ask/tell), worker processes can make the env, and the env
     can be made (a simulator extra that is missing, a module that fails to import, a constructor
     that raises).
 
@@ -46,22 +72,14 @@ def check_startable(config: RunConfig, run_dir: Path, *, endpoint: bool = True) 
     Raises:
         ConfigError: one line saying what to change (a ``MissingExtraError`` names the extra).
     """
-    from .llm.client import read_api_key
-    from .methods import get_method
-    from .rundir import check_out
-
     config.validate()
     task = config.make_task()
     if not getattr(task, "has_env", True):
         raise ConfigError(f"task {task.name} has no env, so 'ppprops run' cannot evaluate its policies: drive it with "
                           "'ppprops study create' and 'ppprops ask' / 'ppprops tell' (docs/own-robot.md)")  # fmt: skip
-    check_out(run_dir)
+    check_creatable(config, run_dir, endpoint=endpoint, task=task)
     if config.workers > 1:
         check_parallel(task)
-    if endpoint and get_method(config.method).uses_llm and config.iterations > 0 and not config.llm.embedded:
-        from .llm.probe import probe_endpoint
-
-        probe_endpoint(config.llm, read_api_key(config.llm))
     return task.make_env()
 
 
@@ -144,13 +162,16 @@ class Endpoint:
         return any(v is not None for v in (self.base_url, self.model, self.api_key_env))
 
 
-def change_endpoint(store: RunStore, config: RunConfig, endpoint: Endpoint) -> RunConfig:
-    """The run's config with ``endpoint`` applied, validated, stored, and the change recorded.
+def change_endpoint(store: RunStore, config: RunConfig, endpoint: Endpoint, *, probe: bool = True) -> RunConfig:
+    """The run's config with ``endpoint`` applied, validated, probed, stored, and the change recorded.
 
     The store's config gets the new ``llm.base_url``, ``model`` and ``api_key_env`` (so a later
     plain ``resume`` keeps them), and ``endpoint_changes`` gets one entry (when, after how many
-    candidates and LLM calls, from, to). Secrets and key file are untouched. Raises ConfigError
-    for settings ``LLMConfig.validate`` refuses; returns ``config`` unchanged if nothing differs.
+    candidates and LLM calls, from, to). Secrets and key file are untouched. Before anything is
+    stored, the new endpoint must answer as an OpenAI-compatible API (``llm.probe``; ``probe``:
+    False when a model object stands in for it, or the method calls no LLM). Raises ConfigError
+    for settings ``LLMConfig.validate`` refuses or an endpoint that does not answer (nothing is
+    changed then); returns ``config`` unchanged if nothing differs.
     """
     llm = replace(
         config.llm,
@@ -161,6 +182,11 @@ def change_endpoint(store: RunStore, config: RunConfig, endpoint: Endpoint) -> R
     llm.validate()
     if llm == config.llm:
         return config
+    if probe and llm.base_url and not llm.embedded:
+        from .llm.client import read_api_key
+        from .llm.probe import probe_endpoint
+
+        probe_endpoint(llm, read_api_key(llm))
     new = replace(config, llm=llm)
     keys = ("base_url", "model", "api_key_env")
     store.change_config(new.to_json(), {
@@ -184,14 +210,21 @@ def resume(
 ) -> FinalEval | None:
     """Continue a run with its own secrets: every recorded candidate is kept, the rest is run,
     then the final evaluation. ``endpoint`` continues it against a corrected or different LLM
-    endpoint (``change_endpoint``); ``llm`` replaces the run's LLM for this session. Raises StoreError for a missing or foreign directory or key
-    file, ConfigError for a bad endpoint, LLMError when the endpoint stays down."""
+    endpoint (``change_endpoint``, which probes it first); ``llm`` replaces the run's LLM for this
+    session. Raises StoreError for a missing or foreign directory or key file, ConfigError for a
+    bad endpoint (nothing is changed then) or a study of a task without env, LLMError when the
+    endpoint stays down."""
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
     try:
         if endpoint is not None and endpoint.given:
-            config = change_endpoint(store, config, endpoint)
+            from .methods import get_method
+
+            if not getattr(config.make_task(), "has_env", True):  # refused by optimize below: change nothing first
+                raise ConfigError(f"{run_dir} is a study of a task without env, which 'ppprops resume' cannot run: its next "
+                                  f"trials come from 'ppprops ask {run_dir}'")  # fmt: skip
+            config = change_endpoint(store, config, endpoint, probe=llm is None and get_method(config.method).uses_llm)
         study = Study(Path(run_dir), store, config, secrets, llm=llm, llm_gate=llm_gate, events=events)
     except BaseException:
         store.close()

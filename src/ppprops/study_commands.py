@@ -29,7 +29,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .errors import ConfigError
+from .errors import ConfigError, LLMError
 
 if TYPE_CHECKING:
     from .values import Trial
@@ -149,6 +149,8 @@ def cmd_ask(a: argparse.Namespace) -> int:
     needs it starts it, the next ones reuse it. Returns 0; ``EXIT_DONE`` (3) with one line on
     stderr when the study has nothing more to ask (its warm server, if any, then stops);
     ``EXIT_WAIT`` (4) with one line when ``--parallel`` trials are out and ``--wait`` is not given.
+    Raises LLMError (exit 2, one line naming the study and the ask to repeat) when the endpoint
+    stayed down past the retries.
     """
     _import_numpy()
     from .naming import check_worker
@@ -172,6 +174,8 @@ def cmd_ask(a: argparse.Namespace) -> int:
         except TrialsOut as e:
             print(f"ppprops: {e} (ask again later, or with --wait)", file=sys.stderr)
             return EXIT_WAIT
+        except LLMError as e:  # nothing was stored for it: the next ask asks the LLM again
+            raise LLMError(f"{e}; the study is kept: ask again once the endpoint answers ('ppprops ask {a.dir}')") from None
         print(json.dumps(trial.to_json()))
     return 0
 
@@ -285,9 +289,11 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
 
     if a.study_command == "create":
         from .naming import default_run_dir
+        from .runner import check_creatable
 
         config = run_config(a)
         out = a.out or default_run_dir(config)
+        check_creatable(config, Path(out))  # a study that cannot start leaves nothing
         a.run_dir = out
         with Study.create(config, out) as study:
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
