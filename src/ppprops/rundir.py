@@ -105,13 +105,20 @@ def create_run(config: RunConfig, run_dir: Path, secrets: Secrets | None = None)
     return open_store(run_dir), secrets
 
 
-def discard_empty_run(run_dir: Path, *, keep_dir: bool = False) -> bool:
+def missing_parents(run_dir: Path) -> list[Path]:
+    """The folders above ``run_dir`` that do not exist yet (``create_run`` makes them), deepest first."""
+    return [p for p in Path(run_dir).absolute().parents if not p.exists()]
+
+
+def discard_empty_run(run_dir: Path, *, keep_dir: bool = False, parents: Sequence[Path] = ()) -> bool:
     """Remove the run directory ``run_dir`` when its store holds nothing of a search: no trial
     told, none failed, no LLM request, no final evaluation (a run refused in its first episode).
     Returns True when it was removed; a directory holding anything more, or none, is left as it is.
 
     The directory is first renamed to a hidden sibling, so it is gone at once under its own name;
     with ``keep_dir`` an empty directory is left in its place (one the user made for ``--out``).
+    ``parents`` (``missing_parents`` before the run was made, deepest first) are removed too while
+    they are empty.
     """
     run_dir = Path(run_dir)
     if not is_run_dir(run_dir):
@@ -132,6 +139,11 @@ def discard_empty_run(run_dir: Path, *, keep_dir: bool = False) -> bool:
     shutil.rmtree(gone, ignore_errors=True)
     if keep_dir:
         run_dir.mkdir(exist_ok=True)
+    for folder in parents:
+        try:
+            folder.rmdir()
+        except OSError:  # something else was put there meanwhile: it stays
+            break
     return True
 
 

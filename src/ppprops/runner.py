@@ -22,7 +22,7 @@ from .errors import ConfigError, StoreError
 from .evaluation import Fleet, check_parallel
 from .events import NO_EVENTS, RunEvents
 from .llm.protocol import LLM
-from .rundir import POLICY_NAME, create_run, discard_empty_run, final_returns, load_run, new_run_id
+from .rundir import POLICY_NAME, create_run, discard_empty_run, final_returns, load_run, missing_parents, new_run_id
 from .store import RunStore
 from .study import Callback, Study
 from .values import FinalEval
@@ -130,6 +130,7 @@ def start(
     if env is None:
         env = check_startable(config, run_dir, endpoint=llm is None)
     existed = Path(run_dir).is_dir()  # an empty directory given as --out: left empty again on a refusal
+    parents = missing_parents(Path(run_dir))  # and the folders above it that the run makes: removed again
     try:
         study = Study.create(config, run_dir, secrets=secrets, llm=llm, llm_gate=llm_gate, events=events, env=env)
     except BaseException:
@@ -139,7 +140,7 @@ def start(
         with study:
             return study.optimize(callbacks, events, fleet=fleet)
     except Exception as e:
-        if not discard_empty_run(run_dir, keep_dir=existed):
+        if not discard_empty_run(run_dir, keep_dir=existed, parents=parents):
             raise
         line = unsaved(str(e), run_dir)
         if line == str(e):

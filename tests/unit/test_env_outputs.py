@@ -128,15 +128,16 @@ def _line_pattern(cls: str, call: str, problem: str) -> str:
 @pytest.mark.parametrize(("cls", "call", "problem"), CASES, ids=IDS)
 def test_ppprops_run_refused_in_its_first_episode_is_one_line_and_leaves_nothing(bad_env: Path, cls: str, call: str, problem: str,
                                                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(["run", "--env", f"bad_env:{cls}", "--out", "r", *RUN[:-1]])  # not --quiet: no progress before the line either
+    before = sorted(p.name for p in bad_env.iterdir())
+    code = main(["run", "--env", f"bad_env:{cls}", "--out", "deep/a/r", *RUN[:-1]])  # not --quiet: no progress before the line either
     out, err = capsys.readouterr()
     assert (code, out) == (2, "")
     assert re.fullmatch(f"ppprops: error: {_line_pattern(cls, call, problem)}\n", err), err
-    assert not (bad_env / "r").exists() and [p.name for p in bad_env.iterdir() if p.name.startswith(".r.")] == []
+    assert sorted(p.name for p in bad_env.iterdir()) == before  # no run directory, nor the folders made above it
     sys.modules["bad_env"].BROKEN = False  # the user fixes the env: the same command, the same --out, runs
-    assert main(["run", "--env", f"bad_env:{cls}", "--out", "r", *RUN, "--audit", "off"]) == 0
+    assert main(["run", "--env", f"bad_env:{cls}", "--out", "deep/a/r", *RUN, "--audit", "off"]) == 0
     capsys.readouterr()
-    with open_store(bad_env / "r") as store:
+    with open_store(bad_env / "deep" / "a" / "r") as store:
         assert store.status() == "finished" and [c.index for c in store.candidates()] == [0, 1, 2]
 
 
