@@ -152,6 +152,9 @@ class StudyOptions(TypedDict, total=False):
             ``select_episodes`` (the selection stage: the top candidates of the search run again on
             fresh episodes and the best pooled mean is handed over; default 5 x 10, 0 for a task
             without an env; ``select_top=0`` hands over the best search-time return).
+        stop: when the search ends before its budget (``ppprops.stopping``): ``target_return`` (a raw
+            return), ``time_limit`` (``"20m"``, ``"2h"`` or seconds), ``patience`` (candidates in a row
+            without a better return); the selection stage and the final evaluation still run.
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
@@ -172,6 +175,7 @@ class StudyOptions(TypedDict, total=False):
     privacy: Mapping[str, bool | None] | None
     prompt: Any
     evaluation: Any
+    stop: Any
     method_options: Mapping[str, Any] | None
     task_options: Any
 
@@ -232,7 +236,8 @@ def _build(task: TaskLike, options: StudyOptions, own: tuple[str, ...] = ()) -> 
     seed = options.get("seed")
     values: dict[str, Any] = {"method": method, "warmup": options.get("warmup", 10), "iterations": options.get("iterations", 50),
                               "box": tuple(options.get("box", (-6.0, 6.0))), "seed": draw_seed() if seed is None else seed}  # fmt: skip
-    for group, given in (("llm", llm), ("prompt", options.get("prompt")), ("evaluation", options.get("evaluation"))):
+    for group, given in (("llm", llm), ("prompt", options.get("prompt")), ("evaluation", options.get("evaluation")),
+                         ("stop", options.get("stop"))):
         values.update(_group_values(group, given))
     values.update({k: v for k, v in switches.items() if v is not None})
     if options.get("method_options"):

@@ -30,11 +30,12 @@ from .errors import ConfigError, MissingExtraError
 from .llm.settings import LLMConfig
 from .methods import SWITCH_HELP, SWITCHES, Mechanisms, search_method_names
 from .schema import SCHEMA, Box, Flag, Int, JsonObject, OnOff, one_line_errors
+from .stopping import StopRules
 
 if TYPE_CHECKING:
     from .tasks import Task
 
-__all__ = ["LLMConfig", "OnOff", "PromptSettings", "RunConfig", "read_table", "read_text", "read_toml"]
+__all__ = ["LLMConfig", "OnOff", "PromptSettings", "RunConfig", "StopRules", "read_table", "read_text", "read_toml"]
 
 # Sane upper bounds: past these a typo is far likelier than intent, and a run would not finish.
 MAX_WARMUP = 10_000
@@ -87,6 +88,7 @@ class RunConfig:
     decimals: Annotated[Int, Field(ge=0, le=8), Flag("decimals of numbers in the prompt", range_text="[0, 8]", group="prompt")] = 2
     parse_retries: Annotated[Int, Field(ge=0, le=MAX_PARSE_RETRIES), Flag("corrections asked for before a fallback", group="prompt")] = 2
     llm: LLMConfig = Field(default_factory=LLMConfig)
+    stop: StopRules = Field(default_factory=StopRules)  # when the search ends before its budget (ppprops.stopping)
     on_llm_failure: Annotated[Literal["stop", "skip"], Flag(
         "when the endpoint stays down past --retries: stop, resumable, or skip: record a fallback candidate and go on",
         group="llm")] = "stop"
@@ -218,6 +220,8 @@ class RunConfig:
             del d["task_spec"]  # a config naming its task matches the stored one that holds the declaration
         if not self.method_options:
             del d["method_options"]  # as stored before methods had options
+        if not self.stop.given:
+            del d["stop"]  # as stored before the stop rules existed
         for key, default in (("parallel", 1), ("on_episode_error", "stop")):
             if d[key] == default:
                 del d[key]  # as stored before trials could run side by side or fail
@@ -233,6 +237,7 @@ class RunConfig:
         d = dict(d)
         d["mechanisms"] = Mechanisms.from_json(d["mechanisms"])
         d["llm"] = LLMConfig(**d.get("llm", {}))
+        d["stop"] = StopRules(**d.get("stop", {}))
         for key in ("box", "components", "diagnostics"):
             if key in d:
                 d[key] = tuple(d[key])

@@ -16,7 +16,8 @@ def _ignore(*args: object) -> None:
 class RunEvents:
     """Hooks for progress display.
 
-    on_start(done, total): candidates recorded and planned; on_candidate(candidate, LLM latency in
+    on_start(done, total): candidates recorded and planned (again when the plan changes: a stop
+    rule ended the search); on_candidate(candidate, LLM latency in
     seconds or None, best return so far); on_llm_loading() and on_llm_ready(seconds) around the
     start of the embedded model; on_final_start(episodes) and on_final_episode(done) during the
     final evaluation; on_final(final evaluation) at the end; on_notice(line) for something the user

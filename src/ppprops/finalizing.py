@@ -84,10 +84,13 @@ def env_final_episodes(evaluator: Callable[[], Evaluator], *, seed: int, episode
 
 def finish_status(store: RunStore) -> None:
     """The study's status once finalized: ``finished``, or ``stopped: <reason>`` as it was when
-    the search stopped on purpose."""
+    the search stopped on purpose or a stop rule ended it early (``stopping.stop_reason``)."""
+    from .stopping import stop_reason
+
     status, reason = store.run_status()
-    if status is RunStatus.STOPPED:
-        store.set_status(RunStatus.STOPPED, reason)
+    early = stop_reason(store)
+    if status is RunStatus.STOPPED or early:
+        store.set_status(RunStatus.STOPPED, reason if status is RunStatus.STOPPED else str(early))
     else:
         store.set_status(RunStatus.FINISHED)
 

@@ -118,12 +118,16 @@ class RunPhases:
 
     def phases(self) -> list[Phase]:
         """The run's phases in order (warm-up, the method's search phase, the selection stage), their
-        proposers told every settled trial in the store. Built on the first call."""
+        proposers told every settled trial in the store, the search cut where a stop rule ended it
+        (``cut_search``). Built on the first call."""
         if self._phases is None:
             self._phases = self._build()
             self._told, self._told_set, self._failed_seen = 0, set(), set()
             self.sync()
-        return self._phases
+        from .stopping import search_end
+
+        end = search_end(self.store)
+        return self._phases if end is None else cut_search(self._phases, end)
 
     def _build(self) -> list[Phase]:
         from .proposers.base import Phase, SearchSetup
@@ -270,3 +274,16 @@ class RunPhases:
     def close(self) -> None:
         """Close the LLM client, as ``release_llm``."""
         self.release_llm()
+
+
+def cut_search(phases: list[Phase], end: int) -> list[Phase]:
+    """``phases`` with the warm-up and the search phase ending at trial number ``end`` (a stop
+    rule's, ``stopping.search_end``), so that the selection stage starts there."""
+    from dataclasses import replace
+
+    out, start = [], 0
+    for ph in phases:
+        budget = ph.budget if ph.name == "selection" else min(ph.budget, max(0, end - start))
+        out.append(ph if budget == ph.budget else replace(ph, budget=budget))
+        start += ph.budget
+    return out

@@ -46,6 +46,9 @@ class ProgressEvents:
 
     def _start(self, done: int, total: int) -> None:
         self._plan = (done, total)
+        if self.bar is not None:  # the plan changed under a bar already drawn (a stop rule ended the search)
+            self.bar.total = total
+            self.bar.refresh()
 
     def _show(self, *, bar: bool = True) -> None:
         """At the first result: the held lines, then the bar (``bar``)."""

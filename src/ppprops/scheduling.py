@@ -75,8 +75,12 @@ def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial])
                             finalized=True)
     if status is not RunStatus.STOPPED and store.next_number() < total:
         return
+    from .stopping import stop_reason
+
     told, failed = store.candidate_count(), store.failed_count()
-    why = (f"it stopped: {reason}" if status is RunStatus.STOPPED and reason
+    if not (status is RunStatus.STOPPED and reason):
+        reason = "" if out else stop_reason(store) or ""  # a stop rule ended the search early
+    why = (f"it stopped: {reason}" if reason
            else f"all {total} trials are told" if not out and not failed
            else f"all {total} trials are settled: {told} told, {failed} failed (ppprops study retry "
                 f"{run_dir} TRIAL asks a failed one again)" if not out

@@ -33,6 +33,7 @@ from .config import SWITCH_FLAGS, LLMConfig, RunConfig
 from .errors import ConfigError
 from .methods import SWITCHES, Mechanisms, get_method
 from .schema import Flag, OnOff, describe_error, flag_info
+from .stopping import StopRules
 from .tasks.options import TaskOptions
 
 if typing.TYPE_CHECKING:
@@ -55,7 +56,7 @@ class Setting:
         annotation: the field's type with its constraints (for checking one value).
         default: the field's default (None for a switch: the method's preset decides).
         info: help text and error wording.
-        group: ``task``, ``run``, ``mechanisms`` or ``llm``.
+        group: ``task``, ``run``, ``mechanisms``, ``llm`` or ``stop``.
     """
 
     key: str
@@ -77,6 +78,8 @@ class Setting:
             return "privacy"
         if self.owner is LLMConfig:
             return "llm"
+        if self.owner is StopRules:
+            return "stop"
         if self.owner is TaskOptions:
             return None if self.key in ("env", "task_file", "policy", "activation") else "task_options"
         return self.info.group
@@ -196,14 +199,15 @@ def _fields_of(owner: type, group: str) -> list[Setting]:
 def _all_settings() -> tuple[Setting, ...]:
     switches = [Setting(name, "--" + name.replace("_", "-"), Mechanisms, name, OnOff, None, SWITCH_FLAGS[name], "mechanisms")
                 for name in SWITCHES]  # fmt: skip
-    return (*_fields_of(TaskOptions, "task"), *_fields_of(RunConfig, "run"), *switches, *_fields_of(LLMConfig, "llm"))
+    return (*_fields_of(TaskOptions, "task"), *_fields_of(RunConfig, "run"), *switches, *_fields_of(LLMConfig, "llm"),
+            *_fields_of(StopRules, "stop"))
 
 
 SETTINGS: tuple[Setting, ...] = _all_settings()
 BY_KEY: dict[str, Setting] = {s.key: s for s in SETTINGS}
 _BY_NAME: dict[str, Setting] = {name: s for s in SETTINGS for name in s.names}
 
-API_GROUPS = ("llm", "privacy", "prompt", "evaluation", "task_options")
+API_GROUPS = ("llm", "privacy", "prompt", "evaluation", "stop", "task_options")
 
 
 def api_groups() -> dict[str, dict[str, Setting]]:
@@ -219,6 +223,7 @@ def api_groups() -> dict[str, dict[str, Setting]]:
 GROUP_TITLES = {
     "mechanisms": "mechanisms (override the preset one by one)",
     "llm": "LLM endpoint (default: the embedded Gemma 3 270M, offline)",
+    "stop": "stopping early (the selection stage and the final evaluation still run)",
 }
 
 
@@ -376,11 +381,12 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
     run.setdefault("episodes", method.default_episodes)
     run["method"] = method.name
     llm = LLMConfig(**{s.field: values[s.key] for s in SETTINGS if s.owner is LLMConfig and s.key in values})
+    stop = StopRules(**{s.field: values[s.key] for s in SETTINGS if s.owner is StopRules and s.key in values})
     if llm.model and llm.base_url is None:  # the embedded model would answer, and the run would record a model that never did
         raise ConfigError(f"--model {llm.model} names a model at --base-url, and no --base-url was given (the embedded model "
                           "answers without one): give --base-url too, or drop --model")
     name = task.name if task is not None else str(options.env or options.task_file) if options is not None else ""
-    config = RunConfig(task=name, mechanisms=mechanisms, llm=llm, **run)  # every number checked before an env is made
+    config = RunConfig(task=name, mechanisms=mechanisms, llm=llm, stop=stop, **run)  # every number checked before an env is made
     from .tasks import is_builtin, load_task
 
     if task is None:

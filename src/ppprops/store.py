@@ -551,6 +551,16 @@ class RunStore:
         """Replace the request pacer's state."""
         self._set_meta("pacing", json.dumps(dict(state)))
 
+    def stop_state(self) -> dict[str, Any]:
+        """The stop rules' state (``stopping.StopState``): where the search ended early and why,
+        and the search's clock; {} before the first check."""
+        raw = self._meta("stop")
+        return dict(json.loads(raw)) if raw else {}
+
+    def set_stop_state(self, state: Mapping[str, Any]) -> None:
+        """Replace the stop rules' state."""
+        self._set_meta("stop", json.dumps(dict(state)))
+
     def llm_sessions(self) -> list[int] | None:
         """Where each LLM client session began, as a count of the calls before it (ascending);
         None for runs recorded before sessions were (then only endpoint changes are known)."""

@@ -31,11 +31,12 @@ from contextlib import AbstractContextManager
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
+from time import time
 from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 
-from . import seeding
+from . import seeding, stopping
 from .client.codec import Codec
 from .client.hardening import codec_for
 from .client.secrets import Secrets
@@ -172,8 +173,21 @@ class Study:
 
     @property
     def total(self) -> int:
-        """The study's budget of trials: warm-up, search phase and the selection stage's re-evaluations."""
-        return self.config.warmup + self.config.iterations + self.config.selection(self.has_env)[0]
+        """The study's budget of trials: warm-up, search phase (up to where a stop rule ended it,
+        ``stopping.search_end``) and the selection stage's re-evaluations."""
+        end = stopping.search_end(self.store)
+        return (self._planned_end if end is None else end) + self.config.selection(self.has_env)[0]
+
+    @property
+    def _planned_end(self) -> int:
+        return self.config.warmup + self.config.iterations
+
+    def _check_stop(self, *, told: bool) -> None:
+        """Check the stop rules (``stopping.update``): one that fires ends the search here."""
+        why = stopping.update(self.store, self.config.stop, warmup=self.config.warmup, planned_end=self._planned_end, now=time(), told=told)
+        if why is not None:  # it ended now
+            self.events.on_notice(f"the search stopped: {why}")
+            self.events.on_start(self.store.candidate_count() + self.store.failed_count(), self.total)
 
     @property
     def trials(self) -> list[Candidate]:
@@ -257,6 +271,7 @@ class Study:
                 if hand:
                     self.store.assign(trial.number, name)
                 return replace(trial, worker=name) if hand else trial
+            self._check_stop(told=False)
             check_left(self.store, self.run_dir, self.total, out)
             if len(out) >= self.parallel:
                 return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {holders(out)}; tell one first"
@@ -323,6 +338,7 @@ class Study:
             cand = told_candidate(pending, returns, components, diagnostics, feedback=feedback, eval_s=eval_s, task=self.task,
                                   codec=self.codec)
             self.store.record_trial(cand)
+            self._check_stop(told=True)
             self._phases.sync()
             return cand
 
@@ -392,6 +408,7 @@ class Study:
 
         if not self.has_env:  # refused before any lock file is made
             raise self._no_env()
+        stopping.restart_clock(self.store, self.config.stop, time())
         return optimize(self, callbacks, events if events is not None else self.events, fleet=fleet,
                         fail_trials=self.config.on_episode_error == "fail-trial", pacer=self._phases.pacer(), llm_latency=self._phases.last_latency)
 

@@ -64,7 +64,9 @@ def _policy_key(config: Any) -> dict[str, str]:
 def run_summary(run_dir: Path) -> dict[str, Any]:
     """The `ppprops show --json` object. Raw values: this stays on the client.
 
-    Keys: run_id, status, env, number_format (resolved), method, mechanisms, seed, config, endpoint_changes (LLM endpoints
+    Keys: run_id, status, stop_reason (why a stopped run stopped, else None), stop_rule (the stop
+    rule that ended the search early: rule, why, end, the trial number where the selection stage
+    began; else None), env, number_format (resolved), method, mechanisms, seed, config, endpoint_changes (LLM endpoints
     changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
     too). Raises StoreError for a directory that holds no readable run."""
     with open_run(run_dir) as run:
@@ -89,6 +91,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
     first_pick = best_candidate(search) if search else None  # the best search-time return (Algorithm 1's theta_best)
     pooled = pooled_returns(cands).get(best.index) if best is not None else None
     status, reason = effective(store.status(), run.path)
+    early = store.stop_state()  # a stop rule that ended the search early (ppprops.stopping)
     notes = []
     from .wire.forms import FORMS
 
@@ -104,6 +107,8 @@ def summarize(run: StoredRun) -> dict[str, Any]:
     return _finite({
         "run_id": store.run_id(),
         "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
+        "stop_reason": reason if status is RunStatus.STOPPED and reason else None,
+        "stop_rule": {k: early[k] for k in ("rule", "why", "end")} if early.get("end") is not None else None,
         "pending_trial": None if pending is None else pending.number,
         "trials_out": [{"trial": t.number, "worker": t.worker, "source": t.source} for t in out],
         "failed_trials": [{"trial": t.number, "source": t.source, "worker": t.worker, "reason": why} for t, why in failed],
@@ -198,6 +203,9 @@ def format_summary(s: dict[str, Any]) -> str:
     c = s["counts"]
     sources = ", ".join(f"{n} {name}" for name, n in c["by_source"].items())
     lines.append(f"evals    {c['candidates']}" + (f" ({sources})" if sources else "") + f"; {c['llm_calls']} LLM calls")
+    rule = s.get("stop_rule")
+    if rule:
+        lines.append(f"stopped  {s['stop_reason'] or 'the search ended early'}: {rule['why']}")
     searched = c["candidates"] - c.get("warmup", 0) - c.get("by_source", {}).get("reeval", 0)
     fallbacks = c.get("fallback", 0)
     if searched and fallbacks * 2 > searched:  # the LLM contributed nothing, or little: say so first
