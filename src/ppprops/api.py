@@ -339,6 +339,8 @@ def resume(
     model: str | None = None,
     api_key_env: str | None = None,
     llm: LLM | None = None,
+    iterations: int | None = None,
+    stop: Mapping[str, Any] | None = None,
     progress: bool = False,
 ) -> SearchResult:
     """Continue an interrupted run with its own secrets and task, then return it (as ``search``).
@@ -352,6 +354,11 @@ def resume(
         model: the model name there (default: the run's).
         api_key_env: the environment variable holding its API key ("" for none; default: the run's).
         llm: a model (``ppprops.llm.LLM``, as in ``search``) that replaces the run's LLM for this session.
+        iterations: the search's iterations (default: the run's); more than it ran continues a
+            search that ended (after its selection stage, which is kept).
+        stop: stop rules replacing the run's, keyed as ``search``'s ``stop`` group
+            (``target_return``, ``time_limit``, ``patience``); a search a rule ended goes on when
+            the new ones leave room (``ppprops.stopping``).
         progress: show a progress bar on stderr.
 
     Raises:
@@ -359,13 +366,16 @@ def resume(
         ConfigError, LLMError: as ``search``; ConfigError also for an RL baseline run.
     """
     from .baselines.record import refuse_resume
-    from .runner import Endpoint
+    from .runner import Endpoint, Limits
     from .runner import resume as _resume
+    from .stopping import StopRules
 
     refuse_resume(Path(run_dir))  # an RL baseline run has no search to continue
     endpoint = Endpoint(base_url=base_url, model=model, api_key_env=api_key_env)
+    rules = StopRules(**{k: v for k, v in _group_values("stop", stop, fields=True).items()})
+    limits = Limits(iterations=iterations, target_return=rules.target_return, time_limit_s=rules.time_limit_s, patience=rules.patience)
     with _progress(progress, str(run_dir)) as events:
-        _resume(Path(run_dir), events, endpoint=endpoint, llm=llm)
+        _resume(Path(run_dir), events, endpoint=endpoint, limits=limits, llm=llm)
     return load_run(run_dir)
 
 

@@ -174,6 +174,8 @@ def _add_resume(rs: argparse.ArgumentParser) -> None:
     rs.add_argument("dir", type=Path, help="the run directory (as `run` printed it)")
     ep = rs.add_argument_group("a corrected or different LLM endpoint (recorded in the run; the secrets stay the same)")
     add_flags(ep, only=ENDPOINT_KEYS, groups=None, help_suffix=" (default: the run's)")
+    lim = rs.add_argument_group("the search's limits (stored with the run; a search that ended goes on when they leave room)")
+    add_flags(lim, only=LIMIT_KEYS, groups=None, help_suffix=" (default: the run's)")
     rs.add_argument("--quiet", action="store_true", help="no progress on stderr")
     rs.add_argument("--json", action="store_true", help="print one JSON object (as `run --json`) on stdout")
     _audit_flag(rs)
@@ -240,6 +242,7 @@ def _add_envs(en: argparse.ArgumentParser) -> None:
 
 
 ENDPOINT_KEYS = ("base_url", "model", "api_key_env")  # the settings `resume` may change
+LIMIT_KEYS = ("iterations", "target_return", "time_limit", "patience")  # and the search's limits
 
 
 def add_run_flags(r: argparse.ArgumentParser) -> None:
@@ -346,13 +349,15 @@ def _cmd_run(a: argparse.Namespace) -> int:
 def _cmd_resume(a: argparse.Namespace) -> int:
     from .baselines.record import refuse_resume
     from .progress import ProgressEvents
-    from .runner import Endpoint, resume
+    from .runner import Endpoint, Limits, resume
 
     refuse_resume(a.dir)  # an RL baseline run has no search to continue
     a.run_dir = a.dir
     endpoint = Endpoint(**{key: getattr(a, key, None) for key in ENDPOINT_KEYS})
+    limits = Limits(iterations=getattr(a, "iterations", None), target_return=getattr(a, "target_return", None),
+                    time_limit_s=getattr(a, "time_limit", None), patience=getattr(a, "patience", None))  # fmt: skip
     with ProgressEvents(enabled=not a.quiet, label=str(a.dir)) as events:
-        resume(a.dir, events.hooks(), endpoint=endpoint if endpoint.given else None)
+        resume(a.dir, events.hooks(), endpoint=endpoint if endpoint.given else None, limits=limits if limits.given else None)
     return _finished(a.dir, a.json, a.audit)
 
 

@@ -30,15 +30,16 @@ def __getattr__(name: str) -> Any:
 
 
 def locate(phases: Sequence[Phase], index: int) -> tuple[Phase, int]:
-    """The phase and the phase-local iteration that produce candidate ``index`` (0-based).
+    """The phase and the proposer's iteration that produce candidate ``index`` (0-based).
 
-    Phases are laid end to end: phase k holds indices [sum of earlier budgets, + its budget).
-    Raises IndexError for an index at or past the total budget.
+    Phases are laid end to end: phase k holds indices [sum of earlier budgets, + its budget), asked
+    as its proposer's iterations from ``Phase.offset``. Raises IndexError for an index at or past
+    the total budget.
     """
     start = 0
     for ph in phases:
         if index < start + ph.budget:
-            return ph, index - start
+            return ph, ph.offset + index - start
         start += ph.budget
     raise IndexError(f"candidate {index} is past the run's budget of {start}")
 

@@ -10,7 +10,7 @@ closed with ``close``.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, ExitStack, closing
 from dataclasses import dataclass
 from functools import cached_property, partial
@@ -124,10 +124,14 @@ class RunPhases:
             self._phases = self._build()
             self._told, self._told_set, self._failed_seen = 0, set(), set()
             self.sync()
-        from .stopping import search_end
+        from .proposers.selection import SelectionProposer
+        from .stopping import search_end, stages
 
-        end = search_end(self.store)
-        return self._phases if end is None else cut_search(self._phases, end)
+        past, end = stages(self.store), search_end(self.store)
+        if not past and end is None:
+            return self._phases
+        episodes = self.settings.selection[1]
+        return plan_phases(self._phases, past, end, lambda i: SelectionProposer(self.streams, episodes, stage=i))
 
     def _build(self) -> list[Phase]:
         from .proposers.base import Phase, SearchSetup
@@ -155,16 +159,18 @@ class RunPhases:
         top, episodes = settings.selection
         if top:
             from .proposers.selection import SelectionProposer
+            from .stopping import stages
 
-            phases.append(Phase("selection", SelectionProposer(self.streams, episodes), top))
+            phases.append(Phase("selection", SelectionProposer(self.streams, episodes, stage=len(stages(self.store))), top))
         return phases
 
     def sync(self) -> None:
         """Tell every proposer the candidates recorded since it was last told (another process's
         too), in trial order, up to the first trial still out: a proposer's state is a function of
         the settled trials before it, the same in every process. A failed trial is never told as a
-        candidate; the proposers hear that it failed (``SearchProposer.failed``: CMA-ES). Nothing
-        before the phases are built."""
+        candidate; the proposers hear that it failed (``SearchProposer.failed``: CMA-ES). The
+        selection stage's re-evaluations are told to its proposer only. Nothing before the phases
+        are built."""
         if self._phases is None:
             return
         out = [t.number for t in self.store.pending_trials()]
@@ -172,12 +178,14 @@ class RunPhases:
         new = [c for c in self.store.candidates(since=self._told) if c.index not in self._told_set and (upto is None or c.index < upto)]
         failed = [t for t, _ in self.store.failed_trials() if t.number not in self._failed_seen and (upto is None or t.number < upto)]
         proposers = list(dict.fromkeys(ph.proposer for ph in self._phases))
+        selecting = {id(ph.proposer) for ph in self._phases if ph.name == "selection"}  # re-evaluations are theirs alone
         events: list[tuple[int, Candidate | Trial]] = sorted([(c.index, c) for c in new] + [(t.number, t) for t in failed],
                                                              key=lambda e: e[0])
         for _, item in events:
             if isinstance(item, Candidate):
                 for p in proposers:
-                    p.tell(item)
+                    if item.reevaluates is None or id(p) in selecting:  # a search continued after its selection stage never sees them
+                        p.tell(item)
                 self._told_set.add(item.index)
             else:
                 for p in proposers:
@@ -276,14 +284,38 @@ class RunPhases:
         self.release_llm()
 
 
-def cut_search(phases: list[Phase], end: int) -> list[Phase]:
-    """``phases`` with the warm-up and the search phase ending at trial number ``end`` (a stop
-    rule's, ``stopping.search_end``), so that the selection stage starts there."""
-    from dataclasses import replace
+def plan_phases(built: list[Phase], past: Sequence[tuple[int, int]], end: int | None,
+                past_selection: Callable[[int], Any]) -> list[Phase]:
+    """The run's phases laid end to end by trial number, where its search was continued after a
+    selection stage or cut by a stop rule (``ppprops.stopping``).
 
-    out, start = [], 0
-    for ph in phases:
-        budget = ph.budget if ph.name == "selection" else min(ph.budget, max(0, end - start))
-        out.append(ph if budget == ph.budget else replace(ph, budget=budget))
-        start += ph.budget
+    ``built``: the warm-up, the search phase and the selection stage as ``RunPhases`` builds them;
+    ``past``: (trial number where it began, its trials) of each earlier selection stage, after
+    which the search went on (``resume`` with a larger limit); ``end``: where a stop rule ended the
+    search now (None: it runs its budget). The warm-up and the search phase fill the numbers
+    between the stages, each going on from its own next iteration (``Phase.offset``); each
+    earlier stage is a phase of ``past_selection(i)``'s proposer (its trials are all asked: it
+    proposes nothing more); the last stage follows the search.
+    """
+    from .proposers.base import Phase
+
+    searching = [ph for ph in built if ph.name != "selection"]
+    out: list[Phase] = []
+    used = [0] * len(searching)
+
+    def fill(k: int) -> None:
+        for i, ph in enumerate(searching):
+            take = min(ph.budget - used[i], k)
+            if take > 0:
+                out.append(Phase(ph.name, ph.proposer, take, offset=used[i]))
+                used[i], k = used[i] + take, k - take
+
+    number = 0
+    for stage, (first, top) in enumerate(past):
+        fill(first - number)
+        if top:
+            out.append(Phase("selection", past_selection(stage), top))
+        number = first + top
+    fill(end - number if end is not None else sum(ph.budget for ph in searching))
+    out.extend(ph for ph in built if ph.name == "selection")
     return out

@@ -27,8 +27,8 @@ from .store import RunStore
 from .study import Callback, Study
 from .values import FinalEval
 
-__all__ = ["Endpoint", "POLICY_NAME", "RunEvents", "change_endpoint", "check_creatable", "check_startable", "create_run", "final_returns",
-           "load_run", "new_run_id", "resume", "start"]
+__all__ = ["Endpoint", "Limits", "POLICY_NAME", "RunEvents", "change_endpoint", "check_creatable", "check_startable", "create_run",
+           "final_returns", "change_limits", "load_run", "new_run_id", "resume", "start"]
 
 
 def check_creatable(config: RunConfig, run_dir: Path, *, endpoint: bool = True, task: Any = None) -> Any:
@@ -200,32 +200,78 @@ def change_endpoint(store: RunStore, config: RunConfig, endpoint: Endpoint, *, p
     return new
 
 
+@dataclass(frozen=True)
+class Limits:
+    """The search's limits given to ``resume``: its ``iterations`` and stop rules
+    (``stopping.StopRules``: ``target_return``, ``time_limit_s``, ``patience``); None keeps the run's."""
+
+    iterations: int | None = None
+    target_return: float | None = None
+    time_limit_s: float | None = None
+    patience: int | None = None
+
+    @property
+    def given(self) -> bool:
+        """True when any limit is given."""
+        return any(v is not None for v in (self.iterations, self.target_return, self.time_limit_s, self.patience))
+
+
+def change_limits(store: RunStore, config: RunConfig, limits: Limits) -> tuple[RunConfig, str | None]:
+    """The run's config with ``limits`` applied, validated and stored; a search that ended (its
+    budget spent, or a stop rule) and that the new limits leave room for goes on
+    (``stopping.continue_search``: status ``running`` again). Returns the config and a note line
+    when the search goes on. Raises ConfigError for a limit refused (nothing is changed then)."""
+    from .status import RunStatus
+    from .stopping import continue_search
+
+    given = {k: getattr(limits, k) for k in ("target_return", "time_limit_s", "patience") if getattr(limits, k) is not None}
+    new = replace(config, stop=replace(config.stop, **given), iterations=config.iterations if limits.iterations is None else limits.iterations)
+    status, reason = store.run_status()
+    goes_on = continue_search(store, new.stop, warmup=new.warmup, iterations=new.iterations, old_iterations=config.iterations,
+                              stopped=reason if status is RunStatus.STOPPED else None)  # fmt: skip
+    if new != config:
+        store.change_config(new.to_json())
+    if goes_on is None:
+        return new, None
+    note, state = goes_on
+    store.set_stop_state(state)
+    store.set_status(RunStatus.RUNNING)
+    return new, note
+
+
 def resume(
     run_dir: Path,
     events: RunEvents = NO_EVENTS,
     *,
     llm_gate: AbstractContextManager[object] | None = None,
     endpoint: Endpoint | None = None,
+    limits: Limits | None = None,
     llm: LLM | None = None,
     callbacks: Sequence[Callback] = (),
 ) -> FinalEval | None:
     """Continue a run with its own secrets: every recorded candidate is kept, the rest is run,
     then the final evaluation. ``endpoint`` continues it against a corrected or different LLM
-    endpoint (``change_endpoint``, which probes it first); ``llm`` replaces the run's LLM for this
-    session. Raises StoreError for a missing or foreign directory or key file, ConfigError for a
+    endpoint (``change_endpoint``, which probes it first); ``limits`` changes the search's
+    iterations and stop rules, and continues a search that ended when they leave room
+    (``change_limits``); ``llm`` replaces the run's LLM for this session. Raises StoreError for a missing or foreign directory or key file, ConfigError for a
     bad endpoint (nothing is changed then) or a study of a task without env, LLMError when the
     endpoint stays down."""
     if not Path(run_dir).is_dir():
         raise StoreError(f"{run_dir} is not a directory")
     store, config, secrets = load_run(run_dir)
     try:
+        changes = (endpoint is not None and endpoint.given) or (limits is not None and limits.given)
+        if changes and not getattr(config.make_task(), "has_env", True):  # refused by optimize below: change nothing first
+            raise ConfigError(f"{run_dir} is a study of a task without env, which 'ppprops resume' cannot run: its next "
+                              f"trials come from 'ppprops ask {run_dir}'")  # fmt: skip
         if endpoint is not None and endpoint.given:
             from .methods import get_method
 
-            if not getattr(config.make_task(), "has_env", True):  # refused by optimize below: change nothing first
-                raise ConfigError(f"{run_dir} is a study of a task without env, which 'ppprops resume' cannot run: its next "
-                                  f"trials come from 'ppprops ask {run_dir}'")  # fmt: skip
             config = change_endpoint(store, config, endpoint, probe=llm is None and get_method(config.method).uses_llm)
+        if limits is not None and limits.given:
+            config, note = change_limits(store, config, limits)
+            if note is not None:
+                events.on_notice(note)
         study = Study(Path(run_dir), store, config, secrets, llm=llm, llm_gate=llm_gate, events=events)
     except BaseException:
         store.close()

@@ -120,7 +120,7 @@ def askable(phase: Phase, iteration: int, out: Sequence[Trial], parallel: int) -
     rounds (``SearchProposer.rounds``: none while the last round is out), and only those the
     proposer is ready for (``SearchProposer.ready``). Or why none can be asked (one line)."""
     proposer = phase.proposer
-    end = phase.budget
+    end = phase.offset + phase.budget
     if parallel > 1 and proposer.rounds:  # one shown history per round of P
         if out:
             return f"the next round of {parallel} starts when the last one is told: {holders(out)} still out"
@@ -145,7 +145,7 @@ def propose(phases: RunPhases, store: RunStore, run_dir: Path, out: Sequence[Tri
     phases.sync()
     n = store.next_number()
     phase, iteration = locate(phases.phases(), n)
-    wait = wait_for_earlier(phase, n - iteration, out)
+    wait = wait_for_earlier(phase, n - (iteration - phase.offset), out)
     if wait is not None:
         return wait
     if phase.name == "selection" and store.candidate_count() == 0:

@@ -23,6 +23,7 @@ LLM_SAMPLING = 5
 OPTIMIZER = 6  # a black-box optimizer's own seed (CMA-ES)
 SELECTION = 7  # re-evaluation episodes of the selection stage
 PACING = 8  # the keyed jitter of paced requests (llm.pacing)
+STOP = 9  # the keyed delay of a search that reached its target return under a hardening (ppprops.stopping)
 
 
 def _seq(seed: int, stream: int, index: int, key: tuple[int, ...] = ()) -> np.random.SeedSequence:

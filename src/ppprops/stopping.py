@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass as plain_dataclass
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -33,6 +33,7 @@ from .errors import ConfigError
 from .schema import SCHEMA, Flag, Float, Int, one_line_errors
 
 if TYPE_CHECKING:
+    from .seeding import Streams
     from .store import RunStore
     from .values import Candidate
 
@@ -128,12 +129,12 @@ class StopCheck:
     why: str
 
 
-def check(rules: StopRules, candidates: Sequence[Candidate], *, warmup: int, elapsed_s: float | None) -> list[StopCheck]:
+def check(rules: StopRules, candidates: Sequence[Candidate], *, elapsed_s: float | None) -> list[StopCheck]:
     """The verdict of every rule set, in the order target, time limit, patience.
 
-    ``candidates``: the told candidates (re-evaluations of the selection stage are left out);
-    ``warmup``: the warm-up's size (patience counts the candidates after it); ``elapsed_s``: the
-    search's clock (None: the time limit is not checked now).
+    ``candidates``: the told candidates (re-evaluations of the selection stage are left out;
+    patience counts those after the warm-up's); ``elapsed_s``: the search's clock (None: the time
+    limit is not checked now).
     """
     search = sorted((c for c in candidates if c.reevaluates is None), key=lambda c: c.index)
     out: list[StopCheck] = []
@@ -150,13 +151,15 @@ def check(rules: StopRules, candidates: Sequence[Candidate], *, warmup: int, ela
         best, streak = -math.inf, 0
         for c in search:
             ret = c.ret if math.isfinite(c.ret) else -math.inf
-            if c.index >= warmup:
+            if c.source != "warmup":
                 streak = 0 if ret > best else streak + 1
             best = max(best, ret)
         out.append(StopCheck("patience", streak >= rules.patience,
                              f"{streak} candidates in a row without a better return (patience {rules.patience})"))
     return out
 
+
+TARGET_DELAY = 8  # under a hardening, a reached target ends the search 0 to 7 candidates later (a keyed draw)
 
 _REASONS = {"target_return": "target return reached", "time_limit": "time limit {limit} reached",
             "patience": "patience of {patience} candidates without a better return spent"}  # fmt: skip
@@ -173,6 +176,68 @@ def search_end(store: RunStore) -> int | None:
     """The trial number where the search ended early (the selection stage starts there), or None."""
     end = store.stop_state().get("end")
     return None if end is None else int(end)
+
+
+def stages(store: RunStore) -> list[tuple[int, int]]:
+    """(first trial number, trials) of each selection stage after which the search went on
+    (``continue_search``), oldest first; [] for a search never continued."""
+    return [(int(first), int(top)) for first, top in store.stop_state().get("stages", [])]
+
+
+def planned_end(store: RunStore, warmup: int, iterations: int) -> int:
+    """The trial number where the search ends when it runs its budget: the warm-up, the iterations
+    and the trials of the selection stages it went on after (``stages``)."""
+    return warmup + iterations + sum(top for _, top in stages(store))
+
+
+def continue_search(store: RunStore, rules: StopRules, *, warmup: int, iterations: int, old_iterations: int,
+                    stopped: str | None) -> tuple[str, dict[str, Any]] | None:  # fmt: skip
+    """What the limits a ``resume`` gives (``rules``, the search's ``iterations``, which were
+    ``old_iterations``) do to a run; nothing is written here. When its search ended (its budget
+    spent, or a stop rule) and the limits leave room, the search goes on after the selection stage
+    it ran (whose trials stay: ``stages``): returns a note line and the stop state to store
+    (``RunStore.set_stop_state``). For a search that did not end there is nothing to do (None):
+    the new limits apply as it goes.
+
+    ``stopped``: the reason of a run stopped on purpose (its stored status), else None.
+
+    Raises:
+        ConfigError: the limits do not let the search go on (its budget is spent, a rule fires at
+            once, or it stopped for a reason no limit lifts), or ``iterations`` is below what it
+            already asked; nothing is changed then.
+    """
+    state, past = store.stop_state(), stages(store)
+    past_trials = sum(top for _, top in past)
+    n = store.next_number()
+    if state.get("end") is None and stopped:
+        raise ConfigError(f"the run stopped: {stopped}; new limits do not lift that (only a search ended by its budget or a stop rule "
+                          "goes on)")  # fmt: skip
+    budget_end = warmup + old_iterations + past_trials
+    end = int(state["end"]) if state.get("end") is not None else budget_end if n >= budget_end else None
+    searched = (end if end is not None else n) - past_trials - warmup  # search candidates asked (warm-up's not counted)
+    if iterations < searched:
+        raise ConfigError(f"--iterations {iterations} is fewer than the {searched} search candidates already asked")
+    if end is None:
+        return None
+    if end >= warmup + iterations + past_trials:
+        raise ConfigError(f"the search ran its whole budget (--warmup {warmup}, --iterations {end - past_trials - warmup}): give a larger "
+                          "--iterations to go on")  # fmt: skip
+    fired = next((c for c in check(rules, store.candidates(), elapsed_s=float(state.get("spent", 0.0))) if c.fired), None)
+    if fired is not None:
+        raise ConfigError(f"the search would stop again at once: {fired.why}; give a larger limit to go on")
+    done = n - end  # the selection stage's trials asked after the search ended
+    kept = {k: v for k, v in state.items() if k not in ("end", "rule", "why", "reason")}
+    why = f" (it had stopped: {state['reason']})" if state.get("reason") else ""
+    return (f"the search goes on after its {end - past_trials} candidates{why}",
+            {**kept, "stages": [*map(list, past), *([[end, done]] if done else [])]})
+
+
+def keyed_delay(streams: Streams, store: RunStore) -> int:
+    """The candidates a reached target still runs under a hardening: uniform in [0,
+    ``TARGET_DELAY``), from a stream keyed by the secrets (one draw per stop of the run)."""
+    from .seeding import STOP
+
+    return int(streams.rng(STOP, len(stages(store))).integers(0, TARGET_DELAY))
 
 
 def stop_reason(store: RunStore) -> str | None:
@@ -196,13 +261,17 @@ def _tick(store: RunStore, state: dict[str, Any], now: float) -> float:
     return spent
 
 
-def update(store: RunStore, rules: StopRules, *, warmup: int, planned_end: int, now: float, told: bool) -> str | None:
+def update(store: RunStore, rules: StopRules, *, planned_end: int, now: float, told: bool,
+           delay: Callable[[], int] | None = None) -> str | None:  # fmt: skip
     """Check the rules (after a tell: ``told``; else before an ask, the time limit only) and, when
     one fires before the search's budget is spent, cut the search at the next trial number and
     store why. Returns the stop reason when the search ended now, else None.
 
-    ``planned_end``: the trial number where the search would end (warm-up + iterations); ``now``:
-    Unix seconds. Nothing is read or written when no rule is set.
+    ``planned_end``: the trial number where the search would end (``planned_end``); ``now``:
+    Unix seconds; ``delay``: under a hardening, a keyed draw in [0, ``TARGET_DELAY``) of the
+    candidates a reached target still runs, so that the end of the requests does not mark the
+    candidate that reached it (docs/threat-model.md, "Stopping early"). Nothing is read or written
+    when no rule is set.
     """
     if not rules.given:
         return None
@@ -212,15 +281,19 @@ def update(store: RunStore, rules: StopRules, *, warmup: int, planned_end: int, 
     elapsed = _tick(store, state, now) if rules.time_limit_s is not None else None
     candidates = store.candidates() if told else []
     rules_now = rules if told else StopRules(time_limit_s=rules.time_limit_s)
-    fired = next((c for c in check(rules_now, candidates, warmup=warmup, elapsed_s=elapsed) if c.fired), None)
+    fired = next((c for c in check(rules_now, candidates, elapsed_s=elapsed) if c.fired), None)
     end = store.next_number()
+    if fired is not None and fired.rule == "target_return" and delay is not None:
+        end = min(end + delay(), planned_end)
     if fired is not None and end < planned_end:
         told_search = sum(1 for c in (candidates or store.candidates()) if c.reevaluates is None)
-        state.update(end=end, rule=fired.rule, why=fired.why, reason=reason(rules, fired, told_search))
+        more = end - store.next_number()
+        state.update(end=end, rule=fired.rule, why=fired.why, reason=reason(rules, fired, told_search)
+                     + (f" (and {more} more, a keyed delay)" if more else ""))
     if elapsed is not None or "end" in state:
         store.set_stop_state(state)
     return state.get("reason") if "end" in state else None
 
 
-__all__ = ["Duration", "StopCheck", "StopRules", "check", "format_duration", "parse_duration", "reason", "restart_clock", "search_end",
-           "stop_reason", "update"]
+__all__ = ["Duration", "StopCheck", "StopRules", "check", "continue_search", "format_duration", "keyed_delay", "parse_duration", "planned_end", "reason",
+           "restart_clock", "search_end", "stages", "stop_reason", "update"]

@@ -292,9 +292,9 @@ class RunStore:
             raise StoreError(f"{self.path} holds no run configuration")
         return dict(json.loads(raw))
 
-    def change_config(self, config: dict[str, Any], change: dict[str, Any]) -> None:
-        """Replace the stored config and append ``change`` to ``endpoint_changes``, in one transaction."""
-        changes = self.endpoint_changes() + [change]
+    def change_config(self, config: dict[str, Any], change: dict[str, Any] | None = None) -> None:
+        """Replace the stored config and append ``change`` (if any) to ``endpoint_changes``, in one transaction."""
+        changes = self.endpoint_changes() + ([change] if change is not None else [])
         with self._tx() as db:
             db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('config', ?)", (json.dumps(config),))
             db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('endpoint_changes', ?)", (json.dumps(changes),))

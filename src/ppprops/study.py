@@ -180,11 +180,12 @@ class Study:
 
     @property
     def _planned_end(self) -> int:
-        return self.config.warmup + self.config.iterations
+        return stopping.planned_end(self.store, self.config.warmup, self.config.iterations)
 
     def _check_stop(self, *, told: bool) -> None:
         """Check the stop rules (``stopping.update``): one that fires ends the search here."""
-        why = stopping.update(self.store, self.config.stop, warmup=self.config.warmup, planned_end=self._planned_end, now=time(), told=told)
+        delay = partial(stopping.keyed_delay, self.streams, self.store) if self.config.mechanisms.hardened else None
+        why = stopping.update(self.store, self.config.stop, planned_end=self._planned_end, now=time(), told=told, delay=delay)
         if why is not None:  # it ended now
             self.events.on_notice(f"the search stopped: {why}")
             self.events.on_start(self.store.candidate_count() + self.store.failed_count(), self.total)

@@ -43,28 +43,28 @@ def test_durations_print_as_they_read() -> None:
     assert all(parse_duration(format_duration(s)) == s for s in (5400, 90, 3.5, 7200, 86461))
 
 
-def _cands(returns: list[float]) -> list[SimpleNamespace]:
-    return [SimpleNamespace(index=i, ret=r, reevaluates=None) for i, r in enumerate(returns)]
+def _cands(returns: list[float], warmup: int = 2) -> list[SimpleNamespace]:
+    return [SimpleNamespace(index=i, ret=r, reevaluates=None, source="warmup" if i < warmup else "llm") for i, r in enumerate(returns)]
 
 
 def test_each_rule_says_whether_it_fired_and_why() -> None:
     # warm-up 2 (5, 3); then 7 (better), 6, 7 (a tie is no improvement), 2, 1: the fourth in a row at candidate 6
     cands = _cands([5, 3, 7, 6, 7, 2, 1])
     for n, fired in ((3, True), (4, True), (5, False)):
-        [verdict] = check(StopRules(patience=n), cands, warmup=2, elapsed_s=None)
+        [verdict] = check(StopRules(patience=n), cands, elapsed_s=None)
         assert (verdict.rule, verdict.fired) == ("patience", fired)
         assert verdict.why == f"4 candidates in a row without a better return (patience {n})"
-    [early] = check(StopRules(patience=4), cands[:6], warmup=2, elapsed_s=None)
+    [early] = check(StopRules(patience=4), cands[:6], elapsed_s=None)
     assert not early.fired  # three in a row at candidate 5
-    [target] = check(StopRules(target_return=6.5), cands, warmup=2, elapsed_s=None)
+    [target] = check(StopRules(target_return=6.5), cands, elapsed_s=None)
     assert target.fired and target.why == "candidate 2's return 7 reached the target 6.5"
-    [missed] = check(StopRules(target_return=8), cands, warmup=2, elapsed_s=None)
+    [missed] = check(StopRules(target_return=8), cands, elapsed_s=None)
     assert not missed.fired and missed.why == "no return reached the target 8"
-    nan = _cands([5, math.nan, 9])  # a numerical fault reaches nothing and improves nothing
-    assert [c.fired for c in check(StopRules(target_return=6, patience=1), nan, warmup=1, elapsed_s=None)] == [True, False]
-    clock = check(StopRules(time_limit_s=60), cands, warmup=2, elapsed_s=59.5) + check(StopRules(time_limit_s=60), cands, warmup=2, elapsed_s=60)
+    nan = _cands([5, math.nan, 9], warmup=1)  # a numerical fault reaches nothing and improves nothing
+    assert [c.fired for c in check(StopRules(target_return=6, patience=1), nan, elapsed_s=None)] == [True, False]
+    clock = check(StopRules(time_limit_s=60), cands, elapsed_s=59.5) + check(StopRules(time_limit_s=60), cands, elapsed_s=60)
     assert [(c.rule, c.fired) for c in clock] == [("time_limit", False), ("time_limit", True)]
-    assert check(StopRules(time_limit_s=60), cands, warmup=2, elapsed_s=None) == []  # not checked without the clock
+    assert check(StopRules(time_limit_s=60), cands, elapsed_s=None) == []  # not checked without the clock
 
 
 def _run(tmp_path: Path, *, select_top: int = 0, **rules: object) -> tuple[Path, list, str, object]:
@@ -202,3 +202,154 @@ def test_a_time_limit_stops_a_run_of_a_hundred_thousand_iterations(tmp_path: Pat
     told = s["counts"]["candidates"] - 1  # the selection stage's one re-evaluation ran after the stop
     assert s["stop_reason"] == f"time limit 3s reached after {told} candidates" and 2 < told < 100_002
     assert s["counts"]["by_source"]["reeval"] == 1 and s["final_eval"] is not None
+
+
+# -- resume with other limits: a search that ended goes on ---------------------------------------------
+def _resume(run: Path, **limits: object) -> None:
+    from ppprops.runner import Limits, resume
+
+    resume(run, limits=Limits(**limits))  # type: ignore[arg-type]
+
+
+def _state(run: Path) -> tuple[list, str, dict]:
+    with open_store(run) as store:
+        return store.candidates(), store.status(), store.stop_state()
+
+
+def test_a_higher_target_on_resume_continues_after_the_selection_stage_which_stays(tmp_path: Path) -> None:
+    run, first, _, _ = _run(tmp_path, select_top=2, target_return=30)
+    end = next(c.index for c in first if c.ret >= 30) + 1
+    best = max(c.ret for c in first if c.reevaluates is None)
+    _resume(run, target_return=best + 1e-9)  # just above what was reached: the search goes on to beat it
+    cands, status, state = _state(run)
+    assert [(c.index, c.params.tolist(), c.ret) for c in cands[:end + 2]] == [(c.index, c.params.tolist(), c.ret) for c in first]
+    assert state["stages"] == [[end, 2]]  # the first selection stage's two trials, kept where they were
+    search = [c for c in cands if c.reevaluates is None]
+    hit = next(c for c in search if c.ret > best)
+    assert search[-1].index == hit.index > end + 1  # the search went on after the kept stage, to the first better return
+    second = [c for c in cands if c.reevaluates is not None and c.index > hit.index]
+    assert [c.index for c in second] == [hit.index + 1, hit.index + 2]  # and a selection stage of its own followed
+    assert status == f"stopped: target return reached after {len(search)} candidates"
+    again = {c.reevaluates: c.seeds for c in second} | {}
+    firsts = {c.reevaluates: c.seeds for c in cands[end:end + 2]}
+    assert all(again[k] != firsts[k] for k in again.keys() & firsts.keys())  # a candidate re-run in both stages: new seeds
+
+
+def test_a_warm_up_cut_by_a_stop_goes_on_with_the_draws_it_would_have_made(tmp_path: Path) -> None:
+    full = replace(make_config("CartPole", "random", warmup=8, iterations=2, final_episodes=0, seed=3), select_top=0)
+    start(full, tmp_path / "full", secrets=Secrets.generate("stop", 10, rng=np.random.default_rng(0)))
+    with open_store(tmp_path / "full") as store:
+        plain = [c.params.tolist() for c in store.candidates()]
+        rets = [c.ret for c in store.candidates()]
+    target = max(rets[:8])  # the warm-up's best: reached inside the warm-up
+    cut = replace(full, select_top=1, select_episodes=1, stop=StopRules(target_return=target))
+    start(cut, tmp_path / "cut", secrets=Secrets.generate("stop", 10, rng=np.random.default_rng(0)))
+    stopped = rets.index(target) + 1
+    assert stopped < 8 and len(_state(tmp_path / "cut")[0]) == stopped + 1  # the cut warm-up, and its one re-evaluation
+    _resume(tmp_path / "cut", target_return=1e9)
+    cands, status, state = _state(tmp_path / "cut")
+    drawn = [c.params.tolist() for c in cands if c.reevaluates is None]
+    assert drawn == plain and state["stages"] == [[stopped, 1]] and status == "finished"  # no draw shifted by the stage between
+
+
+def test_more_iterations_on_resume_continue_a_finished_run(tmp_path: Path) -> None:
+    config = replace(make_config("CartPole", "random", warmup=2, iterations=3, final_episodes=1, seed=3), select_top=1, select_episodes=1)
+    start(config, tmp_path / "r", secrets=Secrets.generate("more", 10, rng=np.random.default_rng(0)))
+    _resume(tmp_path / "r", iterations=6)
+    cands, status, state = _state(tmp_path / "r")
+    assert [c.source for c in cands] == ["warmup"] * 2 + ["random"] * 3 + ["reeval"] + ["random"] * 3 + ["reeval"]
+    assert state["stages"] == [[5, 1]] and status == "finished"
+    with open_store(tmp_path / "r") as store:
+        assert store.config()["iterations"] == 6
+
+
+def test_a_larger_time_limit_and_patience_on_resume_continue(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    ticks = itertools.count(1_000_000.0, 1.0)
+    monkeypatch.setattr("ppprops.study.time", lambda: next(ticks))
+    run, first, _, _ = _run(tmp_path, time_limit_s=10)
+    assert len(first) == 5
+    _resume(run, time_limit_s=20)
+    cands, status, _ = _state(run)
+    assert len(cands) == 10 and status == "stopped: time limit 20s reached after 10 candidates"  # 5 more in 10 more seconds
+
+
+def test_limits_that_do_not_let_the_search_go_on_are_one_line_and_change_nothing(tmp_path: Path) -> None:
+    from ppprops.runner import Limits, resume
+
+    run, first, _, _ = _run(tmp_path, patience=3)
+    db = (run / "run.sqlite").read_bytes()
+    best = max(c.ret for c in first)
+    cases = [
+        ({"target_return": min(c.ret for c in first)}, "the search would stop again at once: candidate 0's return "),
+        ({"patience": 2}, "the search would stop again at once: 3 candidates in a row without a better return (patience 2)"),
+        ({"iterations": 1}, f"--iterations 1 is fewer than the {len(first) - 2} search candidates already asked"),
+        ({"iterations": -1}, "--iterations must be >= 0, got -1"),
+    ]
+    for limits, line in cases:
+        with pytest.raises(ConfigError) as e:
+            resume(run, limits=Limits(**limits))  # type: ignore[arg-type]
+        assert str(e.value).startswith(line), str(e.value)
+        assert (run / "run.sqlite").read_bytes() == db
+    assert best == max(c.ret for c in _state(run)[0])
+    full = replace(make_config("CartPole", "random", warmup=2, iterations=2, final_episodes=0, seed=3))
+    start(full, tmp_path / "f", secrets=Secrets.generate("f", 10, rng=np.random.default_rng(0)))
+    with pytest.raises(ConfigError, match=r"^the search ran its whole budget \(--warmup 2, --iterations 2\): give a larger --iterations"):
+        resume(tmp_path / "f", limits=Limits(patience=50))
+
+
+def test_resume_takes_the_limits_from_the_shell_and_python(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import ppprops
+
+    out = tmp_path / "r"
+    assert main([*RUN, "--target-return", "9", "--iterations", "400", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["resume", str(out), "--target-return", "500.5", "--patience", "3", "--quiet", "--audit", "off"]) == 0
+    s = _show_json(out)
+    assert s["config"]["stop"] == {"target_return": 500.5, "time_limit_s": None, "patience": 3}
+    assert s["stop_reason"].startswith("patience of 3 candidates without a better return spent after ")
+    r = ppprops.resume(out, iterations=400, stop={"patience": 20})
+    assert r.status.startswith("stopped: ") and len(r.history) > s["counts"]["candidates"]
+    try:
+        code = main(["resume", str(out), "--time-limit", "soon"])
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+
+
+# -- what a stop tells the provider --------------------------------------------------------------------
+def _llm_run(tmp_path: Path, method: str, target: float) -> tuple[Path, list]:
+    from ppprops.methods import resolve
+    from ppprops.privacy.simulate import EchoOptimizer
+    from ppprops.tasks import get_task
+
+    config = replace(make_config("CartPole", method, warmup=3, iterations=60, final_episodes=0, seed=5, mechanisms=resolve(method)),
+                     stop=StopRules(target_return=target))  # fmt: skip
+    D = get_task("CartPole").D
+    secrets = (Secrets.generate_hardened("t", D, box=(-6.0, 6.0), reward_scale=500.0, rng=np.random.default_rng(4))
+               if config.mechanisms.hardened else Secrets.generate("t", D, rng=np.random.default_rng(4)))  # fmt: skip
+    run = tmp_path / method
+    start(config, run, llm=EchoOptimizer(config.llm, spread=0.5), secrets=secrets)
+    return run, _state(run)[0]
+
+
+def test_the_audit_names_a_target_stop_under_pp_and_pp_hardened_delays_it_by_a_keyed_draw(tmp_path: Path) -> None:
+    from ppprops.privacy.audit import audit_run
+    from ppprops.stopping import keyed_delay
+    from ppprops.study import Study
+
+    run, cands = _llm_run(tmp_path, "pp", 60)
+    hit = next(c for c in cands if c.ret >= 60)
+    assert hit.source == "llm" and cands[-1].index == hit.index
+    [found] = [f for f in audit_run(run, attacks=False).findings if f.kind == "stop_at_target"]
+    assert found.severity == "channel" and found.locations == [f"candidate {hit.index}"]
+
+    run, cands = _llm_run(tmp_path, "pp-hardened", 60)
+    hit = next(c for c in cands if c.ret >= 60)
+    with Study.load(run) as study:
+        more = keyed_delay(study.streams, study.store)
+        status = study.store.status()
+    assert cands[-1].index == hit.index + more  # the search ran the keyed delay's candidates past the one that reached it
+    assert status == f"stopped: target return reached after {hit.index + 1} candidates" + (f" (and {more} more, a keyed delay)" if more else "")
+    report = audit_run(run, attacks=False)
+    assert not [f for f in report.findings if f.kind == "stop_at_target"]
+    assert f"stop: the target return ended the search {more} candidates after the one that reached it (a keyed delay)" in report.notes

@@ -478,6 +478,7 @@ class _Auditor:
         run_checks.channels(self)
         run_checks.anchors(self)
         run_checks.timing(self)
+        run_checks.stop(self)
         run_checks.identifiers(self)
         if self.attacks:
             run_checks.exposure(self)

@@ -2,7 +2,7 @@
 
 The request bodies are read one by one (``privacy.request_body``); these checks look at what the
 requests showed, taken together: the known side channels of the shown history (``channels``,
-``anchors``), the provider's clock (``timing``), the names of the user's own env (``identifiers``)
+``anchors``), the provider's clock (``timing``), where a target return ended the search (``stop``), the names of the user's own env (``identifiers``)
 and every attack on the transcript (``exposure``). Each takes the auditor (``RunFacts``: what it
 has read so far and where its findings go) and adds its findings to it in a fixed order.
 """
@@ -146,6 +146,25 @@ def timing(a: RunFacts) -> None:
             a.report.near_misses.append(f"request timing: the best shown raw return within {100 * got.best_error:.3g}%")
         a.finding("channel", "request_timing", got.describe() + (paced or "; --pace-requests on pads the gaps"),
                   "request times")
+
+
+def stop(a: RunFacts) -> None:
+    """A search that a target return ended (``ppprops.stopping``): its requests end right after the
+    candidate that reached the target, so the provider may read that the last proposal's raw
+    return is at least the target (the user's choice, often a public task's solved threshold). A
+    channel unless a hardening delayed the stop by a keyed number of candidates."""
+    target = a.config.stop.target_return
+    search = [c for c in a.cands if c.reevaluates is None]
+    hit = next((c for c in search if math.isfinite(c.ret) and c.ret >= target), None) if target is not None else None
+    if hit is None or not a.calls or hit.source == "warmup" or len(search) >= a.config.warmup + a.config.iterations:
+        return
+    if a.mech.hardened:
+        a.report.notes.append(f"stop: the target return ended the search {search[-1].index - hit.index} candidates after the one that "
+                              "reached it (a keyed delay)")
+        return
+    a.finding("channel", "stop_at_target", f"the requests end right after candidate {hit.index}, the first whose raw return reached "
+              f"the target return: the provider may read that its last proposal's raw return is at least the target "
+              "(pp-hardened delays the stop by a keyed number of candidates)", f"candidate {hit.index}")
 
 
 def _determined(a: RunFacts, shown: list[Candidate]) -> None:

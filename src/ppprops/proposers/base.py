@@ -141,17 +141,21 @@ class Phase:
 
     ``name`` labels it (``warmup``, ``llm``, ``r2po``, ``random``, ``cmaes``); ``budget`` >= 0.
     ``proposer`` is a ``SearchProposer``, or any ask/tell ``Proposer``, which the phase keeps behind
-    the default hooks (``as_search_proposer``).
+    the default hooks (``as_search_proposer``). ``offset``: the proposer's iteration at the phase's
+    first trial (0; more for the rest of a search continued after its selection stage,
+    ``phases.plan_phases``): the phase asks iterations ``offset`` to ``offset + budget - 1``.
     """
 
     name: str
     proposer: SearchProposer
     budget: int
+    offset: int
 
-    def __init__(self, name: str, proposer: Proposer | SearchProposer, budget: int) -> None:
+    def __init__(self, name: str, proposer: Proposer | SearchProposer, budget: int, offset: int = 0) -> None:
         object.__setattr__(self, "name", name)
         object.__setattr__(self, "proposer", as_search_proposer(proposer))
         object.__setattr__(self, "budget", budget)
+        object.__setattr__(self, "offset", offset)
 
 
 @dataclass(frozen=True)

@@ -20,11 +20,13 @@ from .base import Proposal, SearchProposer
 class SelectionProposer(SearchProposer):
     """Ask ``i`` re-evaluates the search candidate ranked ``i`` by search-time mean return (finite
     returns only, the earliest first on a tie; past the last one, the best again), on ``episodes``
-    seeds drawn from ``streams``."""
+    seeds drawn from ``streams``. ``stage`` numbers the selection stages of a run (0; 1 and on for
+    a search continued after one, ``phases.plan_phases``): each stage draws seeds of its own."""
 
-    def __init__(self, streams: seeding.Streams, episodes: int) -> None:
+    def __init__(self, streams: seeding.Streams, episodes: int, stage: int = 0) -> None:
         self.streams = streams
         self.episodes = episodes
+        self.stage = stage
         self._search: list[Candidate] = []
 
     def tell(self, candidate: Candidate) -> None:
@@ -45,7 +47,7 @@ class SelectionProposer(SearchProposer):
             raise RuntimeError("the selection stage follows the search: no candidate was told")
         repeat, rank = divmod(iteration, len(ranked))
         c = ranked[rank] if repeat == 0 else ranked[0]
-        key = c.index if repeat == 0 else c.index + (repeat << 32)
+        key = (c.index if repeat == 0 else c.index + (repeat << 32)) + (self.stage << 48)
         words = self.streams.rng(seeding.SELECTION, key).integers(0, 2**32, size=self.episodes, dtype="uint64")
         return Proposal(theta=c.params.copy(), source="reeval", note=f"re-evaluates candidate {c.index}",
                         seeds=tuple(int(w) for w in words), reevaluates=c.index)
