@@ -156,6 +156,9 @@ class StudyOptions(TypedDict, total=False):
             return), ``time_limit`` (``"20m"``, ``"2h"`` or seconds), ``patience`` (candidates in a row
             without a better return); the selection stage and the final evaluation still run.
         method_options: the method's own options (``cmaes``: ``popsize``, ``sigma0``).
+        init_policies: policies to evaluate first, in the warm-up's first places (``ppprops.warm_start``):
+            each a path to a policy file of this task or to a JSON object with ``W`` and ``b`` (or
+            ``theta``), such a mapping, or D numbers (the flat theta).
         task_options: for a task that is not a paper task: ``env_kwargs``, ``max_episode_steps``,
             ``gym_packages``, ``obs_keys``, ``components``, ``diagnostics`` (as the flags of the same names).
         policy: the policy family, for any task: ``"linear"`` (the paper's), ``"mlp:16,16"``, a mapping
@@ -177,6 +180,7 @@ class StudyOptions(TypedDict, total=False):
     evaluation: Any
     stop: Any
     method_options: Mapping[str, Any] | None
+    init_policies: Sequence[Any] | None
     task_options: Any
 
 
@@ -244,7 +248,17 @@ def _build(task: TaskLike, options: StudyOptions, own: tuple[str, ...] = ()) -> 
         values["method_options"] = dict(options["method_options"] or {})
     t = load_task(task, options=TaskOptions(**_group_values("task_options", options.get("task_options"), fields=True),
                                             policy=options.get("policy"), activation=options.get("activation")))
-    return build_config(values, task=t), model
+    config = build_config(values, task=t)
+    given = list(options.get("init_policies") or ())
+    if given:
+        import os
+        from dataclasses import replace
+
+        from .warm_start import init_thetas
+
+        labels = tuple(str(p) if isinstance(p, str | os.PathLike) else "python" for p in given)
+        config = replace(config, init_policy=labels, init_thetas=init_thetas(given, t, box=config.box, warmup=config.warmup))
+    return config, model
 
 
 def search(task: TaskLike, *, out: Pathish | None = None, callbacks: Sequence[Callable[[Candidate, Study], bool | None]] = (),

@@ -133,6 +133,12 @@ class RunConfig:
     # adapter, feedback keys, prose. Stored with every run, so any process rebuilds the task from it;
     # None in a config built from a task name (the run stores the declaration when it starts).
     task_spec: dict[str, Any] | None = None
+    # Warm starts (ppprops.warm_start): the policies given with --init-policy, as given (paths or "python"), and their raw
+    # parameters, read once when the run is made and stored with it: the warm-up's first trials.
+    init_policy: Annotated[tuple[str, ...], Flag(
+        "a policy to evaluate first, in a warm-up trial's place (repeatable): a ppprops policy file of this task, or JSON with W "
+        "and b (u = s @ W + b) or with theta", metavar="PATH", repeatable=True, api_name="init_policies")] = ()
+    init_thetas: tuple[tuple[float, ...], ...] = ()
     # The method's own options (ppprops.methods.Method.options checks them): e.g. CMA-ES's population size.
     method_options: Annotated[JsonObject, Flag(
         "the method's own options as a JSON object, e.g. '{\"popsize\": 8}' for cmaes (docs/baselines.md)",
@@ -154,6 +160,8 @@ class RunConfig:
             if not get_method(self.method).parallel:
                 raise ConfigError(f"--method {self.method} asks one candidate at a time (each of its steps waits for the "
                                   f"last one's result): use --parallel 1")
+        if len(self.init_thetas) > self.warmup:
+            raise ConfigError(f"--init-policy: {len(self.init_thetas)} policies given, more than the warm-up holds (--warmup {self.warmup})")
         if self.number_format == "grid" and not self.mechanisms.encode_params:
             from .methods import resolve
 
@@ -222,6 +230,10 @@ class RunConfig:
             del d["method_options"]  # as stored before methods had options
         if not self.stop.given:
             del d["stop"]  # as stored before the stop rules existed
+        if not self.init_thetas:
+            del d["init_policy"], d["init_thetas"]  # as stored before warm starts existed
+        else:
+            d["init_thetas"] = [list(t) for t in self.init_thetas]
         for key, default in (("parallel", 1), ("on_episode_error", "stop")):
             if d[key] == default:
                 del d[key]  # as stored before trials could run side by side or fail
@@ -238,9 +250,11 @@ class RunConfig:
         d["mechanisms"] = Mechanisms.from_json(d["mechanisms"])
         d["llm"] = LLMConfig(**d.get("llm", {}))
         d["stop"] = StopRules(**d.get("stop", {}))
-        for key in ("box", "components", "diagnostics"):
+        for key in ("box", "components", "diagnostics", "init_policy"):
             if key in d:
                 d[key] = tuple(d[key])
+        if "init_thetas" in d:
+            d["init_thetas"] = tuple(tuple(t) for t in d["init_thetas"])
         d.setdefault("prompt_form", "chat")  # runs stored before the document form existed chatted
         d.setdefault("number_format", "decimal")  # runs stored before the grid existed wrote decimals
         try:

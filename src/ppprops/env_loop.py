@@ -158,7 +158,7 @@ def _drive(study: DrivenStudy, callbacks: Sequence[Callable[[Candidate, Any], bo
                 cand = study.tell(trial, feedback=fb, eval_s=eval_s)
                 if math.isfinite(cand.ret):  # a numerical fault is never the best so far
                     best[0] = max(best[0], cand.ret)
-                latency = llm_latency() if cand.source not in ("warmup", "reeval") else None
+                latency = llm_latency() if cand.source not in ("warmup", "init", "reeval") else None
                 events.on_candidate(cand, latency, best[0])
                 if any(cb(cand, study) is False for cb in callbacks):
                     stop = True

@@ -53,7 +53,8 @@ class PhaseSettings:
     ``form_chosen`` (True: the user named it, so a model that cannot serve it is an error, not a
     fallback to chat), ``prompt_settings`` (a form's name -> the settings its prompts depend on),
     ``llm`` (the endpoint's settings), ``method_options`` (as stored; the method parses them),
-    ``on_llm_failure``, ``parse_retries`` and ``parallel`` (P, the trials out at once).
+    ``on_llm_failure``, ``parse_retries`` and ``parallel`` (P, the trials out at once);
+    ``init_thetas``: the given policies the warm-up starts with (``warm_start``).
     """
 
     warmup: int
@@ -69,6 +70,7 @@ class PhaseSettings:
     on_llm_failure: str
     parse_retries: int
     parallel: int
+    init_thetas: tuple[tuple[float, ...], ...] = ()
 
 
 class RunPhases:
@@ -134,7 +136,7 @@ class RunPhases:
         return plan_phases(self._phases, past, end, lambda i: SelectionProposer(self.streams, episodes, stage=i))
 
     def _build(self) -> list[Phase]:
-        from .proposers.base import Phase, SearchSetup
+        from .proposers.base import Phase, SearchProposer, SearchSetup
         from .proposers.uniform import warmup_sampler
         from .strategies import search_phase
         from .wire.forms import FORMS
@@ -143,7 +145,11 @@ class RunPhases:
         policy = task.policy
         mlp = {} if policy.is_linear else {"init": policy.init_bounds(task.n_s, task.n_a, settings.box),
                                            "bounds": policy.bounds(task.n_s, task.n_a, settings.box)}  # fmt: skip
-        warmup = warmup_sampler(task.D, settings.box, self.streams, settings.mechanisms, self.codec, **mlp)
+        warmup: SearchProposer = warmup_sampler(task.D, settings.box, self.streams, settings.mechanisms, self.codec, **mlp)
+        if settings.init_thetas:
+            from .warm_start import GivenFirst
+
+            warmup = GivenFirst(settings.init_thetas, warmup)
         phases = [Phase("warmup", warmup, settings.warmup)]
         if settings.iterations > 0:
             form = self.form() if self.method.uses_llm else FORMS[settings.form]
@@ -238,7 +244,7 @@ class RunPhases:
         from .llm.pacing import Pacer
 
         def floor() -> float:
-            times = [t[3] for t in self.store.candidate_times() if t[1] == "warmup"]
+            times = [t[3] for t in self.store.candidate_times() if t[1] in ("warmup", "init")]
             return max(np.diff(times), default=0.0) if len(times) > 1 else 0.0
 
         return Pacer(self.store, lambda n: self.streams.rng(seeding.PACING, n), floor=floor)

@@ -393,5 +393,9 @@ def build_config(values: Mapping[str, Any], *, task: Task | None = None) -> RunC
         assert options is not None
         task = load_task(options=options)
     check_fits_context(config, task)
+    if config.init_policy:
+        from .warm_start import init_thetas
+
+        config = dataclasses.replace(config, init_thetas=init_thetas(config.init_policy, task, box=config.box, warmup=config.warmup))
 
     return dataclasses.replace(config, task=task.name, task_spec=None if is_builtin(task) or task.spec is None else task.spec.model_dump(mode="json"))

@@ -151,7 +151,7 @@ def check(rules: StopRules, candidates: Sequence[Candidate], *, elapsed_s: float
         best, streak = -math.inf, 0
         for c in search:
             ret = c.ret if math.isfinite(c.ret) else -math.inf
-            if c.source != "warmup":
+            if c.source not in ("warmup", "init"):  # the warm-up's draws and the given policies
                 streak = 0 if ret > best else streak + 1
             best = max(best, ret)
         out.append(StopCheck("patience", streak >= rules.patience,

@@ -458,7 +458,7 @@ def _phase_settings(config: RunConfig, has_env: bool) -> PhaseSettings:
                          mechanisms=config.mechanisms, form=config.form, form_chosen=config.prompt_form == config.form,
                          prompt_settings=config.prompt_settings, llm=config.llm,
                          method_options=config.method_options, on_llm_failure=config.on_llm_failure,
-                         parse_retries=config.parse_retries, parallel=int(config.parallel))  # fmt: skip
+                         parse_retries=config.parse_retries, parallel=int(config.parallel), init_thetas=config.init_thetas)  # fmt: skip
 
 
 __all__ = ["Study", "StudyComplete", "Trial", "TrialsOut", "check_worker"]

@@ -206,7 +206,7 @@ def format_summary(s: dict[str, Any]) -> str:
     rule = s.get("stop_rule")
     if rule:
         lines.append(f"stopped  {s['stop_reason'] or 'the search ended early'}: {rule['why']}")
-    searched = c["candidates"] - c.get("warmup", 0) - c.get("by_source", {}).get("reeval", 0)
+    searched = c["candidates"] - c.get("warmup", 0) - sum(c.get("by_source", {}).get(k, 0) for k in ("reeval", "init"))
     fallbacks = c.get("fallback", 0)
     if searched and fallbacks * 2 > searched:  # the LLM contributed nothing, or little: say so first
         why = ", ".join(f"{k} x{v}" for k, v in c.get("fallback_reasons", {}).items()) or "no reason recorded"

@@ -22,15 +22,15 @@ def test_every_setting_is_an_option_of_search_and_create_study_exactly_once() ->
     keywords = set(get_type_hints(StudyOptions)) - set(API_GROUPS) - {"method_options"}
     assert set(API_GROUPS) <= set(get_type_hints(StudyOptions))  # every group is an option
     for s in SETTINGS:
-        places = [g for g, keys in groups.items() if keys.get(s.api_name) is s] + (["keyword"] if s.key in keywords else [])
+        places = [g for g, keys in groups.items() if keys.get(s.api_name) is s] + (["keyword"] if s.api_group is None and s.api_name in keywords else [])
         if s.key in TASK_ARGUMENT:
             assert places == [], s.key
         elif s.key == "method_options":
             assert places == [] and "method_options" in get_type_hints(StudyOptions)
         else:
             assert len(places) == 1, (s.key, places)
-    for name in keywords:  # every keyword of its own is a setting of the same name
-        assert any(s.key == name and s.api_group is None for s in SETTINGS), name
+    for name in keywords:  # every keyword of its own is a setting of that name (its api_name: --init-policy's is init_policies)
+        assert any(s.api_name == name and s.api_group is None for s in SETTINGS), name
 
 
 def test_search_and_create_study_take_the_same_options() -> None:

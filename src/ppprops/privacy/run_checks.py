@@ -156,7 +156,7 @@ def stop(a: RunFacts) -> None:
     target = a.config.stop.target_return
     search = [c for c in a.cands if c.reevaluates is None]
     hit = next((c for c in search if math.isfinite(c.ret) and c.ret >= target), None) if target is not None else None
-    if hit is None or not a.calls or hit.source == "warmup" or len(search) >= a.config.warmup + a.config.iterations:
+    if hit is None or not a.calls or hit.source in ("warmup", "init") or len(search) >= a.config.warmup + a.config.iterations:
         return
     if a.mech.hardened:
         a.report.notes.append(f"stop: the target return ended the search {search[-1].index - hit.index} candidates after the one that "

@@ -136,7 +136,7 @@ class R2POProposer(SearchProposer):
 
     def tell(self, candidate: Candidate) -> None:
         """Warm-up goes to the search history; of each proposal/revision pair only the better enters it."""
-        if candidate.source == "warmup":
+        if candidate.source in ("warmup", "init"):  # the warm-up, its given policies too
             self.search.tell(candidate)
         elif self.pending is None:  # the search stage's candidate (or its fallback)
             self.pending = candidate
