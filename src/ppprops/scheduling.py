@@ -13,7 +13,7 @@ import itertools
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -66,11 +66,22 @@ def wait_for(ask_once: Callable[[], Trial | str], *, wait: bool, timeout: float 
         delay = min(delay * 2, 0.5)
 
 
+def finalized(store: RunStore, run_dir: Path) -> bool:
+    """True once the study's policy is handed over: status finished, or stopped (on purpose) with a
+    final evaluation or its policy file written."""
+    from .rundir import POLICY_NAME
+
+    status, _ = store.run_status()
+    return status is RunStatus.FINISHED or (status is RunStatus.STOPPED and (store.final_eval() is not None or
+                                                                           (Path(run_dir) / POLICY_NAME).exists()))
+
+
 def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial]) -> None:
-    """Raise StudyComplete, with why, when nothing more can be asked: the study is finalized, it
-    stopped, or all ``total`` trials of its budget are asked (``out`` the trials still out)."""
+    """Raise StudyComplete, with why, when nothing more can be asked: the study is finalized (its
+    status finished, or stopped with its policy handed over), it stopped, or all ``total`` trials
+    of its budget are asked (``out`` the trials still out)."""
     status, reason = store.run_status()
-    if status is RunStatus.FINISHED:
+    if finalized(store, run_dir):
         raise StudyComplete(f"study {run_dir} is finalized ({store.candidate_count()} of {total} trials told): nothing more to ask",
                             finalized=True)
     if status is not RunStatus.STOPPED and store.next_number() < total:
@@ -91,7 +102,7 @@ def check_left(store: RunStore, run_dir: Path, total: int, out: Sequence[Trial])
 def check_retry(store: RunStore, number: int, run_dir: Path, parallel: int) -> None:
     """Refuse to ask trial ``number`` again unless it failed, the study is not finalized (its
     policy is handed over) and fewer than P trials are out: ConfigError, one line."""
-    if store.run_status()[0] is RunStatus.FINISHED:
+    if finalized(store, run_dir):
         raise ConfigError(f"study {run_dir} is finalized (its best policy is handed over): a failed trial can be "
                           "retried only before 'ppprops study finalize'")
     out = store.pending_trials()
@@ -132,10 +143,11 @@ def askable(phase: Phase, iteration: int, out: Sequence[Trial], parallel: int) -
 
 
 def propose(phases: RunPhases, store: RunStore, run_dir: Path, out: Sequence[Trial], *, worker: str, parallel: int, task: Task,
-            episode_seeds: Callable[[int], tuple[int, ...]]) -> list[Trial] | str:  # fmt: skip
+            episode_seeds: Callable[[int], tuple[int, ...]], queue: list[dict[str, Any]] | None = None) -> list[Trial] | str:  # fmt: skip
     """The next trials to hand out (the first to ``worker``), proposed by the phase the store's next
     trial number falls in, with ``out`` the trials out (fewer than P); or why none can be asked yet
     (one line: ``wait_for_earlier``, ``askable``). The proposers are told every settled trial first.
+    Queued given policies (``queue``, ``warm_start.take_queued``: removed from it) come first, alone.
 
     Raises ConfigError when the selection stage is reached and every search trial failed, and the
     proposer's StopSearch after storing the study's status ``stopped: <reason>``.
@@ -154,6 +166,13 @@ def propose(phases: RunPhases, store: RunStore, run_dir: Path, out: Sequence[Tri
     if isinstance(iterations, str):
         return iterations
     t0 = time.perf_counter()
+    if queue:
+        from .warm_start import take_queued
+
+        given = take_queued(queue, phase.name, iterations)
+        if given:
+            return new_trials(phase, iterations[:len(given)], given, first=n, worker=worker, ask_s=time.perf_counter() - t0, task=task,
+                              episode_seeds=episode_seeds)  # fmt: skip
     try:
         proposals = phase.proposer.ask_many(iterations)
     except StopSearch as stop:

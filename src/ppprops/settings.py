@@ -95,7 +95,9 @@ class Setting:
         return tuple(dict.fromkeys((self.flag[2:], self.key)))
 
     def help_text(self, suffix: str = "") -> str:
-        """The help line: the field's help, then its default."""
+        """The help line: the field's help, then its default (or ``suffix``, which says it instead)."""
+        if suffix:
+            return self.info.help + suffix
         shown = self.info.default_text
         if shown is None and self.default is not None and self.group != "mechanisms" and not self.info.repeatable:
             shown = "-6,6" if isinstance(self.default, tuple) else f"{self.default:g}" if isinstance(self.default, float) else str(self.default)

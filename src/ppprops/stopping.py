@@ -110,7 +110,7 @@ class StopRules:
         if self.target_return is not None and not math.isfinite(self.target_return):
             raise ConfigError(f"--target-return must be a finite number, got {self.target_return}")
         if self.time_limit_s is not None and not (math.isfinite(self.time_limit_s) and self.time_limit_s > 0):
-            raise ConfigError(f"--time-limit must be a positive duration such as 90s, 20m or 2h, got {self.time_limit_s:g} s")
+            raise ConfigError(f"--time-limit must be a positive duration such as 90s, 20m or 2h, got {self.time_limit_s:g} seconds")
         return self
 
     @property

@@ -354,10 +354,13 @@ class RunStore:
         its number is already a recorded candidate, a failed trial or a pending one."""
         self.add_pending_many([t], limit=limit)
 
-    def add_pending_many(self, trials: list[Trial], *, limit: int = 1) -> None:
-        """Store several asked trials in one transaction (a round of ``--parallel P``): all or none."""
+    def add_pending_many(self, trials: list[Trial], *, limit: int = 1, queued: list[dict[str, Any]] | None = None) -> None:
+        """Store several asked trials in one transaction (a round of ``--parallel P``): all or none;
+        with ``queued``, the queue of given policies left after them (``queued``) in the same one."""
         try:
             with self._tx() as db:
+                if queued is not None:
+                    db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('queued', ?)", (json.dumps(queued),))
                 for t in trials:
                     if db.execute("SELECT 1 FROM candidates WHERE idx = ?", (t.number,)).fetchone():
                         raise StoreError(f"candidate {t.number} is already recorded in {self.path}")
@@ -550,6 +553,15 @@ class RunStore:
     def set_pacing_state(self, state: Mapping[str, Any]) -> None:
         """Replace the request pacer's state."""
         self._set_meta("pacing", json.dumps(dict(state)))
+
+    def queued(self) -> list[dict[str, Any]]:
+        """The given policies waiting to be the next new trials (``warm_start.enqueue``), oldest first."""
+        raw = self._meta("queued")
+        return list(json.loads(raw)) if raw else []
+
+    def set_queued(self, queued: list[dict[str, Any]]) -> None:
+        """Replace the queue of given policies."""
+        self._set_meta("queued", json.dumps(queued))
 
     def stop_state(self) -> dict[str, Any]:
         """The stop rules' state (``stopping.StopState``): where the search ended early and why,

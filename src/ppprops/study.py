@@ -276,12 +276,29 @@ class Study:
             check_left(self.store, self.run_dir, self.total, out)
             if len(out) >= self.parallel:
                 return f"{len(out)} trials are out, the most at once (--parallel {self.parallel}): {holders(out)}; tell one first"
+            queue = self.store.queued()
+            before = len(queue)
             trials = propose(self._phases, self.store, self.run_dir, out, worker=name, parallel=self.parallel, task=self.task,
-                             episode_seeds=lambda number: tuple(self.streams.episode_seeds(number, self.config.episodes)))
+                             episode_seeds=lambda number: tuple(self.streams.episode_seeds(number, self.config.episodes)), queue=queue)
             if isinstance(trials, str):
                 return trials
-            self.store.add_pending_many(trials, limit=self.parallel)
+            self.store.add_pending_many(trials, limit=self.parallel, queued=queue if len(queue) != before else None)
             return trials[0]
+
+    def enqueue(self, theta: Sequence[float] | None = None, *, W: Any = None, b: Any = None, note: str = "") -> int:
+        """Queue a policy you have (raw ``theta``, shape (D,), or ``W`` (n_s, n_a) and ``b`` (n_a,)
+        of ``u = s @ W + b``) as the next new trial asked, in that trial's warm-up or search place
+        (``warm_start``); returns its place in the queue (1: next). Raises ConfigError for a policy
+        of the wrong shape or values, or when there is no place left for it."""
+        from .warm_start import enqueue, init_thetas
+
+        given = {"theta": theta} if W is None and b is None else {"W": W, "b": b}
+        if theta is not None and (W is not None or b is not None):
+            raise ConfigError("enqueue takes theta, or W and b: not both")
+        [raw] = init_thetas([given], self.task, box=self.config.box, warmup=1)
+        with file_lock(self.run_dir, STUDY_LOCK):
+            return enqueue(self.store, raw, task=self.task, box=self.config.box, search_takes=self.method.phase in ("props_phase", "random_phase"),
+                           warmup=self.config.warmup, planned_end=stopping.search_end(self.store) or self._planned_end, note=note)  # fmt: skip
 
     @overload
     def tell(self, trial: Trial | int, returns: float | Sequence[float] | None = None, *,

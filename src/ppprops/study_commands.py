@@ -50,6 +50,9 @@ def add_study_arguments(st: argparse.ArgumentParser, parser_class: type[argparse
     rt = stsub.add_parser("retry", help="ask a failed trial again (the same parameters and seeds, under its own number)")
     rt.add_argument("dir", type=Path, help="the study directory")
     rt.add_argument("trial", type=int, help="the number of the failed trial")
+    eq = stsub.add_parser("enqueue", help="make a policy you have the next new trial asked (in its warm-up or search place)")
+    eq.add_argument("dir", type=Path, help="the study directory")
+    eq.add_argument("path", type=Path, help="a policy file of this task, or JSON with W and b (u = s @ W + b) or with theta")
     fi = stsub.add_parser("finalize", help="the final evaluation (with an env, or your own episodes) and best_policy.json")
     fi.add_argument("dir", type=Path, help="the study directory")
     fi.add_argument("--return", dest="returns", action="append", type=_finite_float, metavar="R", default=None,
@@ -284,7 +287,7 @@ def cmd_tell(a: argparse.Namespace) -> int:
 
 
 def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
-    """``ppprops study create`` / ``finalize``."""
+    """``ppprops study create`` / ``enqueue`` / ``retry`` / ``finalize``."""
     from .study import Study
 
     if a.study_command == "create":
@@ -298,6 +301,15 @@ def cmd_study(a: argparse.Namespace, run_config: Any) -> int:
         with Study.create(config, out) as study:
             print(json.dumps({"dir": str(out), "task": study.task.name, "method": study.method.name, "seed": config.seed,
                               "trials": study.total, "D": study.task.D}) if a.json else f"study directory: {out}")
+        return 0
+    if a.study_command == "enqueue":
+        from .warm_start import init_thetas
+
+        with Study.load(a.dir) as study:
+            [theta] = init_thetas([a.path], study.task, box=study.config.box, warmup=1, flag="")
+            place = study.enqueue(theta, note=f"given policy {a.path.name}")
+        ahead = f" ({place - 1} queued before it)" if place > 1 else ""
+        print(f"{a.path} is queued{ahead}: the next new trial 'ppprops ask {a.dir}' hands out evaluates it")
         return 0
     if a.study_command == "retry":
         with Study.load(a.dir) as study:

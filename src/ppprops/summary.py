@@ -107,7 +107,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
     return _finite({
         "run_id": store.run_id(),
         "status": status.stored(reason) if status is not RunStatus.INTERRUPTED or not reason else f"interrupted ({reason})",
-        "stop_reason": reason if status is RunStatus.STOPPED and reason else None,
+        "stop_reason": reason if status is RunStatus.STOPPED and reason else early.get("reason") if early.get("end") is not None else None,
         "stop_rule": {k: early[k] for k in ("rule", "why", "end")} if early.get("end") is not None else None,
         "pending_trial": None if pending is None else pending.number,
         "trials_out": [{"trial": t.number, "worker": t.worker, "source": t.source} for t in out],

@@ -11,6 +11,11 @@ warm-up: trial i < k is given policy i, and the warm-up's other trials are the d
 have been without them (each warm-up draw is keyed by its trial number, ``GivenFirst``). Like every
 candidate they are encoded under the run's secrets before they reach a prompt, and the audit
 checks them like any raw value.
+
+A study also takes a given policy at any time before its search is over (``Study.enqueue``,
+``ppprops study enqueue DIR PATH``): queued in the store, it is the next new trial asked, in the
+place of that trial's warm-up draw or LLM proposal (CMA-ES and R2PO ask their own trials: for
+them, within the warm-up only).
 """
 
 from __future__ import annotations
@@ -29,16 +34,19 @@ from .proposers.base import Proposal, SearchProposer
 from .values import Candidate
 
 if TYPE_CHECKING:
+    from .store import RunStore
     from .tasks import Task
 
 SOURCE = "init"  # the candidates' source
 
 
-def init_thetas(policies: Sequence[Any], task: Task, *, box: tuple[float, float], warmup: int) -> tuple[tuple[float, ...], ...]:
+def init_thetas(policies: Sequence[Any], task: Task, *, box: tuple[float, float], warmup: int,
+                flag: str = "--init-policy") -> tuple[tuple[float, ...], ...]:  # fmt: skip
     """The raw parameters (D values each) of the given policies, checked against ``task``.
 
     Each of ``policies`` is a path (str or os.PathLike) to a policy file or a JSON object, a
     mapping with ``W`` and ``b`` or with ``theta``, or a sequence of D numbers (module docstring).
+    ``flag`` starts a path's error line (``--init-policy PATH: ...``; "" for the path alone).
 
     Raises:
         ConfigError: one line naming the policy: a missing or unreadable file, not JSON, another
@@ -48,12 +56,12 @@ def init_thetas(policies: Sequence[Any], task: Task, *, box: tuple[float, float]
     if len(policies) > warmup:
         raise ConfigError(f"--init-policy: {len(policies)} policies given, more than the warm-up holds (--warmup {warmup}); "
                           "the given policies take the warm-up's first places")  # fmt: skip
-    return tuple(tuple(float(v) for v in _theta(p, task, box)) for p in policies)
+    return tuple(tuple(float(v) for v in _theta(p, task, box, flag)) for p in policies)
 
 
-def _theta(policy: Any, task: Task, box: tuple[float, float]) -> np.ndarray:
+def _theta(policy: Any, task: Task, box: tuple[float, float], flag: str) -> np.ndarray:
     if isinstance(policy, str | os.PathLike):
-        where = f"--init-policy {policy}"
+        where = f"{flag} {policy}".strip()
         doc = _read(Path(policy), where)
     else:
         where, doc = "init policy", policy
@@ -145,6 +153,40 @@ def _numbers(value: Any, where: str, name: str, *, flat: bool = True) -> np.ndar
     return arr
 
 
+TAKES_GIVEN = ("warmup", "llm", "random")  # the phases whose trials a queued policy may take (CMA-ES and R2PO ask their own)
+
+
+def enqueue(store: RunStore, theta: Sequence[float], *, task: Task, box: tuple[float, float], search_takes: bool, warmup: int,
+            planned_end: int, note: str = "") -> int:  # fmt: skip
+    """Queue a given policy (raw, shape (D,)) to be the study's next new trial: it takes that trial's
+    place in the warm-up or the search (its draw or its proposal is never made), encoded like any
+    candidate. Returns its place in the queue (1: the next new trial). Call it under the study's lock.
+
+    Raises:
+        ConfigError: the policy's shape or values (``init_thetas``), or no place left for it: the
+            search is over, or the method's search asks its own trials (``search_takes`` False:
+            CMA-ES, R2PO) and the warm-up has no place left.
+    """
+    [checked] = init_thetas([list(theta)], task, box=box, warmup=1)
+    queue = store.queued()
+    first = store.next_number() + len(queue)  # the trial it would be
+    last = planned_end if search_takes else warmup
+    if first >= last:
+        where = "its search is over" if first >= planned_end else "its warm-up is asked, and the method's search asks its own trials"
+        raise ConfigError(f"no place left for a given policy: {where}")
+    store.set_queued([*queue, {"theta": list(checked), "note": note or "given policy"}])
+    return len(queue) + 1
+
+
+def take_queued(queue: list[dict[str, Any]], phase: str, iterations: Sequence[int]) -> list[Proposal]:
+    """The proposals of the queued policies ``iterations`` take (the first ones; none in a phase not
+    in ``TAKES_GIVEN``), removed from ``queue``."""
+    if phase not in TAKES_GIVEN:
+        return []
+    taken, queue[:] = queue[:len(iterations)], queue[len(iterations):]
+    return [Proposal(theta=np.asarray(q["theta"], dtype=np.float64), source=SOURCE, note=str(q["note"])) for q in taken]
+
+
 class GivenFirst(SearchProposer):
     """The warm-up with the given policies first: iteration i < k proposes given policy i (source
     ``init``), any other the warm-up sampler's draw i (the draw it would have been without them)."""
@@ -163,4 +205,4 @@ class GivenFirst(SearchProposer):
         """Nothing: neither depends on results."""
 
 
-__all__ = ["GivenFirst", "SOURCE", "init_thetas"]
+__all__ = ["GivenFirst", "SOURCE", "TAKES_GIVEN", "enqueue", "init_thetas", "take_queued"]

@@ -137,7 +137,7 @@ RUN = ["run", "--env", "CartPole", "--method", "random", "--warmup", "2", "--ite
 
 @pytest.mark.parametrize(("flags", "line"), [
     (["--time-limit", "5x"], "argument --time-limit: must be a duration such as 90s, 20m or 2h (or a number of seconds), got '5x'"),
-    (["--time-limit", "0s"], "--time-limit must be a positive duration such as 90s, 20m or 2h, got 0 s"),
+    (["--time-limit", "0s"], "--time-limit must be a positive duration such as 90s, 20m or 2h, got 0 seconds"),
     (["--patience", "-1"], "--patience must be >= 1, got -1"),
     (["--target-return", "nan"], "--target-return must be a finite number, got nan"),
     (["--target-return", "inf"], "--target-return must be a finite number, got inf"),
@@ -190,9 +190,13 @@ def test_a_study_asked_after_a_stop_says_why(tmp_path: Path, capsys: pytest.Capt
     assert main(["ask", str(out)]) == 3  # EXIT_DONE: nothing more to ask
     assert capsys.readouterr().err == (f"ppprops: study {out} has nothing more to ask (it stopped: target return reached after 2 "
                                        f"candidates); finalize it: 'ppprops study finalize {out}'\n")  # fmt: skip
+    assert _show_json(out)["stop_reason"] == "target return reached after 2 candidates"  # open still, and says why it stopped
     assert main(["study", "finalize", str(out)]) == 0
     with open_store(out) as store:
         assert store.status() == "stopped: target return reached after 2 candidates" and store.candidate_count() == 2
+    capsys.readouterr()
+    assert main(["ask", str(out)]) == 3
+    assert capsys.readouterr().err == f"ppprops: study {out} is finalized (2 of 2 trials told): nothing more to ask\n"
 
 
 def test_a_time_limit_stops_a_run_of_a_hundred_thousand_iterations(tmp_path: Path) -> None:

@@ -141,3 +141,47 @@ def test_a_missing_or_broken_file_and_too_many_policies_are_one_line(tmp_path: P
     with pytest.raises(ConfigError, match=r"^init policy has 3 parameters; task CartPole has D = 10"):
         ppprops.search("CartPole", method="random", warmup=2, iterations=1, out=tmp_path / "p", init_policies=[[1, 2, 3]])
     assert not (tmp_path / "p").exists()
+
+
+# -- a study takes a policy at any time before its search is over --------------------------------------
+def test_the_shell_enqueues_the_next_trial_in_the_place_of_a_warm_up_draw(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "study"
+    policy = _write(tmp_path, "half.json", {"W": W, "b": B})
+    assert main(["study", "create", "--env", "CartPole", "--method", "random", "--warmup", "3", "--iterations", "2", "--out", str(out)]) == 0
+    assert main(["ask", str(out)]) == 0 and main(["tell", str(out), "0", "--return", "9"]) == 0
+    capsys.readouterr()
+    assert main(["study", "enqueue", str(out), str(policy)]) == 0
+    assert capsys.readouterr().out == f"{policy} is queued: the next new trial 'ppprops ask {out}' hands out evaluates it\n"
+    assert main(["ask", str(out)]) == 0
+    trial = json.loads(capsys.readouterr().out)
+    assert (trial["trial"], trial["source"], trial["theta"], trial["note"]) == (1, "init", GIVEN, "given policy half.json")
+    assert main(["tell", str(out), "1", "--return", "30"]) == 0 and main(["ask", str(out)]) == 0
+    third = json.loads(capsys.readouterr().out.splitlines()[-1])
+    from ppprops.study import Study
+
+    with Study.load(out) as study:  # the draw of trial 2 is warm-up draw 2 of this study's own stream, not draw 1
+        warmup = study._get_phases()[0].proposer
+        assert third["source"] == "warmup" and third["theta"] == warmup.ask(2).theta.tolist() != warmup.ask(1).theta.tolist()
+
+
+def test_python_enqueues_w_and_b_mid_search_and_refuses_when_no_place_is_left(tmp_path: Path) -> None:
+    with ppprops.create_study("CartPole", method="random", warmup=2, iterations=2, storage=tmp_path / "s",
+                              evaluation={"select_top": 0}) as study:  # fmt: skip
+        for _ in range(3):
+            t = study.ask()
+            study.tell(t, 10.0)
+        assert study.enqueue(W=W, b=B) == 1  # the search's last place
+        t = study.ask()
+        assert (t.number, t.source, t.phase, t.theta.tolist()) == (3, "init", "random", GIVEN)
+        with pytest.raises(ConfigError, match=r"^no place left for a given policy: its search is over$"):
+            study.enqueue(GIVEN)
+        with pytest.raises(ConfigError, match=r"^init policy has 2 parameters; task CartPole has D = 10"):
+            study.enqueue([1.0, 2.0])
+        study.tell(t, 20.0)
+        assert study.done and study.store.queued() == []
+    with ppprops.create_study("CartPole", method="cmaes", warmup=2, iterations=4, storage=tmp_path / "c",
+                              evaluation={"select_top": 0}) as study:  # fmt: skip
+        assert study.enqueue(GIVEN) == 1 and study.enqueue(GIVEN) == 2  # both warm-up places
+        with pytest.raises(ConfigError, match=r"^no place left for a given policy: its warm-up is asked, and the method's search asks"):
+            study.enqueue(GIVEN)
+        assert [study.ask(worker=None).source] == ["init"]
