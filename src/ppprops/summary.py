@@ -12,6 +12,7 @@ from .errors import PPPropsError
 from .loop import best_candidate, pooled_returns, search_candidates, select_best
 from .rundir import StoredRun, open_run
 from .status import RunKind, RunStatus, effective
+from .usage import describe, usage
 
 
 def _finite(x: Any) -> Any:
@@ -66,7 +67,8 @@ def run_summary(run_dir: Path) -> dict[str, Any]:
 
     Keys: run_id, status, stop_reason (why a stopped run stopped, else None), stop_rule (the stop
     rule that ended the search early: rule, why, end, the trial number where the selection stage
-    began; else None), env, number_format (resolved), method, mechanisms, seed, config, endpoint_changes (LLM endpoints
+    began; else None), usage (``ppprops.usage``: requests and tokens, by stage),
+    env, number_format (resolved), method, mechanisms, seed, config, endpoint_changes (LLM endpoints
     changed on resume), best, final_eval, counts, candidates, llm_calls (RL runs: ``training``
     too). Raises StoreError for a directory that holds no readable run."""
     with open_run(run_dir) as run:
@@ -161,6 +163,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
             }
             for c in cands
         ],
+        "usage": usage(calls),
         "llm_calls": [
             {
                 "iteration": call["iteration"],
@@ -270,5 +273,6 @@ def format_summary(s: dict[str, Any]) -> str:
         lines.append(f"final    {fe['mean']:.2f} +- {fe['std']:.2f} over {fe['episodes']} fresh episodes")
     lat = [x["latency_s"] for x in s["llm_calls"] if x.get("answered", True)]
     if lat:
-        lines.append(f"llm      mean latency {sum(lat) / len(lat):.2f} s, last prompt {s['llm_calls'][-1]['prompt_chars']} chars")
+        spent = f"; {describe(s['usage'])}" if s.get("usage") else ""
+        lines.append(f"llm      mean latency {sum(lat) / len(lat):.2f} s, last prompt {s['llm_calls'][-1]['prompt_chars']} chars{spent}")
     return "\n".join(lines)
