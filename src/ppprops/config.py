@@ -230,6 +230,10 @@ class RunConfig:
             del d["method_options"]  # as stored before methods had options
         if not self.stop.given:
             del d["stop"]  # as stored before the stop rules existed
+        if self.llm.price is None:
+            del d["llm"]["price"]  # as stored before prices
+        else:
+            d["llm"]["price"] = list(self.llm.price)
         if not self.init_thetas:
             del d["init_policy"], d["init_thetas"]  # as stored before warm starts existed
         else:

@@ -163,7 +163,7 @@ def summarize(run: StoredRun) -> dict[str, Any]:
             }
             for c in cands
         ],
-        "usage": usage(calls),
+        "usage": usage(calls, config.llm.price),
         "llm_calls": [
             {
                 "iteration": call["iteration"],

@@ -8,7 +8,8 @@ any is unknown is None, never 0, and ``unknown`` says how many requests lack it.
 
 The stages: ``search`` (each iteration's request, its transport retries included), ``corrections``
 (the requests that ask again after an unusable answer, ``--parse-retries``); the warm-up and the
-selection stage send nothing, and are listed with their zeros.
+selection stage send nothing, and are listed with their zeros. With a price (``--price IN,OUT``,
+dollars per million prompt and completion tokens) each total has its ``cost_usd``.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def stage_of(call: Mapping[str, Any]) -> str:
     return "corrections" if int(call.get("attempt") or 0) > 0 else "search"
 
 
-def _totals(calls: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def _totals(calls: Sequence[Mapping[str, Any]], price: tuple[float, float] | None = None) -> dict[str, Any]:
     answered = [c for c in calls if c.get("answered", True) and c.get("response")]
     out: dict[str, Any] = {"requests": len(calls)}
     unknown = 0
@@ -52,15 +53,19 @@ def _totals(calls: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             unknown = max(unknown, missing)
         out[key] = None if missing else int(sum(int(v) for v in values if v is not None))
     out["unknown"] = unknown
+    known = price is not None and out["prompt_tokens"] is not None and out["completion_tokens"] is not None
+    out["cost_usd"] = (out["prompt_tokens"] * price[0] + out["completion_tokens"] * price[1]) / 1e6 if known and price else None
     return out
 
 
-def usage(calls: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def usage(calls: Sequence[Mapping[str, Any]], price: tuple[float, float] | None = None) -> dict[str, Any]:
     """Requests and token totals of a run's stored LLM calls (``RunStore.llm_calls``), in all and
     ``by_stage`` (``STAGES``): each ``{"requests", "prompt_tokens", "completion_tokens",
-    "reasoning_tokens", "unknown"}``, a token total None when any answered request lacks it."""
-    whole = _totals(calls)
-    whole["by_stage"] = {stage: _totals([c for c in calls if stage_of(c) == stage]) for stage in STAGES}
+    "reasoning_tokens", "unknown", "cost_usd"}``, a token total None when any answered request
+    lacks it. ``price``: dollars per million prompt and completion tokens (``--price``); the
+    cost is None without it or without known totals (reasoning tokens are completion tokens)."""
+    whole = _totals(calls, price)
+    whole["by_stage"] = {stage: _totals([c for c in calls if stage_of(c) == stage], price) for stage in STAGES}
     return whole
 
 
@@ -71,7 +76,8 @@ def describe(u: Mapping[str, Any]) -> str:
     if u["prompt_tokens"] is None or u["completion_tokens"] is None:
         return f"{u['requests']} requests; tokens unknown ({u['unknown']} answers reported no usage)"
     reasoning = f" ({u['reasoning_tokens']:,} reasoning)" if u.get("reasoning_tokens") else ""
-    return f"{u['requests']} requests, {u['prompt_tokens']:,} prompt + {u['completion_tokens']:,} completion tokens{reasoning}"
+    cost = f", ${u['cost_usd']:.4f}" if u.get("cost_usd") is not None else ""
+    return f"{u['requests']} requests, {u['prompt_tokens']:,} prompt + {u['completion_tokens']:,} completion tokens{reasoning}{cost}"
 
 
 __all__ = ["COUNTS", "STAGES", "describe", "reasoning_tokens", "stage_of", "usage"]

@@ -5,15 +5,31 @@ The LLM client (``ppprops.llm.client``) takes these and nothing else of a run's 
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 from urllib.parse import urlsplit
 
-from pydantic import Field, model_validator
+from pydantic import BeforeValidator, Field, model_validator
 from pydantic.dataclasses import dataclass
 
 from ..errors import ConfigError
-from ..schema import SCHEMA, Flag, Float, Int, one_line_errors
+from ..schema import SCHEMA, Flag, Float, Int, one_line_errors, parse_box
+
+
+def parse_price(value: Any) -> tuple[float, float] | None:
+    """``"IN,OUT"`` (the flag's form), ``[IN, OUT]`` (a file's) or a pair, as two floats; None stays None.
+
+    Raises:
+        ValueError: anything else.
+    """
+    if value is None:
+        return None
+    try:
+        return parse_box(value)
+    except ValueError:
+        raise ValueError(f"expected IN,OUT (dollars per million prompt, completion tokens), got {value!r}") from None
+
 
 MAX_TRANSPORT_RETRIES = 20
 MAX_DELAY_S = 3600.0
@@ -64,9 +80,16 @@ class LLMConfig:
     retry_after_cap_s: Annotated[Float, Field(ge=0.0, le=MAX_DELAY_S), Flag(
         "longest Retry-After of a 429 that is honoured, seconds", name="retry-after-cap", metavar="S",
         range_text=f"[0, {MAX_DELAY_S:g}] seconds")] = 60.0
+    # dollars per million prompt and completion tokens: what `show` prices the search's tokens at (ppprops.usage); never sent
+    price: Annotated[tuple[float, float] | None, BeforeValidator(parse_price), Flag(
+        "dollars per million prompt and completion tokens, e.g. 0.15,0.60: show gives the search's cost", metavar="IN,OUT",
+        default_text="none")] = None
 
     @model_validator(mode="after")
     def _consistent(self) -> LLMConfig:
+        if self.price is not None and not all(math.isfinite(p) and p >= 0 for p in self.price):
+            raise ConfigError(f"--price must be two finite numbers >= 0 (dollars per million prompt, completion tokens), got "
+                              f"{self.price[0]:g},{self.price[1]:g}")  # fmt: skip
         if self.retry_max_s < self.retry_base_s:
             raise ConfigError(f"--retry-max-delay ({self.retry_max_s}) must be >= --retry-base-delay ({self.retry_base_s})")
         if self.base_url is not None and not self.base_url.startswith(("http://", "https://")):
