@@ -279,8 +279,9 @@ def update(store: RunStore, rules: StopRules, *, planned_end: int, now: float, t
     if state.get("end") is not None:
         return None
     elapsed = _tick(store, state, now) if rules.time_limit_s is not None else None
-    candidates = store.candidates() if told else []
-    rules_now = rules if told else StopRules(time_limit_s=rules.time_limit_s)
+    by_returns = told and (rules.target_return is not None or rules.patience is not None)
+    candidates = store.candidates() if by_returns else []  # the time limit alone reads none
+    rules_now = rules if by_returns else StopRules(time_limit_s=rules.time_limit_s)
     fired = next((c for c in check(rules_now, candidates, elapsed_s=elapsed) if c.fired), None)
     end = store.next_number()
     if fired is not None and fired.rule == "target_return" and delay is not None:
